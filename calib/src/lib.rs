@@ -1,0 +1,1 @@
+//! Estimating the texel camera's sensor model from captures of a calibration target.

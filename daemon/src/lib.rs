@@ -1,0 +1,4 @@
+//! The Texel daemon's library: capture inspection now; sources, sync, registration,
+//! the model, recording and serving as they arrive.
+
+pub mod info;

@@ -1,0 +1,44 @@
+#!/usr/bin/env bash
+# Installs what a fresh Debian 12 machine lacks to build, test and run Texel:
+# system packages (quietly, only the missing ones) and the Python venv of peer tools
+# (cached outside the repository, rebuilt only when requirements change).
+# Idempotent: a second run does nothing but check.
+set -euo pipefail
+
+repo="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+
+# Packages: lavapipe (software Vulkan) for wgpu; Xvfb and X client libraries for the
+# windowed viewer; libclang for the v4l crate's bindgen; libusb for Open3D; LLVM 19
+# for Mitsuba's LLVM backend.
+packages=(
+  mesa-vulkan-drivers libvulkan1 xvfb xauth libxcursor1 libxi6 libxrandr2
+  libxkbcommon-x11-0 libx11-xcb1 libclang-dev libusb-1.0-0 libllvm19 pkg-config
+)
+
+missing=()
+for p in "${packages[@]}"; do
+  if ! dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed"; then
+    missing+=("$p")
+  fi
+done
+if [ ${#missing[@]} -gt 0 ]; then
+  sudo=""
+  if [ "$(id -u)" -ne 0 ]; then sudo="sudo"; fi
+  echo "setup: installing ${missing[*]}" >&2
+  $sudo env DEBIAN_FRONTEND=noninteractive apt-get update -qq
+  $sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends \
+    "${missing[@]}" >/dev/null
+fi
+
+# The Python venv, outside the clone.
+venv="${TEXEL_VENV:-${XDG_CACHE_HOME:-$HOME/.cache}/texel/venv}"
+req="$repo/scripts/python/requirements.txt"
+stamp="$venv/.texel-requirements"
+if [ ! -x "$venv/bin/python" ] || ! cmp -s "$req" "$stamp"; then
+  echo "setup: creating the Python venv at $venv" >&2
+  mkdir -p "$(dirname "$venv")"
+  python3 -m venv "$venv"
+  "$venv/bin/python" -m pip install -q --disable-pip-version-check --upgrade pip
+  "$venv/bin/python" -m pip install -q --disable-pip-version-check -r "$req"
+  cp "$req" "$stamp"
+fi

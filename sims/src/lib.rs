@@ -1,0 +1,1 @@
+//! The simulated texel camera: scenes, ray casting, effects, trajectories and ground truth.

@@ -1,0 +1,133 @@
+//! Raw sensor frames as every source yields them (serial lidar, V4L2 camera,
+//! simulator, capture replay): a lidar range frame, an EO colour frame, and a pair
+//! of them taken together.
+
+/// One lidar frame: radial range along each pixel's ray, row-major, row 0 at the top.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RangeFrame {
+    pub width: u32,
+    pub height: u32,
+    /// Radial range in metres (not z-depth); NaN where the lidar saw no return.
+    pub ranges_m: Vec<f32>,
+    /// Device (or capture) timestamp, nanoseconds.
+    pub timestamp_ns: u64,
+    /// Frame counter from the source (TXL1 `seq`, MCAP message sequence).
+    pub seq: u32,
+    /// Optional per-pixel return intensity (arbitrary linear units), same size.
+    pub intensity: Option<Vec<f32>>,
+}
+
+impl RangeFrame {
+    /// A frame of `width x height` with every pixel a no-return.
+    pub fn empty(width: u32, height: u32, timestamp_ns: u64, seq: u32) -> Self {
+        Self {
+            width,
+            height,
+            ranges_m: vec![f32::NAN; width as usize * height as usize],
+            timestamp_ns,
+            seq,
+            intensity: None,
+        }
+    }
+
+    pub fn pixel_count(&self) -> usize {
+        self.width as usize * self.height as usize
+    }
+
+    /// Range at `(u, v)`, `None` for a no-return or a pixel off the frame.
+    pub fn range_at(&self, u: u32, v: u32) -> Option<f32> {
+        if u >= self.width || v >= self.height {
+            return None;
+        }
+        let r = *self.ranges_m.get((v * self.width + u) as usize)?;
+        is_return(r).then_some(r)
+    }
+
+    pub fn return_count(&self) -> usize {
+        self.ranges_m.iter().filter(|&&r| is_return(r)).count()
+    }
+
+    /// True when the buffers have the sizes the header says.
+    pub fn is_consistent(&self) -> bool {
+        self.ranges_m.len() == self.pixel_count()
+            && self
+                .intensity
+                .as_ref()
+                .is_none_or(|i| i.len() == self.pixel_count())
+    }
+}
+
+/// True for a range value that is a return (finite and positive); NaN, infinities,
+/// zero and negative values are no-returns.
+#[inline]
+pub fn is_return(range_m: f32) -> bool {
+    range_m.is_finite() && range_m > 0.0
+}
+
+/// One EO frame after conversion to RGB8, row-major, row 0 at the top.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EoFrame {
+    pub width: u32,
+    pub height: u32,
+    /// `3 * width * height` bytes, R G B per pixel.
+    pub rgb: Vec<u8>,
+    pub timestamp_ns: u64,
+}
+
+impl EoFrame {
+    pub fn pixel_count(&self) -> usize {
+        self.width as usize * self.height as usize
+    }
+
+    pub fn is_consistent(&self) -> bool {
+        self.rgb.len() == 3 * self.pixel_count()
+    }
+
+    /// RGB at `(u, v)`, `None` off the frame.
+    pub fn pixel(&self, u: u32, v: u32) -> Option<[u8; 3]> {
+        if u >= self.width || v >= self.height {
+            return None;
+        }
+        let i = 3 * (v as usize * self.width as usize + u as usize);
+        Some([
+            *self.rgb.get(i)?,
+            *self.rgb.get(i + 1)?,
+            *self.rgb.get(i + 2)?,
+        ])
+    }
+}
+
+/// A lidar frame and the EO frame taken with it: one texel frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FramePair {
+    pub range: RangeFrame,
+    pub eo: EoFrame,
+}
+
+impl FramePair {
+    /// The texel frame's timestamp: the lidar's, which fusion's geometry comes from.
+    pub fn timestamp_ns(&self) -> u64 {
+        self.range.timestamp_ns
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn returns_and_lookups() {
+        let mut f = RangeFrame::empty(3, 2, 7, 1);
+        f.ranges_m[4] = 2.5;
+        f.ranges_m[0] = 0.0;
+        f.ranges_m[1] = f32::INFINITY;
+        f.ranges_m[2] = -1.0;
+        assert_eq!(f.return_count(), 1);
+        assert_eq!(f.range_at(1, 1), Some(2.5));
+        assert_eq!(f.range_at(0, 0), None);
+        assert_eq!(f.range_at(3, 0), None);
+        assert!(f.is_consistent());
+        f.intensity = Some(vec![0.0; 5]);
+        assert!(!f.is_consistent());
+    }
+}

@@ -1,0 +1,17 @@
+//! Texel's shared vocabulary: raw frames, sensor models, poses, synchronisation and the
+//! capture format. No I/O beyond files, no async.
+
+pub mod camera;
+pub mod capture;
+pub mod distortion;
+pub mod frames;
+pub mod pose;
+pub mod rays;
+pub mod sensor;
+pub mod sync;
+
+pub use camera::{Distortion, PinholeCamera};
+pub use distortion::PlumbBob;
+pub use frames::{EoFrame, FramePair, RangeFrame};
+pub use pose::Pose;
+pub use sensor::{RangeNoise, Sensor, SensorInfo, SensorModel};

@@ -1,0 +1,1 @@
+//! The texel model viewer: stream client, view-dependent renderer and headless rendering.
