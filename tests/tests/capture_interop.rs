@@ -298,7 +298,8 @@ fn captures_written_here_decode_in_python() {
 /// back as one texel frame with the sensor it describes.
 #[test]
 fn the_documented_python_example_writes_a_valid_capture() {
-    let doc = std::fs::read_to_string(texel_e2e::repo_root().join("docs/capture-format.md")).unwrap();
+    let doc =
+        std::fs::read_to_string(texel_e2e::repo_root().join("docs/capture-format.md")).unwrap();
     let start = doc.find("```python\n").expect("a python example") + "```python\n".len();
     let end = start + doc[start..].find("```").unwrap();
     let dir = tempfile::tempdir().unwrap();
@@ -309,9 +310,13 @@ fn the_documented_python_example_writes_a_valid_capture() {
         .status()
         .unwrap();
     assert!(status.success());
-    let items: Vec<_> = open_texel_frames(&dir.path().join("one-frame.mcap")).unwrap().collect();
+    let items: Vec<_> = open_texel_frames(&dir.path().join("one-frame.mcap"))
+        .unwrap()
+        .collect();
     assert_eq!(items.len(), 1);
-    let Ok(TexelItem::Pair { pair, sensor }) = &items[0] else { panic!("{:?}", items[0]) };
+    let Ok(TexelItem::Pair { pair, sensor }) = &items[0] else {
+        panic!("{:?}", items[0])
+    };
     assert_eq!(pair.range.return_count(), 120 * 128);
     assert_eq!(pair.eo.pixel(5, 5), Some([200, 0, 0]));
     assert_eq!(sensor.eo_from_lidar.translation.vector.x, 0.03);

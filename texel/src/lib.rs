@@ -9,6 +9,7 @@ pub mod pose;
 pub mod rays;
 pub mod sensor;
 pub mod sync;
+pub mod txl1;
 
 pub use camera::{Distortion, PinholeCamera};
 pub use distortion::PlumbBob;
