@@ -1,4 +1,5 @@
 //! The Texel daemon's library: capture inspection now; sources, sync, registration,
 //! the model, recording and serving as they arrive.
 
+pub mod export;
 pub mod info;

@@ -20,6 +20,23 @@ enum Command {
         /// The capture (MCAP) file.
         capture: PathBuf,
     },
+    /// Fuse one texel frame of a capture and write it as PLY (points with colours and
+    /// triangles) or glTF 2.0 (a textured mesh; `.glb` for the binary container).
+    Export {
+        /// The capture (MCAP) file.
+        capture: PathBuf,
+        /// Which texel frame, counting from 0 in file order.
+        #[arg(long)]
+        frame: usize,
+        #[arg(long, value_enum)]
+        format: texel_daemon::export::ExportFormat,
+        /// Place the scan in the world by /texel/pose (else /truth/pose) instead of
+        /// its own EO frame.
+        #[arg(long)]
+        world: bool,
+        #[arg(long)]
+        out: PathBuf,
+    },
 }
 
 fn main() -> ExitCode {
@@ -36,6 +53,33 @@ fn main() -> ExitCode {
             }
             Err(e) => {
                 eprintln!("texeld info: {e}");
+                ExitCode::FAILURE
+            }
+        },
+        Command::Export {
+            capture,
+            frame,
+            format,
+            world,
+            out,
+        } => match texel_daemon::export::export_frame(&capture, frame, format, world, &out) {
+            Ok(s) => {
+                println!(
+                    "exported frame {frame} ({} ns): {} vertices, {} triangles, {} frame -> {}",
+                    s.timestamp_ns,
+                    s.vertices,
+                    s.usable_triangles,
+                    if s.world_from_scan.is_some() {
+                        "world"
+                    } else {
+                        "EO"
+                    },
+                    out.display()
+                );
+                ExitCode::SUCCESS
+            }
+            Err(e) => {
+                eprintln!("texeld export: {e}");
                 ExitCode::FAILURE
             }
         },

@@ -9,6 +9,7 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 use crate::camera::{CameraError, PinholeCamera};
+use crate::fuse::LidarPitch;
 use crate::pose::{Pose, PoseError, pose_from_parts, pose_to_parts};
 use crate::rays::RayTable;
 
@@ -285,12 +286,23 @@ impl SensorModel {
 pub struct Sensor {
     pub model: SensorModel,
     pub lidar_rays: RayTable,
+    /// Angles between neighbouring lidar rays (for the stretched-triangle rule).
+    pub lidar_pitch: LidarPitch,
+    /// The EO distortion model's valid-domain bound, computed once.
+    pub eo_max_r2: Option<f64>,
 }
 
 impl Sensor {
     pub fn new(model: SensorModel) -> Self {
         let lidar_rays = RayTable::new(&model.lidar);
-        Self { model, lidar_rays }
+        let lidar_pitch = LidarPitch::new(&lidar_rays);
+        let eo_max_r2 = model.eo.max_radius_squared();
+        Self {
+            model,
+            lidar_rays,
+            lidar_pitch,
+            eo_max_r2,
+        }
     }
 }
 

@@ -1,0 +1,95 @@
+//! Fusion of one texel frame on one core: a 128x128 and a 256x256 lidar frame with a
+//! 1280x960 EO image (target: <= 0.5 ms for 128x128). The EO image is moved into the
+//! scan, so the bench hands each iteration its own frame, made outside the timing.
+//! Baseline in the same run: copying the EO image once, the cost fusion avoids by
+//! moving it.
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use criterion::{BatchSize, Criterion, criterion_group, criterion_main};
+use nalgebra::Vector2;
+use std::hint::black_box;
+use texel::pose::pose_from_parts;
+use texel::{
+    Distortion, EoFrame, FuseConfig, PinholeCamera, PlumbBob, RangeFrame, RangeNoise, Sensor,
+    SensorModel, fuse,
+};
+
+fn sensor(side: u32) -> Sensor {
+    let eo = PinholeCamera {
+        width: 1280,
+        height: 960,
+        fx: 1100.0,
+        fy: 1100.0,
+        cx: 639.5,
+        cy: 479.5,
+        skew: 0.0,
+        distortion: Distortion::PlumbBob(PlumbBob {
+            k1: -0.12,
+            k2: 0.03,
+            p1: 0.0005,
+            p2: -0.0003,
+            k3: 0.0,
+        }),
+    };
+    Sensor::new(SensorModel {
+        name: "bench".into(),
+        lidar: PinholeCamera::from_vertical_fov(side, side, 45.0).unwrap(),
+        eo,
+        eo_from_lidar: pose_from_parts([0.03, 0.0, 0.0], [0.0, 0.002, 0.0, 1.0]).unwrap(),
+        range_noise: RangeNoise {
+            sigma_m: 0.005,
+            sigma_per_m: 0.001,
+        },
+        min_range_m: 0.3,
+        max_range_m: 30.0,
+    })
+}
+
+/// A wall at 4 m with a box at 2.5 m in the middle and a few no-returns.
+fn range_frame(s: &Sensor) -> RangeFrame {
+    let lidar = &s.model.lidar;
+    let mut f = RangeFrame::empty(lidar.width, lidar.height, 1, 1);
+    for v in 0..lidar.height {
+        for u in 0..lidar.width {
+            let ray = lidar
+                .unproject_ray(Vector2::new(f64::from(u), f64::from(v)))
+                .unwrap();
+            let in_box = (lidar.width / 3..2 * lidar.width / 3).contains(&u)
+                && (lidar.height / 3..2 * lidar.height / 3).contains(&v);
+            let depth = if in_box { 2.5 } else { 4.0 };
+            if (u * 7 + v * 13) % 97 != 0 {
+                f.ranges_m[(v * lidar.width + u) as usize] = (depth / ray.z) as f32;
+            }
+        }
+    }
+    f
+}
+
+fn bench(c: &mut Criterion) {
+    let eo = EoFrame {
+        width: 1280,
+        height: 960,
+        rgb: vec![128; 1280 * 960 * 3],
+        timestamp_ns: 1,
+    };
+    let mut group = c.benchmark_group("fuse_one_core");
+    group.bench_function("baseline_copy_eo_1280x960", |b| {
+        b.iter(|| black_box(eo.clone()))
+    });
+    for side in [128u32, 256] {
+        let s = sensor(side);
+        let frame = range_frame(&s);
+        let config = FuseConfig::default();
+        group.bench_function(format!("fuse_{side}x{side}_eo_1280x960"), |b| {
+            b.iter_batched(
+                || eo.clone(),
+                |eo| black_box(fuse(&frame, eo, &s, &config).unwrap()),
+                BatchSize::LargeInput,
+            )
+        });
+    }
+    group.finish();
+}
+
+criterion_group!(benches, bench);
+criterion_main!(benches);
