@@ -12,7 +12,7 @@ pub fn repo_root() -> PathBuf {
         .unwrap_or_else(|| PathBuf::from("."))
 }
 
-/// The venv that `scripts/setup-python.sh` creates: `$TEXEL_VENV`, else
+/// The venv that `scripts/setup.sh` creates: `$TEXEL_VENV`, else
 /// `$XDG_CACHE_HOME/texel/venv`, else `~/.cache/texel/venv`.
 pub fn venv_dir() -> PathBuf {
     if let Some(v) = std::env::var_os("TEXEL_VENV") {
@@ -31,7 +31,7 @@ pub fn python() -> PathBuf {
     let python = venv_dir().join("bin").join("python");
     assert!(
         python.exists(),
-        "the Python venv with the peer tools is missing at {}; run scripts/setup-python.sh \
+        "the Python venv with the peer tools is missing at {}; run scripts/setup.sh \
          (the README's test command does this)",
         python.display()
     );
