@@ -191,6 +191,10 @@ pub(crate) struct PlaneFile {
     #[serde(default)]
     pub name: Option<String>,
     pub material: Spanned<String>,
+    /// False for objects that can never shadow anything (the walls of a convex room
+    /// lit from inside): shadow rays then skip them.
+    #[serde(default = "yes")]
+    pub casts_shadows: bool,
     #[serde(default)]
     pub position: [f64; 3],
     #[serde(default)]
@@ -206,6 +210,10 @@ pub(crate) struct BoxFile {
     #[serde(default)]
     pub name: Option<String>,
     pub material: Spanned<String>,
+    /// False for objects that can never shadow anything (the walls of a convex room
+    /// lit from inside): shadow rays then skip them.
+    #[serde(default = "yes")]
+    pub casts_shadows: bool,
     #[serde(default)]
     pub position: [f64; 3],
     #[serde(default)]
@@ -219,6 +227,10 @@ pub(crate) struct SphereFile {
     #[serde(default)]
     pub name: Option<String>,
     pub material: Spanned<String>,
+    /// False for objects that can never shadow anything (the walls of a convex room
+    /// lit from inside): shadow rays then skip them.
+    #[serde(default = "yes")]
+    pub casts_shadows: bool,
     #[serde(default)]
     pub position: [f64; 3],
     #[serde(default)]
@@ -232,6 +244,10 @@ pub(crate) struct CylinderFile {
     #[serde(default)]
     pub name: Option<String>,
     pub material: Spanned<String>,
+    /// False for objects that can never shadow anything (the walls of a convex room
+    /// lit from inside): shadow rays then skip them.
+    #[serde(default = "yes")]
+    pub casts_shadows: bool,
     #[serde(default)]
     pub position: [f64; 3],
     #[serde(default)]
@@ -250,6 +266,10 @@ pub(crate) struct MeshFile {
     #[serde(default)]
     pub name: Option<String>,
     pub material: Spanned<String>,
+    /// False for objects that can never shadow anything (the walls of a convex room
+    /// lit from inside): shadow rays then skip them.
+    #[serde(default = "yes")]
+    pub casts_shadows: bool,
     #[serde(default)]
     pub position: [f64; 3],
     #[serde(default)]
