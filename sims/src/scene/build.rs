@@ -860,10 +860,14 @@ fn explicit_poses(
             (Some(q), None) => texel::pose::pose_from_parts(v.position, q)
                 .map_err(|e| ctx.err(Some(p.span()), &key, e.to_string()))?,
             (None, Some(target)) => {
-                if !finite(&v.position) || !finite(&target) {
+                if !finite(&v.position) || !finite(&target) || !v.roll_deg.is_finite() {
                     return Err(ctx.err(Some(p.span()), &key, "values must be finite"));
                 }
                 look_at(Point3::from(v.position), Point3::from(target), Vector3::z())
+                    * nalgebra::UnitQuaternion::from_axis_angle(
+                        &Vector3::z_axis(),
+                        v.roll_deg.to_radians(),
+                    )
             }
             _ => {
                 return Err(ctx.err(

@@ -107,6 +107,9 @@ pub(crate) struct PoseFile {
     pub rotation_xyzw: Option<[f64; 4]>,
     #[serde(default)]
     pub look_at: Option<[f64; 3]>,
+    /// With `look_at`: rotation about the optical axis, degrees (clockwise in the image).
+    #[serde(default)]
+    pub roll_deg: f64,
 }
 
 fn default_shininess() -> f32 {
