@@ -230,12 +230,24 @@ fn view(
     Ok(())
 }
 
-/// Frames per second of rendering `frames` frames (cycling over the trajectory).
+/// CPU time (user + system) of this process in seconds, from `/proc/self/stat`
+/// (Linux clock ticks, 100 per second); `None` where that is not readable.
+fn process_cpu_seconds() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    let after = stat.rsplit_once(')')?.1;
+    let fields: Vec<&str> = after.split_whitespace().collect();
+    let utime: f64 = fields.get(11)?.parse().ok()?;
+    let stime: f64 = fields.get(12)?.parse().ok()?;
+    Some((utime + stime) / 100.0)
+}
+
+/// Wall-clock frames per second of rendering `frames` frames (cycling over the
+/// trajectory), and CPU seconds per frame.
 fn frames_per_second(
     scene: &Scene,
     effects: Option<Vec<sims::Effect>>,
     frames: usize,
-) -> Result<f64> {
+) -> Result<(f64, Option<f64>)> {
     let sim = Simulator::with_options(
         scene.clone(),
         &SimOptions {
@@ -246,11 +258,21 @@ fn frames_per_second(
     // One warm-up frame (page faults, thread pool start).
     let _ = sim.frame(0)?;
     let start = Instant::now();
+    let cpu_start = process_cpu_seconds();
     for i in 0..frames {
         let frame = sim.frame(i % sim.frame_count())?;
         std::hint::black_box(&frame);
     }
-    Ok(frames as f64 / start.elapsed().as_secs_f64().max(1e-9))
+    let wall = frames as f64 / start.elapsed().as_secs_f64().max(1e-9);
+    let cpu = match (cpu_start, process_cpu_seconds()) {
+        (Some(a), Some(b)) => Some((b - a) / frames as f64),
+        _ => None,
+    };
+    Ok((wall, cpu))
+}
+
+fn cpu_text(cpu: Option<f64>) -> String {
+    cpu.map_or_else(String::new, |c| format!("  {:>6.1} ms CPU/frame", c * 1e3))
 }
 
 fn bench(scene_path: &Path, frames: usize) -> Result<()> {
@@ -267,10 +289,15 @@ fn bench(scene_path: &Path, frames: usize) -> Result<()> {
         frames,
         rayon::current_num_threads()
     );
-    let baseline = frames_per_second(&scene, Some(Vec::new()), frames)?;
     println!(
-        "{:<28} {:>8.1} frames/s  (baseline)",
-        "no effects", baseline
+        "(wall-clock frames/s depend on the machine's load; CPU ms/frame include rayon's idle spinning)"
+    );
+    let (baseline, cpu) = frames_per_second(&scene, Some(Vec::new()), frames)?;
+    println!(
+        "{:<28} {:>8.1} frames/s  (baseline)      {}",
+        "no effects",
+        baseline,
+        cpu_text(cpu)
     );
     let mut configs: Vec<(String, Option<Vec<sims::Effect>>)> = sims::effects::EFFECT_NAMES
         .iter()
@@ -295,12 +322,13 @@ fn bench(scene_path: &Path, frames: usize) -> Result<()> {
         ),
     ));
     for (name, effects) in configs {
-        let fps = frames_per_second(&scene, effects, frames)?;
+        let (fps, cpu) = frames_per_second(&scene, effects, frames)?;
         println!(
-            "{:<28} {:>8.1} frames/s  {:>5.2}x baseline time",
+            "{:<28} {:>8.1} frames/s  {:>5.2}x baseline time{}",
             name,
             fps,
-            baseline / fps
+            baseline / fps,
+            cpu_text(cpu)
         );
     }
     Ok(())

@@ -43,6 +43,9 @@ pub struct CameraRays {
     pub tiles: Vec<Tile>,
 }
 
+/// Four vectors around a cone: its plane normals or its edge directions.
+type Quad = [Vector3<f64>; 4];
+
 /// Side of a tile of pixels whose rays share one bounding cone.
 pub const TILE: u32 = 16;
 
@@ -70,7 +73,7 @@ fn tile_cone(
     y0: u32,
     x1: u32,
     y1: u32,
-) -> Option<([Vector3<f64>; 4], [Vector3<f64>; 4])> {
+) -> Option<(Quad, Quad)> {
     let max_r2 = camera.max_radius_squared();
     let corner = |u: f64, v: f64| -> Option<Vector3<f64>> {
         let n = camera
