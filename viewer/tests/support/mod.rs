@@ -72,3 +72,23 @@ pub fn check_golden(name: &str, actual: &image::RgbaImage) {
         panic!("{name}: only {:.2} % of pixels within 2/255 of the golden", within * 100.0);
     }
 }
+
+/// Writes the box scene's three texel frames to a capture with poses on `topic`.
+pub fn write_box_capture(path: &std::path::Path, topic: texel::capture::PoseTopic) {
+    use texel::capture::{CaptureWriter, EoEncoding, RangeEncoding, WriterOptions};
+    let sensor = scenes::test_sensor();
+    let scene = scenes::box_scene();
+    let mut w = CaptureWriter::create(path, WriterOptions::default()).unwrap();
+    w.write_sensor(&sensor.model, 0).unwrap();
+    for (i, pose) in scenes::box_scene_poses().iter().enumerate() {
+        let (range, eo) = scenes::frames(&scene, &sensor, pose, scenes::tint(i as u32), i as u32 + 1);
+        w.write_range(&range, RangeEncoding::F32Metres).unwrap();
+        w.write_eo(&eo, EoEncoding::Rgb8).unwrap();
+        w.write_pose(topic, range.timestamp_ns, pose).unwrap();
+    }
+    w.finish().unwrap();
+}
+
+pub fn viewer_binary() -> PathBuf {
+    PathBuf::from(env!("CARGO_BIN_EXE_texel-viewer"))
+}
