@@ -18,6 +18,9 @@ pub struct BenchArgs {
     /// Timed frames per configuration (after 2 warm-up frames).
     #[arg(long, default_value_t = 10)]
     pub frames: u32,
+    /// Scans per k-buffer batch in the main table.
+    #[arg(long, default_value_t = 4)]
+    pub batch: u32,
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -79,25 +82,52 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<()> {
         args.width, args.height, args.frames
     );
     let sensor = scenes::sensor(64, 48, 320, 240);
-    let camera = VirtualCamera::new(scenes::look_at([4.5, 0.0, -1.0], [4.5, 0.0, 5.05]), 50.0, args.width, args.height)?;
+    let camera = VirtualCamera::new(
+        scenes::look_at([4.5, 0.0, -1.0], [4.5, 0.0, 5.05]),
+        50.0,
+        args.width,
+        args.height,
+    )?;
     let mut settings = RenderSettings::with_mode(Mode::Blended);
-    println!("{:>6} {:>6} {:>10} {:>12} {:>12} {:>14} {:>12}", "scans", "drawn", "strategy", "frame ms", "targets MiB", "vs k-buf time", "vs k-buf mem");
+    println!(
+        "{:>6} {:>6} {:>10} {:>12} {:>12} {:>14} {:>12}",
+        "scans", "drawn", "strategy", "frame ms", "targets MiB", "vs k-buf time", "vs k-buf mem"
+    );
     let mut kbuffer_rows = Vec::new();
     for n in [10u32, 30, 100] {
         let model = scenes::corridor(&sensor, n);
         let mut renderer = Renderer::new(&gpu);
         renderer.sync_model(&model)?;
-        settings.strategy = Strategy::KBuffer { batch: 4 };
-        let (kb_ms, drawn, kb_bytes) = measure(&gpu, &mut renderer, &camera, &settings, args.frames)?;
+        settings.strategy = Strategy::KBuffer { batch: args.batch };
+        let (kb_ms, drawn, kb_bytes) =
+            measure(&gpu, &mut renderer, &camera, &settings, args.frames)?;
         settings.strategy = Strategy::NaiveLayers;
         let (nv_ms, _, nv_bytes) = measure(&gpu, &mut renderer, &camera, &settings, args.frames)?;
         settings.composite.mode = Mode::Painter;
         let (pt_ms, _, pt_bytes) = measure(&gpu, &mut renderer, &camera, &settings, args.frames)?;
         settings.composite.mode = Mode::Blended;
         let mib = |b: u64| b as f64 / 1048576.0;
-        println!("{n:>6} {drawn:>6} {:>10} {kb_ms:>12.2} {:>12.2} {:>14} {:>12}", "k-buffer", mib(kb_bytes), "1.00", "1.00");
-        println!("{n:>6} {drawn:>6} {:>10} {nv_ms:>12.2} {:>12.2} {:>14.2} {:>12.2}", "naive", mib(nv_bytes), nv_ms / kb_ms, nv_bytes as f64 / kb_bytes as f64);
-        println!("{n:>6} {drawn:>6} {:>10} {pt_ms:>12.2} {:>12.2} {:>14.2} {:>12.2}", "painter", mib(pt_bytes), pt_ms / kb_ms, pt_bytes as f64 / kb_bytes as f64);
+        println!(
+            "{n:>6} {drawn:>6} {:>10} {kb_ms:>12.2} {:>12.2} {:>14} {:>12}",
+            "k-buffer",
+            mib(kb_bytes),
+            "1.00",
+            "1.00"
+        );
+        println!(
+            "{n:>6} {drawn:>6} {:>10} {nv_ms:>12.2} {:>12.2} {:>14.2} {:>12.2}",
+            "naive",
+            mib(nv_bytes),
+            nv_ms / kb_ms,
+            nv_bytes as f64 / kb_bytes as f64
+        );
+        println!(
+            "{n:>6} {drawn:>6} {:>10} {pt_ms:>12.2} {:>12.2} {:>14.2} {:>12.2}",
+            "painter",
+            mib(pt_bytes),
+            pt_ms / kb_ms,
+            pt_bytes as f64 / kb_bytes as f64
+        );
         kbuffer_rows.push(Measurement {
             scans: n,
             drawn,
@@ -112,6 +142,24 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<()> {
             last.frame_ms / first.frame_ms,
             first.scans,
             last.target_bytes as f64 / first.target_bytes as f64
+        );
+    }
+    // The batch size trades memory for merge passes.
+    let model = scenes::corridor(&sensor, 30);
+    let mut renderer = Renderer::new(&gpu);
+    renderer.sync_model(&model)?;
+    settings.strategy = Strategy::NaiveLayers;
+    let (base_ms, drawn, base_bytes) = measure(&gpu, &mut renderer, &camera, &settings, args.frames)?;
+    println!("batch sweep, 30 scans ({drawn} drawn); naive layers: {base_ms:.2} ms, {:.2} MiB", base_bytes as f64 / 1048576.0);
+    println!("{:>6} {:>12} {:>12} {:>14} {:>12}", "batch", "frame ms", "targets MiB", "vs naive time", "vs naive mem");
+    for batch in [1u32, 2, 4, 8, 16] {
+        settings.strategy = Strategy::KBuffer { batch };
+        let (ms, _, bytes) = measure(&gpu, &mut renderer, &camera, &settings, args.frames)?;
+        println!(
+            "{batch:>6} {ms:>12.2} {:>12.2} {:>14.2} {:>12.2}",
+            bytes as f64 / 1048576.0,
+            ms / base_ms,
+            bytes as f64 / base_bytes as f64
         );
     }
     Ok(())

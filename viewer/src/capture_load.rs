@@ -112,7 +112,9 @@ pub fn load_capture(path: &Path) -> Result<LoadedCapture, LoadError> {
     let mut model = Model::new();
     let mut unplaced = 0;
     for scan in scans {
-        match pose_at(&table, scan.timestamp_ns).or_else(|| pose_at(&table, scan.texture.timestamp_ns)) {
+        match pose_at(&table, scan.timestamp_ns)
+            .or_else(|| pose_at(&table, scan.texture.timestamp_ns))
+        {
             Some(world_from_scan) => {
                 // Ids are assigned in order, so this cannot be out of order.
                 let _ = model.apply(ModelEvent::ScanAdded {

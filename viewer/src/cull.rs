@@ -114,9 +114,15 @@ mod tests {
         let id = Pose::identity();
         assert_eq!(classify(&b, [0.0; 3], &id, &cam), Visibility::Visible);
         let left = pose_from_parts([-20.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]).unwrap();
-        assert_eq!(classify(&b, [0.0; 3], &left, &cam), Visibility::OutsideFrustum);
+        assert_eq!(
+            classify(&b, [0.0; 3], &left, &cam),
+            Visibility::OutsideFrustum
+        );
         let behind = pose_from_parts([0.0, 0.0, -10.0], [0.0, 0.0, 0.0, 1.0]).unwrap();
-        assert_eq!(classify(&b, [0.0; 3], &behind, &cam), Visibility::OutsideFrustum);
+        assert_eq!(
+            classify(&b, [0.0; 3], &behind, &cam),
+            Visibility::OutsideFrustum
+        );
         // Acquired from z = 12 looking back: the virtual camera at 0 sees its back.
         assert_eq!(
             classify(&b, [0.0, 0.0, 12.0], &id, &cam),

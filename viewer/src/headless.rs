@@ -60,7 +60,10 @@ pub fn parse_views_text(text: &str, origin: &str) -> Result<Vec<ViewSpec>, Views
         }
         let world_from_eo = parse_pose(&fields[1..8].join(" ")).map_err(|e| err(e.to_string()))?;
         let fov_deg = match fields.get(8) {
-            Some(f) => Some(f.parse::<f64>().map_err(|e| err(format!("fov {f:?}: {e}")))?),
+            Some(f) => Some(
+                f.parse::<f64>()
+                    .map_err(|e| err(format!("fov {f:?}: {e}")))?,
+            ),
             None => None,
         };
         views.push(ViewSpec {
@@ -78,12 +81,20 @@ mod tests {
 
     #[test]
     fn views_parse_and_errors_name_the_line() {
-        let v = parse_views_text("# views\n\na.png 1 2 3 0 0 0 1\nb.png 0 0 0 0 0 0 1 40\n", "v.txt").unwrap();
+        let v = parse_views_text(
+            "# views\n\na.png 1 2 3 0 0 0 1\nb.png 0 0 0 0 0 0 1 40\n",
+            "v.txt",
+        )
+        .unwrap();
         assert_eq!(v.len(), 2);
         assert_eq!(v[1].fov_deg, Some(40.0));
-        let e = parse_views_text("a.png 1 2 3\n", "v.txt").unwrap_err().to_string();
+        let e = parse_views_text("a.png 1 2 3\n", "v.txt")
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("v.txt:1"), "{e}");
-        let e = parse_views_text("a.png 1 2 3 0 0 0 0\n", "v.txt").unwrap_err().to_string();
+        let e = parse_views_text("a.png 1 2 3 0 0 0 0\n", "v.txt")
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("quaternion"), "{e}");
     }
 }

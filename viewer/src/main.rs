@@ -13,7 +13,11 @@ use texel_viewer::gpu::{GpuContext, RenderSettings, Renderer, Strategy};
 use texel_viewer::headless::parse_views;
 
 #[derive(Parser)]
-#[command(name = "texel-viewer", version, about = "Renders the texel model with view-dependent blending")]
+#[command(
+    name = "texel-viewer",
+    version,
+    about = "Renders the texel model with view-dependent blending"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -65,10 +69,16 @@ impl DisplayArgs {
             bail!("--k {} is outside 1..={MAX_K}", self.k);
         }
         if !self.blend_threshold.is_finite() || self.blend_threshold < 0.0 {
-            bail!("--blend-threshold {} must be finite and not negative", self.blend_threshold);
+            bail!(
+                "--blend-threshold {} must be finite and not negative",
+                self.blend_threshold
+            );
         }
         if !self.range_gamma.is_finite() || self.range_gamma <= 0.0 {
-            bail!("--range-gamma {} must be finite and positive", self.range_gamma);
+            bail!(
+                "--range-gamma {} must be finite and positive",
+                self.range_gamma
+            );
         }
         let mut s = RenderSettings::with_mode(self.mode);
         s.composite.blend_threshold = self.blend_threshold;
@@ -156,7 +166,11 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
     let mut views = Vec::new();
     if let Some(file) = &args.views {
         for v in parse_views(file)? {
-            views.push((v.out, v.world_from_eo, v.fov_deg.or(args.fov_deg).unwrap_or(default_fov)));
+            views.push((
+                v.out,
+                v.world_from_eo,
+                v.fov_deg.or(args.fov_deg).unwrap_or(default_fov),
+            ));
         }
     } else {
         let pose = match (&args.pose, args.acquisition) {
@@ -165,7 +179,12 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
                 loaded
                     .model
                     .get(n)
-                    .with_context(|| format!("--acquisition {n}: the model has {} scans", loaded.model.len()))?
+                    .with_context(|| {
+                        format!(
+                            "--acquisition {n}: the model has {} scans",
+                            loaded.model.len()
+                        )
+                    })?
                     .world_from_scan
             }
             (None, None) => bail!("give --pose, --acquisition or --views"),

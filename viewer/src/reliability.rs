@@ -38,15 +38,19 @@ pub fn range_confidence(d_virtual_m: f64, d_acquisition_m: f64, gamma: f64) -> f
 /// Accumulated reliability: the product of the three measures, clamped to [0, 1].
 pub fn reliability(normal_accuracy: f64, pov: f64, range: f64) -> f64 {
     let r = normal_accuracy * pov * range;
-    if r.is_finite() { r.clamp(0.0, 1.0) } else { 0.0 }
+    if r.is_finite() {
+        r.clamp(0.0, 1.0)
+    } else {
+        0.0
+    }
 }
 
 /// Which triangles of a scan are drawn: neither degenerate nor (unless kept)
 /// stretched.
 pub fn triangle_drawn(scan: &TexelScan, t: usize, keep_stretched: bool) -> bool {
-    scan.triangle_flags.get(t).is_some_and(|f| {
-        !f.is_degenerate() && (keep_stretched || !f.is_stretched())
-    })
+    scan.triangle_flags
+        .get(t)
+        .is_some_and(|f| !f.is_degenerate() && (keep_stretched || !f.is_stretched()))
 }
 
 /// Normal accuracy per vertex, to be interpolated across triangles (Sec. 1: "the
@@ -66,7 +70,11 @@ pub fn vertex_accuracy(scan: &TexelScan) -> Vec<f32> {
             continue;
         }
         let acc = f64::from(scan.triangle_accuracy.get(t).copied().unwrap_or(0.0));
-        let acc = if acc.is_finite() { acc.clamp(0.0, 1.0) } else { 0.0 };
+        let acc = if acc.is_finite() {
+            acc.clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
         let sums = if flags.is_stretched() {
             &mut stretched
         } else {
@@ -127,7 +135,11 @@ mod tests {
         let p = [0.0, 0.0, 5.0];
         assert!((pov_confidence(p, [0.0; 3], [0.0; 3]) - 1.0).abs() < 1e-12);
         // 60 degrees apart: cos = 0.5.
-        let side = [5.0 * 60f64.to_radians().sin(), 0.0, 5.0 - 5.0 * 60f64.to_radians().cos()];
+        let side = [
+            5.0 * 60f64.to_radians().sin(),
+            0.0,
+            5.0 - 5.0 * 60f64.to_radians().cos(),
+        ];
         assert!((pov_confidence(p, [0.0; 3], side) - 0.5).abs() < 1e-12);
         // Behind (more than 90 degrees): 0.
         assert_eq!(pov_confidence(p, [0.0; 3], [0.0, 0.0, 10.0]), 0.0);

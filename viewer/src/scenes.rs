@@ -8,7 +8,10 @@ use std::sync::Arc;
 
 use nalgebra::{Matrix3, Point3, Rotation3, UnitQuaternion, Vector2, Vector3};
 use texel::model::{Model, ModelEvent};
-use texel::{EoFrame, FuseConfig, PinholeCamera, Pose, RangeFrame, RangeNoise, Sensor, SensorModel, TexelScan};
+use texel::{
+    EoFrame, FuseConfig, PinholeCamera, Pose, RangeFrame, RangeNoise, Sensor, SensorModel,
+    TexelScan,
+};
 
 /// A surface of the scene.
 #[derive(Debug, Clone, Copy)]
@@ -131,7 +134,11 @@ pub fn look_at(eye: [f64; 3], target: [f64; 3]) -> Pose {
     let z = (Vector3::from(target) - Vector3::from(eye)).normalize();
     let down = Vector3::y();
     let x = down.cross(&z);
-    let x = if x.norm() < 1e-9 { Vector3::x() } else { x.normalize() };
+    let x = if x.norm() < 1e-9 {
+        Vector3::x()
+    } else {
+        x.normalize()
+    };
     let y = z.cross(&x);
     let rotation = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[x, y, z]));
     Pose::from_parts(
@@ -141,7 +148,13 @@ pub fn look_at(eye: [f64; 3], target: [f64; 3]) -> Pose {
 }
 
 /// The range frame and EO image the texel camera at `world_from_eo` sees.
-pub fn frames(scene: &Scene, sensor: &Sensor, world_from_eo: &Pose, tint: [f32; 3], seq: u32) -> (RangeFrame, EoFrame) {
+pub fn frames(
+    scene: &Scene,
+    sensor: &Sensor,
+    world_from_eo: &Pose,
+    tint: [f32; 3],
+    seq: u32,
+) -> (RangeFrame, EoFrame) {
     let origin = Point3::from(world_from_eo.translation.vector);
     let lidar = &sensor.model.lidar;
     let world_from_lidar = world_from_eo * sensor.model.eo_from_lidar;
@@ -184,7 +197,13 @@ pub fn frames(scene: &Scene, sensor: &Sensor, world_from_eo: &Pose, tint: [f32; 
 }
 
 /// Fuses the frames a texel camera at `world_from_eo` sees into a scan.
-pub fn scan(scene: &Scene, sensor: &Sensor, world_from_eo: &Pose, tint: [f32; 3], seq: u32) -> TexelScan {
+pub fn scan(
+    scene: &Scene,
+    sensor: &Sensor,
+    world_from_eo: &Pose,
+    tint: [f32; 3],
+    seq: u32,
+) -> TexelScan {
     let (range, eo) = frames(scene, sensor, world_from_eo, tint, seq);
     // The frames are made for this sensor, so sizes always agree.
     texel::fuse(&range, eo, sensor, &FuseConfig::default()).unwrap_or_else(|_| empty_scan(sensor))

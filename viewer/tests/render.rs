@@ -3,11 +3,11 @@
 
 mod support;
 
+use support::*;
 use texel::Pose;
 use texel::pose::pose_from_parts;
 use texel_viewer::composite::{Mode, composite_pixel};
 use texel_viewer::gpu::{RenderSettings, Strategy};
-use support::*;
 
 #[test]
 fn golden_images_per_mode() {
@@ -15,14 +15,21 @@ fn golden_images_per_mode() {
     let mut r = box_renderer(&id);
     let cam = box_camera(&id);
     for mode in Mode::ALL {
-        let (img, stats) = r.render_to_image(&cam, &RenderSettings::with_mode(mode)).unwrap();
+        let (img, stats) = r
+            .render_to_image(&cam, &RenderSettings::with_mode(mode))
+            .unwrap();
         assert_eq!(stats.drawn, 3, "{mode}");
         check_golden(&format!("box-{mode}"), &img);
     }
 }
 
 fn composite_modes() -> [Mode; 4] {
-    [Mode::Best, Mode::Blended, Mode::ScanColour, Mode::Reliability]
+    [
+        Mode::Best,
+        Mode::Blended,
+        Mode::ScanColour,
+        Mode::Reliability,
+    ]
 }
 
 /// The GPU composite equals the CPU reference applied to the GPU's own per-scan
@@ -38,7 +45,15 @@ fn gpu_composite_matches_the_cpu_reference() {
         assert_eq!(layers.scans, vec![0, 1, 2]);
         let cpu = image::RgbaImage::from_fn(cam.width, cam.height, |x, y| {
             let c = composite_pixel(&layers.fragments_at(x, y), &settings.composite);
-            image::Rgba([c[0], c[1], c[2]].map(|v| (v * 255.0).round().clamp(0.0, 255.0) as u8).into_iter().chain([255]).collect::<Vec<_>>().try_into().unwrap())
+            image::Rgba(
+                [c[0], c[1], c[2]]
+                    .map(|v| (v * 255.0).round().clamp(0.0, 255.0) as u8)
+                    .into_iter()
+                    .chain([255])
+                    .collect::<Vec<_>>()
+                    .try_into()
+                    .unwrap(),
+            )
         });
         let within = fraction_within(&cpu, &naive_img, 2);
         assert!(within >= 0.99, "{mode}: naive vs CPU {within}");
@@ -94,10 +109,21 @@ fn range_compliance_keeps_the_nearer_surface() {
         texel_viewer::scenes::look_at([0.0, 0.0, -4.0], [0.0, 0.0, 6.0]),
         texel_viewer::scenes::look_at([1.8, 0.0, 2.0], [0.0, 0.0, 6.05]),
     ];
-    let model = texel_viewer::scenes::model_of(&texel_viewer::scenes::box_scene(), &sensor, &poses, &Pose::identity());
+    let model = texel_viewer::scenes::model_of(
+        &texel_viewer::scenes::box_scene(),
+        &sensor,
+        &poses,
+        &Pose::identity(),
+    );
     let mut r = texel_viewer::gpu::Renderer::new(gpu());
     r.sync_model(&model).unwrap();
-    let cam = texel_viewer::camera::VirtualCamera::new(texel_viewer::scenes::look_at([0.0, 0.0, 0.5], [0.0, 0.0, 6.0]), 50.0, 160, 120).unwrap();
+    let cam = texel_viewer::camera::VirtualCamera::new(
+        texel_viewer::scenes::look_at([0.0, 0.0, 0.5], [0.0, 0.0, 6.0]),
+        50.0,
+        160,
+        120,
+    )
+    .unwrap();
     let settings = RenderSettings::with_mode(Mode::ScanColour);
     let (layers, _) = r.read_layers(&cam, &settings).unwrap();
     let (img, _) = r.render_to_image(&cam, &settings).unwrap();
@@ -107,17 +133,26 @@ fn range_compliance_keeps_the_nearer_surface() {
     for y in 0..cam.height {
         for x in 0..cam.width {
             let f: Vec<Fragment> = layers.fragments_at(x, y);
-            let (Some(a), Some(b)) = (f.iter().find(|f| f.scan == 0), f.iter().find(|f| f.scan == 1)) else {
+            let (Some(a), Some(b)) = (
+                f.iter().find(|f| f.scan == 0),
+                f.iter().find(|f| f.scan == 1),
+            ) else {
                 continue;
             };
             if b.distance_m > a.distance_m + 1.0 && b.reliability > a.reliability {
                 cases += 1;
                 let p = img.get_pixel(x, y);
-                assert!((0..3).all(|k| p[k].abs_diff(want[k]) <= 2), "pixel {x},{y}: {p:?}");
+                assert!(
+                    (0..3).all(|k| p[k].abs_diff(want[k]) <= 2),
+                    "pixel {x},{y}: {p:?}"
+                );
             }
         }
     }
-    assert!(cases > 200, "the scene must exercise the case ({cases} pixels)");
+    assert!(
+        cases > 200,
+        "the scene must exercise the case ({cases} pixels)"
+    );
 }
 
 /// Identical scans at the same pose: the lower id wins everywhere, in every mode.
@@ -132,17 +167,34 @@ fn ties_go_to_the_lower_scan_id() {
     for (i, tint) in [[1.0, 1.0, 1.0], [0.5, 0.7, 1.2]].into_iter().enumerate() {
         let mut scan = texel_viewer::scenes::scan(&scene, &sensor, &pose, tint, 0);
         scan.seq = i as u32;
-        model.apply(ModelEvent::ScanAdded { id: i as u64, scan: Arc::new(scan), world_from_scan: pose }).unwrap();
+        model
+            .apply(ModelEvent::ScanAdded {
+                id: i as u64,
+                scan: Arc::new(scan),
+                world_from_scan: pose,
+            })
+            .unwrap();
     }
     let mut only_first = model.clone();
     let mut r = texel_viewer::gpu::Renderer::new(gpu());
     r.sync_model(&model).unwrap();
     let mut r0 = texel_viewer::gpu::Renderer::new(gpu());
-    only_first = { let mut m = Model::new(); m.apply(only_first.snapshot().next().unwrap()).unwrap(); m };
+    only_first = {
+        let mut m = Model::new();
+        m.apply(only_first.snapshot().next().unwrap()).unwrap();
+        m
+    };
     r0.sync_model(&only_first).unwrap();
     let cam = box_camera(&Pose::identity());
     for mode in Mode::ALL {
-        let s = RenderSettings { composite: texel_viewer::composite::CompositeSettings { mode, k: 1, ..Default::default() }, ..Default::default() };
+        let s = RenderSettings {
+            composite: texel_viewer::composite::CompositeSettings {
+                mode,
+                k: 1,
+                ..Default::default()
+            },
+            ..Default::default()
+        };
         let (both, _) = r.render_to_image(&cam, &s).unwrap();
         let (first, _) = r0.render_to_image(&cam, &s).unwrap();
         assert_eq!(both.as_raw(), first.as_raw(), "{mode}");
@@ -156,10 +208,22 @@ fn zero_reliability_shows_the_background() {
     use texel::model::{Model, ModelEvent};
     let sensor = texel_viewer::scenes::test_sensor();
     let pose = texel_viewer::scenes::box_scene_poses()[0];
-    let mut scan = texel_viewer::scenes::scan(&texel_viewer::scenes::box_scene(), &sensor, &pose, [1.0; 3], 0);
+    let mut scan = texel_viewer::scenes::scan(
+        &texel_viewer::scenes::box_scene(),
+        &sensor,
+        &pose,
+        [1.0; 3],
+        0,
+    );
     scan.triangle_accuracy.iter_mut().for_each(|a| *a = 0.0);
     let mut model = Model::new();
-    model.apply(ModelEvent::ScanAdded { id: 0, scan: Arc::new(scan), world_from_scan: pose }).unwrap();
+    model
+        .apply(ModelEvent::ScanAdded {
+            id: 0,
+            scan: Arc::new(scan),
+            world_from_scan: pose,
+        })
+        .unwrap();
     let mut r = texel_viewer::gpu::Renderer::new(gpu());
     r.sync_model(&model).unwrap();
     let cam = box_camera(&Pose::identity());
@@ -168,9 +232,20 @@ fn zero_reliability_shows_the_background() {
         s.composite.background = [0.2, 0.4, 0.6];
         let (img, stats) = r.render_to_image(&cam, &s).unwrap();
         assert_eq!(stats.drawn, 1);
-        assert!(img.pixels().all(|p| p[0] == 51 && p[1] == 102 && p[2] == 153), "{mode}");
+        assert!(
+            img.pixels()
+                .all(|p| p[0] == 51 && p[1] == 102 && p[2] == 153),
+            "{mode}"
+        );
     }
     // The painter still shows the texture.
-    let (img, _) = r.render_to_image(&cam, &RenderSettings::with_mode(Mode::Painter)).unwrap();
-    assert!(img.pixels().filter(|p| p[0] != 0 || p[1] != 0 || p[2] != 0).count() > 5000);
+    let (img, _) = r
+        .render_to_image(&cam, &RenderSettings::with_mode(Mode::Painter))
+        .unwrap();
+    assert!(
+        img.pixels()
+            .filter(|p| p[0] != 0 || p[1] != 0 || p[2] != 0)
+            .count()
+            > 5000
+    );
 }

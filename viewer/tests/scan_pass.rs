@@ -4,13 +4,13 @@
 
 mod support;
 
+use support::*;
 use texel::Pose;
 use texel_viewer::camera::VirtualCamera;
 use texel_viewer::composite::Mode;
 use texel_viewer::gpu::{RenderSettings, Renderer, Strategy};
 use texel_viewer::reliability::{pov_confidence, range_confidence, reliability};
 use texel_viewer::scenes;
-use support::*;
 
 /// One scan of the wall z = 5.05, read back from a virtual view: per pixel the GPU's
 /// reliability and distance match the formulas evaluated in f64 at the true surface
@@ -23,7 +23,11 @@ fn scan_pass_reliability_matches_the_formulas() {
     let c_a = acquisition.translation.vector;
     let mut r = Renderer::new(gpu());
     r.sync_model(&model).unwrap();
-    for (eye, gamma) in [([0.0, 0.0, 0.0], 1.0), ([-0.8, 0.3, 2.0], 1.0), ([0.7, -0.2, 3.0], 2.0)] {
+    for (eye, gamma) in [
+        ([0.0, 0.0, 0.0], 1.0),
+        ([-0.8, 0.3, 2.0], 1.0),
+        ([0.7, -0.2, 3.0], 2.0),
+    ] {
         let pose = scenes::look_at(eye, [0.4, 0.0, 5.05]);
         let cam = VirtualCamera::new(pose, 45.0, 96, 72).unwrap();
         let mut s = RenderSettings::with_mode(Mode::Best);
@@ -47,7 +51,11 @@ fn scan_pass_reliability_matches_the_formulas() {
                     range_confidence(t, d_a, f64::from(gamma)),
                 );
                 checked += 1;
-                assert!((f64::from(f.distance_m) - t).abs() < 1e-3 * t, "distance {} vs {t}", f.distance_m);
+                assert!(
+                    (f64::from(f.distance_m) - t).abs() < 1e-3 * t,
+                    "distance {} vs {t}",
+                    f.distance_m
+                );
                 assert!((f64::from(f.sigma_m) - 0.01).abs() < 1e-6);
                 if (f64::from(f.reliability) - want).abs() < 0.01 {
                     good += 1;
@@ -55,7 +63,10 @@ fn scan_pass_reliability_matches_the_formulas() {
             }
         }
         assert!(checked > 2000, "{checked} pixels covered");
-        assert!(f64::from(good) >= 0.99 * f64::from(checked), "eye {eye:?}: {good}/{checked}");
+        assert!(
+            f64::from(good) >= 0.99 * f64::from(checked),
+            "eye {eye:?}: {good}/{checked}"
+        );
     }
 }
 
@@ -65,17 +76,37 @@ fn culling_counts_frustum_and_facing_away() {
     let mut r = box_renderer(&id);
     let s = RenderSettings::with_mode(Mode::Blended);
     // Looking away from the scene: every scan is outside the frustum.
-    let away = VirtualCamera::new(scenes::look_at([0.0, 0.0, -3.0], [0.0, 0.0, -9.0]), 50.0, 64, 48).unwrap();
+    let away = VirtualCamera::new(
+        scenes::look_at([0.0, 0.0, -3.0], [0.0, 0.0, -9.0]),
+        50.0,
+        64,
+        48,
+    )
+    .unwrap();
     let (img, stats) = r.render_to_image(&away, &s).unwrap();
-    assert_eq!((stats.drawn, stats.culled_frustum, stats.culled_facing), (0, 3, 0), "{stats:?}");
+    assert_eq!(
+        (stats.drawn, stats.culled_frustum, stats.culled_facing),
+        (0, 3, 0),
+        "{stats:?}"
+    );
     assert!(img.pixels().all(|p| p[0] == 0 && p[1] == 0 && p[2] == 0));
     // Far behind the wall looking back at it: the front scan faces away (every point
     // of it lies in the ball spanned by the two COPs). The two oblique scans reach far
     // along the wall, where their POV confidence is still positive: they are drawn,
     // and their back faces are culled per triangle, so the image is background.
-    let behind = VirtualCamera::new(scenes::look_at([0.0, 0.0, 40.0], [0.0, 0.0, 5.0]), 50.0, 64, 48).unwrap();
+    let behind = VirtualCamera::new(
+        scenes::look_at([0.0, 0.0, 40.0], [0.0, 0.0, 5.0]),
+        50.0,
+        64,
+        48,
+    )
+    .unwrap();
     let (img, stats) = r.render_to_image(&behind, &s).unwrap();
-    assert_eq!((stats.drawn, stats.culled_frustum, stats.culled_facing), (2, 0, 1), "{stats:?}");
+    assert_eq!(
+        (stats.drawn, stats.culled_frustum, stats.culled_facing),
+        (2, 0, 1),
+        "{stats:?}"
+    );
     assert!(img.pixels().all(|p| p[0] == 0 && p[1] == 0 && p[2] == 0));
     // Hidden scans are counted apart.
     let mut hidden = s.clone();
@@ -88,13 +119,20 @@ fn culling_counts_frustum_and_facing_away() {
     let corridor = scenes::corridor(&sensor, 12);
     let mut rc = Renderer::new(gpu());
     rc.sync_model(&corridor).unwrap();
-    let cam = VirtualCamera::new(scenes::look_at([1.5, 0.0, 1.0], [1.5, 0.0, 5.0]), 50.0, 64, 48).unwrap();
+    let cam = VirtualCamera::new(
+        scenes::look_at([1.5, 0.0, 1.0], [1.5, 0.0, 5.0]),
+        50.0,
+        64,
+        48,
+    )
+    .unwrap();
     let (all, stats) = rc.render_to_image(&cam, &s).unwrap();
     assert!(stats.culled_frustum >= 3 && stats.drawn >= 2, "{stats:?}");
     let (visible, _) = rc.cull(&cam, &s);
     let mut only = Renderer::new(gpu());
     for scan in corridor.scans().iter().filter(|m| visible.contains(&m.id)) {
-        only.add_scan(scan.id, &scan.scan, scan.world_from_scan).unwrap();
+        only.add_scan(scan.id, &scan.scan, scan.world_from_scan)
+            .unwrap();
     }
     let mut wide = VirtualCamera::new(cam.world_from_eo, 50.0, 64, 48).unwrap();
     wide.near_m = cam.near_m;
@@ -110,8 +148,20 @@ fn kbuffer_memory_is_bounded() {
     let mut r = Renderer::new(gpu());
     r.sync_model(&scenes::corridor(&sensor, 16)).unwrap();
     let s = RenderSettings::with_mode(Mode::Blended);
-    let narrow = VirtualCamera::new(scenes::look_at([2.0, 0.0, 0.0], [2.0, 0.0, 5.0]), 40.0, 64, 48).unwrap();
-    let wide = VirtualCamera::new(scenes::look_at([7.5, 0.0, -8.0], [7.5, 0.0, 5.0]), 70.0, 64, 48).unwrap();
+    let narrow = VirtualCamera::new(
+        scenes::look_at([2.0, 0.0, 0.0], [2.0, 0.0, 5.0]),
+        40.0,
+        64,
+        48,
+    )
+    .unwrap();
+    let wide = VirtualCamera::new(
+        scenes::look_at([7.5, 0.0, -8.0], [7.5, 0.0, 5.0]),
+        70.0,
+        64,
+        48,
+    )
+    .unwrap();
     let memory = |r: &mut Renderer, cam: &VirtualCamera, strategy| {
         let mut s = s.clone();
         s.strategy = strategy;

@@ -7,8 +7,8 @@ mod support;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use texel::capture::PoseTopic;
 use support::*;
+use texel::capture::PoseTopic;
 
 struct Xvfb(Child);
 
@@ -52,12 +52,27 @@ fn window_opens_and_draws_the_model() {
     let shot = dir.path().join("shot.png");
     let (_xvfb, display) = start_xvfb();
     let out = Command::new(viewer_binary())
-        .args(["open", capture.to_str().unwrap(), "--width", "320", "--height", "240", "--frames", "8", "--screenshot", shot.to_str().unwrap()])
+        .args([
+            "open",
+            capture.to_str().unwrap(),
+            "--width",
+            "320",
+            "--height",
+            "240",
+            "--frames",
+            "8",
+            "--screenshot",
+            shot.to_str().unwrap(),
+        ])
         .env("DISPLAY", &display)
         .env_remove("WAYLAND_DISPLAY")
         .output()
         .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let img = image::open(&shot).unwrap().to_rgba8();
     assert_eq!(img.dimensions(), (320, 240));
     // Not blank: many distinct colours (textured model and the overlay).

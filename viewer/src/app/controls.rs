@@ -52,7 +52,8 @@ impl CameraControls {
     /// Moves the camera in its image plane, scaled so the pivot follows the cursor.
     pub fn pan(&mut self, dx_px: f64, dy_px: f64, focal_px: f64) {
         let scale = self.pivot_distance_m / focal_px.max(1.0);
-        let shift = self.axis(Vector3::x()) * (-dx_px * scale) + self.axis(Vector3::y()) * (-dy_px * scale);
+        let shift =
+            self.axis(Vector3::x()) * (-dx_px * scale) + self.axis(Vector3::y()) * (-dy_px * scale);
         self.world_from_eo.translation.vector += shift;
     }
 

@@ -105,7 +105,12 @@ impl ViewerState {
 
     /// Puts the camera at a scan's acquisition pose, pivoting at its median range.
     fn jump(&mut self, world_from_scan: texel::Pose, scan: &texel::TexelScan) {
-        let mut ranges: Vec<f32> = scan.vertices.iter().map(|v| v[2]).filter(|z| z.is_finite()).collect();
+        let mut ranges: Vec<f32> = scan
+            .vertices
+            .iter()
+            .map(|v| v[2])
+            .filter(|z| z.is_finite())
+            .collect();
         ranges.sort_by(f32::total_cmp);
         let pivot = ranges.get(ranges.len() / 2).copied().unwrap_or(3.0);
         self.controls = CameraControls::new(world_from_scan, f64::from(pivot));
@@ -167,9 +172,17 @@ impl App {
     fn create_window(&mut self, event_loop: &ActiveEventLoop) -> anyhow::Result<WindowState> {
         let attributes = Window::default_attributes()
             .with_title(self.options.title.clone())
-            .with_inner_size(winit::dpi::PhysicalSize::new(self.options.width, self.options.height));
-        let window = Arc::new(event_loop.create_window(attributes).context("creating the window")?);
-        let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+            .with_inner_size(winit::dpi::PhysicalSize::new(
+                self.options.width,
+                self.options.height,
+            ));
+        let window = Arc::new(
+            event_loop
+                .create_window(attributes)
+                .context("creating the window")?,
+        );
+        let instance =
+            wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
         let surface = instance
             .create_surface(Arc::clone(&window))
             .context("creating the window surface")?;
@@ -194,7 +207,11 @@ impl App {
             height: size.height.max(1),
             present_mode: wgpu::PresentMode::AutoVsync,
             desired_maximum_frame_latency: 2,
-            alpha_mode: caps.alpha_modes.first().copied().unwrap_or(wgpu::CompositeAlphaMode::Auto),
+            alpha_mode: caps
+                .alpha_modes
+                .first()
+                .copied()
+                .unwrap_or(wgpu::CompositeAlphaMode::Auto),
             view_formats: vec![],
             color_space: wgpu::SurfaceColorSpace::default(),
         };
@@ -209,7 +226,8 @@ impl App {
             None,
             Some(gpu.device.limits().max_texture_dimension_2d as usize),
         );
-        let egui_renderer = egui_wgpu::Renderer::new(&gpu.device, format, egui_wgpu::RendererOptions::default());
+        let egui_renderer =
+            egui_wgpu::Renderer::new(&gpu.device, format, egui_wgpu::RendererOptions::default());
         Ok(WindowState {
             window,
             surface,
@@ -253,9 +271,11 @@ impl App {
         let Some(w) = self.window.as_mut() else {
             return Ok(());
         };
-        self.viewer.apply_events(&self.options.events, &mut w.renderer);
+        self.viewer
+            .apply_events(&self.options.events, &mut w.renderer);
         let frame = match w.surface.get_current_texture() {
-            wgpu::CurrentSurfaceTexture::Success(f) | wgpu::CurrentSurfaceTexture::Suboptimal(f) => f,
+            wgpu::CurrentSurfaceTexture::Success(f)
+            | wgpu::CurrentSurfaceTexture::Suboptimal(f) => f,
             other => {
                 // Lost or outdated: reconfigure and try next frame.
                 let _ = other;
@@ -263,7 +283,9 @@ impl App {
                 return Ok(());
             }
         };
-        let view = frame.texture.create_view(&wgpu::TextureViewDescriptor::default());
+        let view = frame
+            .texture
+            .create_view(&wgpu::TextureViewDescriptor::default());
         let (width, height) = (w.config.width, w.config.height);
         if let Some(camera) = self.viewer.camera(width, height) {
             let target = RenderTarget {
@@ -278,8 +300,11 @@ impl App {
         let raw_input = w.egui_state.take_egui_input(&w.window);
         let viewer = &mut self.viewer;
         let output = w.egui_ctx.run_pass(raw_input, |ctx| ui::panel(ctx, viewer));
-        w.egui_state.handle_platform_output(&w.window, output.platform_output);
-        let jobs = w.egui_ctx.tessellate(output.shapes, output.pixels_per_point);
+        w.egui_state
+            .handle_platform_output(&w.window, output.platform_output);
+        let jobs = w
+            .egui_ctx
+            .tessellate(output.shapes, output.pixels_per_point);
         let screen = egui_wgpu::ScreenDescriptor {
             size_in_pixels: [width, height],
             pixels_per_point: output.pixels_per_point,
@@ -287,16 +312,23 @@ impl App {
         let mut textures_delta = output.textures_delta;
         for (id, deltas) in &textures_delta.set {
             for delta in deltas {
-                w.egui_renderer.update_texture(&w.gpu.device, &w.gpu.queue, *id, delta);
+                w.egui_renderer
+                    .update_texture(&w.gpu.device, &w.gpu.queue, *id, delta);
             }
         }
         let mut encoder = w
             .gpu
             .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("overlay") });
-        let extra = w
-            .egui_renderer
-            .update_buffers(&w.gpu.device, &w.gpu.queue, &mut encoder, &jobs, &screen);
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("overlay"),
+            });
+        let extra = w.egui_renderer.update_buffers(
+            &w.gpu.device,
+            &w.gpu.queue,
+            &mut encoder,
+            &jobs,
+            &screen,
+        );
         {
             let pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("overlay"),
@@ -317,7 +349,9 @@ impl App {
             let mut pass = pass.forget_lifetime();
             w.egui_renderer.render(&mut pass, &jobs, &screen);
         }
-        w.gpu.queue.submit(extra.into_iter().chain(Some(encoder.finish())));
+        w.gpu
+            .queue
+            .submit(extra.into_iter().chain(Some(encoder.finish())));
         for id in &textures_delta.free {
             w.egui_renderer.free_texture(id);
         }
@@ -342,20 +376,27 @@ impl App {
 }
 
 /// Reads the swapchain image back as RGBA8 (BGRA formats are swizzled).
-fn read_frame(gpu: &GpuContext, texture: &wgpu::Texture, format: wgpu::TextureFormat) -> anyhow::Result<image::RgbaImage> {
+fn read_frame(
+    gpu: &GpuContext,
+    texture: &wgpu::Texture,
+    format: wgpu::TextureFormat,
+) -> anyhow::Result<image::RgbaImage> {
     anyhow::ensure!(
         texture.usage().contains(wgpu::TextureUsages::COPY_SRC),
         "the surface cannot be read back (no COPY_SRC)"
     );
     let size = texture.size();
-    let row = (size.width * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT) * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
+    let row = (size.width * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT)
+        * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
     let buffer = gpu.device.create_buffer(&wgpu::BufferDescriptor {
         label: Some("screenshot"),
         size: u64::from(row) * u64::from(size.height),
         usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
         mapped_at_creation: false,
     });
-    let mut encoder = gpu.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
+    let mut encoder = gpu
+        .device
+        .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
     encoder.copy_texture_to_buffer(
         wgpu::TexelCopyTextureInfo {
             texture,
@@ -382,7 +423,10 @@ fn read_frame(gpu: &GpuContext, texture: &wgpu::Texture, format: wgpu::TextureFo
     gpu.wait_idle()?;
     rx.recv()?.context("mapping the screenshot")?;
     let mapped = slice.get_mapped_range().context("mapping the screenshot")?;
-    let bgra = matches!(format, wgpu::TextureFormat::Bgra8Unorm | wgpu::TextureFormat::Bgra8UnormSrgb);
+    let bgra = matches!(
+        format,
+        wgpu::TextureFormat::Bgra8Unorm | wgpu::TextureFormat::Bgra8UnormSrgb
+    );
     let mut pixels = Vec::with_capacity((size.width * size.height * 4) as usize);
     for r in mapped.chunks_exact(row as usize) {
         for p in r[..(size.width * 4) as usize].chunks_exact(4) {
@@ -445,7 +489,8 @@ impl ApplicationHandler for App {
                 }
             }
             WindowEvent::MouseInput { state, button, .. } => {
-                self.drag = (state == ElementState::Pressed && !consumed).then_some((button, self.cursor));
+                self.drag =
+                    (state == ElementState::Pressed && !consumed).then_some((button, self.cursor));
             }
             WindowEvent::CursorMoved { position, .. } => {
                 self.cursor = (position.x, position.y);

@@ -56,7 +56,9 @@ pub enum GpuError {
         bytes: u64,
         limit: u64,
     },
-    #[error("{visible} visible scans need {visible} layers, over the device limit {limit} (use the k-buffer)")]
+    #[error(
+        "{visible} visible scans need {visible} layers, over the device limit {limit} (use the k-buffer)"
+    )]
     TooManyLayers { visible: usize, limit: u32 },
     #[error("reading back from the GPU failed: {0}")]
     Readback(String),

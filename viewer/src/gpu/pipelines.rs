@@ -33,7 +33,11 @@ pub(crate) struct Pipelines {
     outputs: HashMap<wgpu::TextureFormat, OutputPipelines>,
 }
 
-fn uniform_entry(binding: u32, visibility: wgpu::ShaderStages, dynamic: bool) -> wgpu::BindGroupLayoutEntry {
+fn uniform_entry(
+    binding: u32,
+    visibility: wgpu::ShaderStages,
+    dynamic: bool,
+) -> wgpu::BindGroupLayoutEntry {
     wgpu::BindGroupLayoutEntry {
         binding,
         visibility,
@@ -64,7 +68,11 @@ fn texture_entry(
     }
 }
 
-fn storage_entry(binding: u32, visibility: wgpu::ShaderStages, read_only: bool) -> wgpu::BindGroupLayoutEntry {
+fn storage_entry(
+    binding: u32,
+    visibility: wgpu::ShaderStages,
+    read_only: bool,
+) -> wgpu::BindGroupLayoutEntry {
     wgpu::BindGroupLayoutEntry {
         binding,
         visibility,
@@ -132,7 +140,12 @@ impl Pipelines {
             label: Some("scan"),
             entries: &[
                 uniform_entry(0, vf, false),
-                texture_entry(1, fs, wgpu::TextureSampleType::Float { filterable: true }, D2),
+                texture_entry(
+                    1,
+                    fs,
+                    wgpu::TextureSampleType::Float { filterable: true },
+                    D2,
+                ),
                 wgpu::BindGroupLayoutEntry {
                     binding: 2,
                     visibility: fs,
@@ -187,9 +200,17 @@ impl Pipelines {
         let merge_module = module(device, "merge.wgsl", shaders::MERGE);
         let kbuffer_module = module(device, "composite_kbuffer.wgsl", shaders::COMPOSITE_KBUFFER);
         let naive_module = module(device, "composite_naive.wgsl", shaders::COMPOSITE_NAIVE);
-        let scan_pipeline = |label: &str, entry: &str, targets: &[Option<wgpu::ColorTargetState>]| {
-            scan_render_pipeline(device, &scan_pipeline_layout, &scan_module, label, entry, targets)
-        };
+        let scan_pipeline =
+            |label: &str, entry: &str, targets: &[Option<wgpu::ColorTargetState>]| {
+                scan_render_pipeline(
+                    device,
+                    &scan_pipeline_layout,
+                    &scan_module,
+                    label,
+                    entry,
+                    targets,
+                )
+            };
         let prepass = scan_pipeline("prepass", "fs_prepass", &[replace(NEAREST_FORMAT)]);
         let layer = scan_pipeline(
             "layer",
@@ -231,30 +252,32 @@ impl Pipelines {
 
     /// Builds the pipelines writing into a target of `format` on first use.
     pub fn ensure_output(&mut self, device: &wgpu::Device, format: wgpu::TextureFormat) {
-        self.outputs.entry(format).or_insert_with(|| OutputPipelines {
-            painter: scan_render_pipeline(
-                device,
-                &self.scan_pipeline_layout,
-                &self.scan_module,
-                "painter",
-                "fs_painter",
-                &[replace(format)],
-            ),
-            composite_kbuffer: fullscreen_pipeline(
-                device,
-                &self.kbuffer_pipeline_layout,
-                &self.kbuffer_module,
-                "composite k-buffer",
-                format,
-            ),
-            composite_naive: fullscreen_pipeline(
-                device,
-                &self.naive_pipeline_layout,
-                &self.naive_module,
-                "composite naive",
-                format,
-            ),
-        });
+        self.outputs
+            .entry(format)
+            .or_insert_with(|| OutputPipelines {
+                painter: scan_render_pipeline(
+                    device,
+                    &self.scan_pipeline_layout,
+                    &self.scan_module,
+                    "painter",
+                    "fs_painter",
+                    &[replace(format)],
+                ),
+                composite_kbuffer: fullscreen_pipeline(
+                    device,
+                    &self.kbuffer_pipeline_layout,
+                    &self.kbuffer_module,
+                    "composite k-buffer",
+                    format,
+                ),
+                composite_naive: fullscreen_pipeline(
+                    device,
+                    &self.naive_pipeline_layout,
+                    &self.naive_module,
+                    "composite naive",
+                    format,
+                ),
+            });
     }
 }
 

@@ -163,7 +163,9 @@ impl Renderer {
         )?;
         let mut encoder = self
             .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("read-back") });
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("read-back"),
+            });
         let (buffer, row) = copy_texture(&self.device, &mut encoder, &texture, 1, 4);
         self.queue.submit(Some(encoder.finish()));
         let mut rows = map_rows(&self.device, &buffer, row, width * 4, height, 1)?;
@@ -190,9 +192,23 @@ impl Renderer {
         let layers = (scans.len() as u32).max(1);
         let mut encoder = self
             .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("layers") });
-        let (colour_buf, colour_row) = copy_texture(&self.device, &mut encoder, &t.layers.colour.texture, layers, 4);
-        let (data_buf, data_row) = copy_texture(&self.device, &mut encoder, &t.layers.data.texture, layers, 16);
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("layers"),
+            });
+        let (colour_buf, colour_row) = copy_texture(
+            &self.device,
+            &mut encoder,
+            &t.layers.colour.texture,
+            layers,
+            4,
+        );
+        let (data_buf, data_row) = copy_texture(
+            &self.device,
+            &mut encoder,
+            &t.layers.data.texture,
+            layers,
+            16,
+        );
         self.queue.submit(Some(encoder.finish()));
         let (w, h) = (camera.width, camera.height);
         let colour = map_rows(&self.device, &colour_buf, colour_row, w * 4, h, layers)?;
@@ -202,7 +218,8 @@ impl Renderer {
                 bytes
                     .chunks_exact(16)
                     .map(|c| {
-                        let word = |k: usize| u32::from_le_bytes([c[k], c[k + 1], c[k + 2], c[k + 3]]);
+                        let word =
+                            |k: usize| u32::from_le_bytes([c[k], c[k + 1], c[k + 2], c[k + 3]]);
                         [word(0), word(4), word(8), word(12)]
                     })
                     .collect()

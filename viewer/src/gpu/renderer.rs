@@ -206,7 +206,11 @@ impl Renderer {
     }
 
     /// The scans to draw (ascending id) and the counts of those that are not.
-    pub fn cull(&self, camera: &VirtualCamera, settings: &RenderSettings) -> (Vec<ScanId>, FrameStats) {
+    pub fn cull(
+        &self,
+        camera: &VirtualCamera,
+        settings: &RenderSettings,
+    ) -> (Vec<ScanId>, FrameStats) {
         let mut stats = FrameStats {
             scans: self.scans.len(),
             ..Default::default()
@@ -223,7 +227,12 @@ impl Renderer {
                 stats.culled_frustum += 1;
                 continue;
             };
-            match classify(&bounds, placed.gpu.cop_scan, &placed.world_from_scan, camera) {
+            match classify(
+                &bounds,
+                placed.gpu.cop_scan,
+                &placed.world_from_scan,
+                camera,
+            ) {
                 Visibility::Visible => visible.push(id),
                 Visibility::OutsideFrustum => stats.culled_frustum += 1,
                 Visibility::FacingAway => stats.culled_facing += 1,
@@ -319,10 +328,17 @@ impl Renderer {
         self.depth.as_ref().map_or(0, DepthTarget::bytes)
     }
 
-    fn ensure_kbuffer(&mut self, width: u32, height: u32, k: u32, batch: u32, batches: u32) -> Result<(), GpuError> {
+    fn ensure_kbuffer(
+        &mut self,
+        width: u32,
+        height: u32,
+        k: u32,
+        batch: u32,
+        batches: u32,
+    ) -> Result<(), GpuError> {
         let bytes = KBufferTargets::kbuffer_bytes(width, height, k);
         let limits = self.device.limits();
-        let limit = u64::from(limits.max_storage_buffer_binding_size).min(limits.max_buffer_size);
+        let limit = limits.max_storage_buffer_binding_size.min(limits.max_buffer_size);
         if bytes > limit {
             return Err(GpuError::TooLarge {
                 what: "the k-buffer",
@@ -337,7 +353,8 @@ impl Renderer {
             });
         }
         let fits = self.kbuffer.as_ref().is_some_and(|t| {
-            (t.width, t.height, t.k, t.batch) == (width, height, k, batch) && t.batch_slots >= batches
+            (t.width, t.height, t.k, t.batch) == (width, height, k, batch)
+                && t.batch_slots >= batches
         });
         if !fits {
             let slots = batches.max(self.kbuffer.as_ref().map_or(1, |t| t.batch_slots));
@@ -364,10 +381,9 @@ impl Renderer {
                 limit,
             });
         }
-        let fits = self
-            .naive
-            .as_ref()
-            .is_some_and(|t| (t.width, t.height) == (width, height) && t.layers.count == layers.max(1));
+        let fits = self.naive.as_ref().is_some_and(|t| {
+            (t.width, t.height) == (width, height) && t.layers.count == layers.max(1)
+        });
         if !fits {
             self.naive = Some(NaiveTargets::new(
                 &self.device,
@@ -401,7 +417,9 @@ impl Renderer {
         let depth_bytes = self.ensure_depth(target.width, target.height);
         let mut encoder = self
             .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") });
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("frame"),
+            });
         let strategy = if settings.composite.mode == Mode::Painter {
             None
         } else {
@@ -454,7 +472,12 @@ impl Renderer {
             })
     }
 
-    fn draw_scans(&self, pass: &mut wgpu::RenderPass<'_>, settings: &RenderSettings, ids: &[ScanId]) {
+    fn draw_scans(
+        &self,
+        pass: &mut wgpu::RenderPass<'_>,
+        settings: &RenderSettings,
+        ids: &[ScanId],
+    ) {
         pass.set_bind_group(0, &self.frame_bind_group, &[]);
         for id in ids {
             let Some(placed) = self.scans.get(id) else {
@@ -476,7 +499,11 @@ impl Renderer {
             let c = f64::from(c.clamp(0.0, 1.0));
             if format.is_srgb() {
                 // Display values: the target encodes linear ones.
-                if c <= 0.04045 { c / 12.92 } else { ((c + 0.055) / 1.055).powf(2.4) }
+                if c <= 0.04045 {
+                    c / 12.92
+                } else {
+                    ((c + 0.055) / 1.055).powf(2.4)
+                }
             } else {
                 c
             }
@@ -601,14 +628,24 @@ impl Renderer {
                 bytemuck::bytes_of(&[chunk.len() as u32, 0, 0, 0]),
             );
             for (l, &id) in chunk.iter().enumerate() {
-                self.encode_layer(encoder, settings, &t.layers.colour_layers[l], &t.layers.data_layers[l], id);
+                self.encode_layer(
+                    encoder,
+                    settings,
+                    &t.layers.colour_layers[l],
+                    &t.layers.data_layers[l],
+                    id,
+                );
             }
             let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("merge"),
                 timestamp_writes: None,
             });
             pass.set_pipeline(&self.pipelines.merge);
-            pass.set_bind_group(0, &t.merge_bind_group, &[KBufferTargets::slot_offset(b as u32)]);
+            pass.set_bind_group(
+                0,
+                &t.merge_bind_group,
+                &[KBufferTargets::slot_offset(b as u32)],
+            );
             pass.dispatch_workgroups(groups.0, groups.1, 1);
         }
         debug_assert!(KBufferTargets::slot_stride() >= 16);
@@ -640,10 +677,20 @@ impl Renderer {
         if visible.is_empty() {
             // Layer 0 must not hold stale fragments: the composite reads 0 layers
             // anyway, but keep the stack clean for read-back.
-            self.encode_clear_layer(encoder, &t.layers.colour_layers[0], &t.layers.data_layers[0]);
+            self.encode_clear_layer(
+                encoder,
+                &t.layers.colour_layers[0],
+                &t.layers.data_layers[0],
+            );
         }
         for (l, &id) in visible.iter().enumerate() {
-            self.encode_layer(encoder, settings, &t.layers.colour_layers[l], &t.layers.data_layers[l], id);
+            self.encode_layer(
+                encoder,
+                settings,
+                &t.layers.colour_layers[l],
+                &t.layers.data_layers[l],
+                id,
+            );
         }
         let Some(outputs) = self.pipelines.outputs_for(target.format) else {
             return;
@@ -657,7 +704,12 @@ impl Renderer {
         );
     }
 
-    fn encode_clear_layer(&self, encoder: &mut wgpu::CommandEncoder, colour: &wgpu::TextureView, data: &wgpu::TextureView) {
+    fn encode_clear_layer(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        colour: &wgpu::TextureView,
+        data: &wgpu::TextureView,
+    ) {
         let clear = |view| {
             Some(wgpu::RenderPassColorAttachment {
                 view,

@@ -79,8 +79,18 @@ impl GpuScan {
         let vertices = vertex_data(scan);
         let usable = drawn_indices(scan, false);
         let with_stretched = drawn_indices(scan, true);
-        let vertex_buffer = buffer(device, "scan vertices", bytemuck::cast_slice(&vertices), wgpu::BufferUsages::VERTEX);
-        let usable_buffer = buffer(device, "scan triangles", bytemuck::cast_slice(&usable), wgpu::BufferUsages::INDEX);
+        let vertex_buffer = buffer(
+            device,
+            "scan vertices",
+            bytemuck::cast_slice(&vertices),
+            wgpu::BufferUsages::VERTEX,
+        );
+        let usable_buffer = buffer(
+            device,
+            "scan triangles",
+            bytemuck::cast_slice(&usable),
+            wgpu::BufferUsages::INDEX,
+        );
         let stretched_buffer = buffer(
             device,
             "scan triangles with stretched",
@@ -167,7 +177,12 @@ impl GpuScan {
     }
 }
 
-fn buffer(device: &wgpu::Device, label: &str, data: &[u8], usage: wgpu::BufferUsages) -> wgpu::Buffer {
+fn buffer(
+    device: &wgpu::Device,
+    label: &str,
+    data: &[u8],
+    usage: wgpu::BufferUsages,
+) -> wgpu::Buffer {
     // wgpu refuses zero-sized vertex/index buffers in some paths; keep one word.
     let padded;
     let contents = if data.is_empty() {

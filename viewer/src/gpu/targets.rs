@@ -91,8 +91,26 @@ impl Layers {
         let usage = wgpu::TextureUsages::RENDER_ATTACHMENT
             | wgpu::TextureUsages::TEXTURE_BINDING
             | wgpu::TextureUsages::COPY_SRC;
-        let colour = texture(device, "layer colour", width, height, count, LAYER_COLOUR_FORMAT, usage, true);
-        let data = texture(device, "layer data", width, height, count, LAYER_DATA_FORMAT, usage, true);
+        let colour = texture(
+            device,
+            "layer colour",
+            width,
+            height,
+            count,
+            LAYER_COLOUR_FORMAT,
+            usage,
+            true,
+        );
+        let data = texture(
+            device,
+            "layer data",
+            width,
+            height,
+            count,
+            LAYER_DATA_FORMAT,
+            usage,
+            true,
+        );
         let per_layer = |t: &wgpu::Texture| -> Vec<wgpu::TextureView> {
             (0..count)
                 .map(|l| {
@@ -129,7 +147,16 @@ pub(crate) struct DepthTarget {
 impl DepthTarget {
     pub fn new(device: &wgpu::Device, width: u32, height: u32) -> Self {
         Self {
-            depth: texture(device, "depth", width, height, 1, DEPTH_FORMAT, wgpu::TextureUsages::RENDER_ATTACHMENT, false),
+            depth: texture(
+                device,
+                "depth",
+                width,
+                height,
+                1,
+                DEPTH_FORMAT,
+                wgpu::TextureUsages::RENDER_ATTACHMENT,
+                false,
+            ),
             width,
             height,
         }

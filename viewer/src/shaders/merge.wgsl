@@ -22,6 +22,20 @@ fn merge(@builtin(global_invocation_id) id: vec3<u32>) {
         return;
     }
     let xy = vec2<i32>(id.xy);
+    let near = textureLoad(nearest, xy, 0).xy;
+    let near_distance = bitcast<f32>(near.x);
+    let near_sigma = bitcast<f32>(near.y);
+    // Most pixels see few of a batch's scans: leave the k-buffer untouched unless some
+    // layer brings a valid, range-compliant fragment.
+    var any = false;
+    for (var l = 0u; l < batch.x; l = l + 1u) {
+        let data = textureLoad(layer_data, xy, i32(l), 0);
+        let f = Frag(vec3<f32>(0.0), bitcast<f32>(data.x), bitcast<f32>(data.y), bitcast<f32>(data.z), data.w);
+        any = any || (is_valid(f) && is_range_compliant(f, near_distance, near_sigma));
+    }
+    if !any {
+        return;
+    }
     let k = clamp(frame.counts.y, 1u, MAX_K);
     let base = (id.y * size.x + id.x) * k;
     var top: array<Frag, MAX_K>;
@@ -33,9 +47,6 @@ fn merge(@builtin(global_invocation_id) id: vec3<u32>) {
             count = count + 1u;
         }
     }
-    let near = textureLoad(nearest, xy, 0).xy;
-    let near_distance = bitcast<f32>(near.x);
-    let near_sigma = bitcast<f32>(near.y);
     for (var l = 0u; l < batch.x; l = l + 1u) {
         let data = textureLoad(layer_data, xy, i32(l), 0);
         let colour = textureLoad(layer_colour, xy, i32(l), 0).rgb;
@@ -44,12 +55,8 @@ fn merge(@builtin(global_invocation_id) id: vec3<u32>) {
             insert_ranked(&top, &count, k, f);
         }
     }
-    for (var i = 0u; i < k; i = i + 1u) {
-        if i < count {
-            let f = top[i];
-            kbuf[base + i] = Entry(pack4x8unorm(vec4<f32>(f.colour, 1.0)), f.reliability, f.scan);
-        } else {
-            kbuf[base + i] = Entry(0u, 0.0, 0u);
-        }
+    for (var i = 0u; i < count; i = i + 1u) {
+        let f = top[i];
+        kbuf[base + i] = Entry(pack4x8unorm(vec4<f32>(f.colour, 1.0)), f.reliability, f.scan);
     }
 }

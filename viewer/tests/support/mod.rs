@@ -21,7 +21,12 @@ pub fn gpu() -> &'static GpuContext {
 /// A renderer holding the box scene (3 scans), placed under `offset`.
 pub fn box_renderer(offset: &Pose) -> Renderer {
     let sensor = scenes::test_sensor();
-    let model = scenes::model_of(&scenes::box_scene(), &sensor, &scenes::box_scene_poses(), offset);
+    let model = scenes::model_of(
+        &scenes::box_scene(),
+        &sensor,
+        &scenes::box_scene_poses(),
+        offset,
+    );
     let mut r = Renderer::new(gpu());
     r.sync_model(&model).unwrap();
     r
@@ -29,7 +34,13 @@ pub fn box_renderer(offset: &Pose) -> Renderer {
 
 /// The view the box-scene tests use: between the front and right scans.
 pub fn box_camera(offset: &Pose) -> VirtualCamera {
-    VirtualCamera::new(offset * scenes::look_at([0.9, -0.6, 0.2], [0.0, 0.0, 5.0]), 55.0, 160, 120).unwrap()
+    VirtualCamera::new(
+        offset * scenes::look_at([0.9, -0.6, 0.2], [0.0, 0.0, 5.0]),
+        55.0,
+        160,
+        120,
+    )
+    .unwrap()
 }
 
 /// Fraction of pixels whose every channel differs by at most `tol`.
@@ -69,7 +80,10 @@ pub fn check_golden(name: &str, actual: &image::RgbaImage) {
             image::Rgba([d.saturating_mul(8), 0, 0, 255])
         });
         diff.save(dir.join(format!("{name}.diff.png"))).unwrap();
-        panic!("{name}: only {:.2} % of pixels within 2/255 of the golden", within * 100.0);
+        panic!(
+            "{name}: only {:.2} % of pixels within 2/255 of the golden",
+            within * 100.0
+        );
     }
 }
 
@@ -81,7 +95,8 @@ pub fn write_box_capture(path: &std::path::Path, topic: texel::capture::PoseTopi
     let mut w = CaptureWriter::create(path, WriterOptions::default()).unwrap();
     w.write_sensor(&sensor.model, 0).unwrap();
     for (i, pose) in scenes::box_scene_poses().iter().enumerate() {
-        let (range, eo) = scenes::frames(&scene, &sensor, pose, scenes::tint(i as u32), i as u32 + 1);
+        let (range, eo) =
+            scenes::frames(&scene, &sensor, pose, scenes::tint(i as u32), i as u32 + 1);
         w.write_range(&range, RangeEncoding::F32Metres).unwrap();
         w.write_eo(&eo, EoEncoding::Rgb8).unwrap();
         w.write_pose(topic, range.timestamp_ns, pose).unwrap();
