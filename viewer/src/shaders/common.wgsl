@@ -29,8 +29,20 @@ struct Frag {
     scan: u32,
 }
 
+// A ranked fragment: what the k-buffer stores (12 bytes; colour packed RGBA8). Kept
+// small because the per-pixel ranking lives in private memory.
+struct Ranked {
+    colour: u32,
+    reliability: f32,
+    scan: u32,
+}
+
 fn empty_frag() -> Frag {
     return Frag(vec3<f32>(0.0), 0.0, 0.0, 0.0, 0u);
+}
+
+fn ranked_of(f: Frag) -> Ranked {
+    return Ranked(pack4x8unorm(vec4<f32>(f.colour, 1.0)), f.reliability, f.scan);
 }
 
 fn is_valid(f: Frag) -> bool {
@@ -38,7 +50,7 @@ fn is_valid(f: Frag) -> bool {
 }
 
 // Higher reliability first; equal reliability: lower scan id first (deterministic).
-fn ranks_before(a: Frag, b: Frag) -> bool {
+fn ranks_before(a: Ranked, b: Ranked) -> bool {
     return a.reliability > b.reliability || (a.reliability == b.reliability && a.scan < b.scan);
 }
 
@@ -48,7 +60,7 @@ fn is_range_compliant(f: Frag, near_distance: f32, near_sigma: f32) -> bool {
 
 // Inserts `f` into the ranked list `top` (length `count`, capacity `k`), keeping the
 // k best; a fragment ranking below a full list is dropped.
-fn insert_ranked(top: ptr<function, array<Frag, MAX_K>>, count: ptr<function, u32>, k: u32, f: Frag) {
+fn insert_ranked(top: ptr<function, array<Ranked, MAX_K>>, count: ptr<function, u32>, k: u32, f: Ranked) {
     var pos = *count;
     loop {
         if pos == 0u || !ranks_before(f, (*top)[pos - 1u]) {
@@ -98,7 +110,7 @@ fn heat(reliability: f32) -> vec3<f32> {
 }
 
 // Step 4 of Algorithm 2, from the ranked fragments (best first).
-fn shade(top: ptr<function, array<Frag, MAX_K>>, count: u32) -> vec3<f32> {
+fn shade(top: ptr<function, array<Ranked, MAX_K>>, count: u32) -> vec3<f32> {
     if count == 0u {
         return frame.background.rgb;
     }
@@ -111,7 +123,7 @@ fn shade(top: ptr<function, array<Frag, MAX_K>>, count: u32) -> vec3<f32> {
         for (var i = 0u; i < count; i = i + 1u) {
             let f = (*top)[i];
             if f.reliability >= floor_rel {
-                sum = sum + f.reliability * f.colour;
+                sum = sum + f.reliability * unpack4x8unorm(f.colour).rgb;
                 weight = weight + f.reliability;
             }
         }
@@ -123,7 +135,7 @@ fn shade(top: ptr<function, array<Frag, MAX_K>>, count: u32) -> vec3<f32> {
     if mode == MODE_RELIABILITY {
         return heat(best.reliability);
     }
-    return best.colour;
+    return unpack4x8unorm(best.colour).rgb;
 }
 
 fn srgb_to_linear(c: vec3<f32>) -> vec3<f32> {

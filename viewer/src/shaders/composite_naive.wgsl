@@ -27,13 +27,13 @@ fn fs_composite(in: FullscreenOut) -> @location(0) vec4<f32> {
     }
     // Step 3: rank the compliant ones, keeping k.
     let k = clamp(frame.counts.y, 1u, MAX_K);
-    var top: array<Frag, MAX_K>;
+    var top: array<Ranked, MAX_K>;
     var count = 0u;
     if found {
         for (var l = 0u; l < layers; l = l + 1u) {
             let f = load_frag(xy, l);
             if is_valid(f) && is_range_compliant(f, near.distance, near.sigma) {
-                insert_ranked(&top, &count, k, f);
+                insert_ranked(&top, &count, k, ranked_of(f));
             }
         }
     }

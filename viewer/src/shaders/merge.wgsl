@@ -2,17 +2,11 @@
 // most reliable range-compliant fragments), so memory stays O(k x pixels) however
 // many scans there are. The nearest valid distance comes from the pre-pass.
 
-struct Entry {
-    colour: u32,
-    reliability: f32,
-    scan: u32,
-}
-
 @group(0) @binding(0) var<uniform> frame: Frame;
 @group(0) @binding(1) var nearest: texture_2d<u32>;
 @group(0) @binding(2) var layer_colour: texture_2d_array<f32>;
 @group(0) @binding(3) var layer_data: texture_2d_array<u32>;
-@group(0) @binding(4) var<storage, read_write> kbuf: array<Entry>;
+@group(0) @binding(4) var<storage, read_write> kbuf: array<Ranked>;
 @group(0) @binding(5) var<uniform> batch: vec4<u32>;
 
 @compute @workgroup_size(8, 8)
@@ -38,12 +32,12 @@ fn merge(@builtin(global_invocation_id) id: vec3<u32>) {
     }
     let k = clamp(frame.counts.y, 1u, MAX_K);
     let base = (id.y * size.x + id.x) * k;
-    var top: array<Frag, MAX_K>;
+    var top: array<Ranked, MAX_K>;
     var count = 0u;
     for (var i = 0u; i < k; i = i + 1u) {
         let e = kbuf[base + i];
         if e.reliability > 0.0 {
-            top[count] = Frag(unpack4x8unorm(e.colour).rgb, e.reliability, 0.0, 0.0, e.scan);
+            top[count] = e;
             count = count + 1u;
         }
     }
@@ -52,11 +46,10 @@ fn merge(@builtin(global_invocation_id) id: vec3<u32>) {
         let colour = textureLoad(layer_colour, xy, i32(l), 0).rgb;
         let f = Frag(colour, bitcast<f32>(data.x), bitcast<f32>(data.y), bitcast<f32>(data.z), data.w);
         if is_valid(f) && is_range_compliant(f, near_distance, near_sigma) {
-            insert_ranked(&top, &count, k, f);
+            insert_ranked(&top, &count, k, ranked_of(f));
         }
     }
     for (var i = 0u; i < count; i = i + 1u) {
-        let f = top[i];
-        kbuf[base + i] = Entry(pack4x8unorm(vec4<f32>(f.colour, 1.0)), f.reliability, f.scan);
+        kbuf[base + i] = top[i];
     }
 }
