@@ -149,9 +149,16 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<()> {
     let mut renderer = Renderer::new(&gpu);
     renderer.sync_model(&model)?;
     settings.strategy = Strategy::NaiveLayers;
-    let (base_ms, drawn, base_bytes) = measure(&gpu, &mut renderer, &camera, &settings, args.frames)?;
-    println!("batch sweep, 30 scans ({drawn} drawn); naive layers: {base_ms:.2} ms, {:.2} MiB", base_bytes as f64 / 1048576.0);
-    println!("{:>6} {:>12} {:>12} {:>14} {:>12}", "batch", "frame ms", "targets MiB", "vs naive time", "vs naive mem");
+    let (base_ms, drawn, base_bytes) =
+        measure(&gpu, &mut renderer, &camera, &settings, args.frames)?;
+    println!(
+        "batch sweep, 30 scans ({drawn} drawn); naive layers: {base_ms:.2} ms, {:.2} MiB",
+        base_bytes as f64 / 1048576.0
+    );
+    println!(
+        "{:>6} {:>12} {:>12} {:>14} {:>12}",
+        "batch", "frame ms", "targets MiB", "vs naive time", "vs naive mem"
+    );
     for batch in [1u32, 2, 4, 8, 16] {
         settings.strategy = Strategy::KBuffer { batch };
         let (ms, _, bytes) = measure(&gpu, &mut renderer, &camera, &settings, args.frames)?;

@@ -338,7 +338,9 @@ impl Renderer {
     ) -> Result<(), GpuError> {
         let bytes = KBufferTargets::kbuffer_bytes(width, height, k);
         let limits = self.device.limits();
-        let limit = limits.max_storage_buffer_binding_size.min(limits.max_buffer_size);
+        let limit = limits
+            .max_storage_buffer_binding_size
+            .min(limits.max_buffer_size);
         if bytes > limit {
             return Err(GpuError::TooLarge {
                 what: "the k-buffer",
