@@ -15,7 +15,7 @@ pub struct BenchArgs {
     pub width: u32,
     #[arg(long, default_value_t = 480)]
     pub height: u32,
-    /// Timed frames per configuration (after 2 warm-up frames).
+    /// Timed frames per configuration (after 2 warm-up frames); the median is reported.
     #[arg(long, default_value_t = 10)]
     pub frames: u32,
     /// Scans per k-buffer batch in the main table.
@@ -65,12 +65,16 @@ fn measure(
         stats = renderer.render(camera, settings, &target)?;
         renderer.wait_idle()?;
     }
-    let start = Instant::now();
+    // The median frame: robust against other work on a shared machine.
+    let mut times = Vec::with_capacity(frames.max(1) as usize);
     for _ in 0..frames.max(1) {
+        let start = Instant::now();
         stats = renderer.render(camera, settings, &target)?;
         renderer.wait_idle()?;
+        times.push(start.elapsed().as_secs_f64() * 1000.0);
     }
-    let ms = start.elapsed().as_secs_f64() * 1000.0 / f64::from(frames.max(1));
+    times.sort_by(f64::total_cmp);
+    let ms = times[times.len() / 2];
     Ok((ms, stats.drawn, stats.target_memory.total()))
 }
 

@@ -221,6 +221,31 @@ pub fn shade(top: &[Fragment], settings: &CompositeSettings) -> [f32; 3] {
     }
 }
 
+/// The k-buffer strategy on the CPU: the nearest valid fragment is found first (the
+/// pre-pass), then fragments arrive `batch` at a time in scan order and each compliant
+/// one is inserted into a ranked list of at most `k` (as `merge.wgsl` does). Gives the
+/// same list as [`ranked`] for every batch size.
+pub fn ranked_incrementally(fragments: &[Fragment], k: usize, batch: usize) -> Vec<Fragment> {
+    let Some(near) = nearest(fragments) else {
+        return Vec::new();
+    };
+    let k = k.max(1);
+    let mut top: Vec<Fragment> = Vec::with_capacity(k + 1);
+    for chunk in fragments.chunks(batch.max(1)) {
+        for f in chunk
+            .iter()
+            .filter(|f| is_valid(f) && is_range_compliant(f, near.distance_m, near.sigma_m))
+        {
+            let pos = top.iter().take_while(|t| ranks_before(t, f)).count();
+            if pos < k {
+                top.insert(pos, *f);
+                top.truncate(k);
+            }
+        }
+    }
+    top
+}
+
 /// Algorithm 2 for one pixel.
 pub fn composite_pixel(fragments: &[Fragment], settings: &CompositeSettings) -> [f32; 3] {
     shade(&ranked(fragments, settings.effective_k()), settings)
