@@ -33,12 +33,22 @@ enum Command {
     Bench(texel_viewer::bench::BenchArgs),
 }
 
-/// Where the model comes from.
+/// Where the model comes from: exactly one source (a live `--connect` joins this group).
 #[derive(Args)]
+#[group(required = true, multiple = false)]
 struct SourceArgs {
     /// A capture (MCAP): every texel frame fused and placed by /texel/pose, else /truth/pose.
     #[arg(long, value_name = "RESULT.mcap")]
-    capture: PathBuf,
+    capture: Option<PathBuf>,
+}
+
+impl SourceArgs {
+    fn load(&self) -> anyhow::Result<LoadedCapture> {
+        match &self.capture {
+            Some(path) => load(path),
+            None => bail!("give a model source (--capture)"),
+        }
+    }
 }
 
 #[derive(Args, Clone)]
@@ -161,7 +171,7 @@ fn load(path: &std::path::Path) -> anyhow::Result<LoadedCapture> {
 
 fn render(args: RenderArgs) -> anyhow::Result<()> {
     let settings = args.display.settings()?;
-    let loaded = load(&args.source.capture)?;
+    let loaded = args.source.load()?;
     let default_fov = VirtualCamera::fov_y_deg_of(&loaded.eo_camera);
     let mut views = Vec::new();
     if let Some(file) = &args.views {
