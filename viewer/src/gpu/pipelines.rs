@@ -29,7 +29,7 @@ pub(crate) struct Pipelines {
     naive_pipeline_layout: wgpu::PipelineLayout,
     pub prepass: wgpu::RenderPipeline,
     pub layer: wgpu::RenderPipeline,
-    pub merge: wgpu::ComputePipeline,
+    pub merge: wgpu::RenderPipeline,
     outputs: HashMap<wgpu::TextureFormat, OutputPipelines>,
 }
 
@@ -131,7 +131,6 @@ impl Pipelines {
     pub fn new(device: &wgpu::Device) -> Self {
         let vf = wgpu::ShaderStages::VERTEX | wgpu::ShaderStages::FRAGMENT;
         let fs = wgpu::ShaderStages::FRAGMENT;
-        let cs = wgpu::ShaderStages::COMPUTE;
         let frame_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("frame"),
             entries: &[uniform_entry(0, vf, false)],
@@ -154,15 +153,16 @@ impl Pipelines {
                 },
             ],
         });
+        let mf = fs;
         let merge_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("merge"),
             entries: &[
-                uniform_entry(0, cs, false),
-                texture_entry(1, cs, UINT, D2),
-                texture_entry(2, cs, UNFILTERED, D2_ARRAY),
-                texture_entry(3, cs, UINT, D2_ARRAY),
-                storage_entry(4, cs, false),
-                uniform_entry(5, cs, true),
+                uniform_entry(0, mf, false),
+                texture_entry(1, mf, UINT, D2),
+                texture_entry(2, mf, UNFILTERED, D2_ARRAY),
+                texture_entry(3, mf, UINT, D2_ARRAY),
+                storage_entry(4, mf, false),
+                uniform_entry(5, mf, true),
             ],
         });
         let kbuffer_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
@@ -217,12 +217,33 @@ impl Pipelines {
             "fs_layer",
             &[replace(LAYER_COLOUR_FORMAT), replace(LAYER_DATA_FORMAT)],
         );
-        let merge = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-            label: Some("merge"),
+        let merge = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+            label: Some("merge (fragment)"),
             layout: Some(&merge_pipeline_layout),
-            module: &merge_module,
-            entry_point: Some("merge"),
-            compilation_options: Default::default(),
+            vertex: wgpu::VertexState {
+                module: &merge_module,
+                entry_point: Some("vs_fullscreen"),
+                compilation_options: Default::default(),
+                buffers: &[],
+            },
+            primitive: wgpu::PrimitiveState::default(),
+            // No colour output: the pass needs an attachment, so it takes the depth
+            // buffer without testing or writing it.
+            depth_stencil: Some(wgpu::DepthStencilState {
+                format: DEPTH_FORMAT,
+                depth_write_enabled: Some(false),
+                depth_compare: Some(wgpu::CompareFunction::Always),
+                stencil: wgpu::StencilState::default(),
+                bias: wgpu::DepthBiasState::default(),
+            }),
+            multisample: wgpu::MultisampleState::default(),
+            fragment: Some(wgpu::FragmentState {
+                module: &merge_module,
+                entry_point: Some("fs_merge"),
+                compilation_options: Default::default(),
+                targets: &[],
+            }),
+            multiview_mask: None,
             cache: None,
         });
         Self {

@@ -621,7 +621,6 @@ impl Renderer {
         }
         // 2. Scans a batch at a time into the layers, each batch merged into the k-buffer.
         encoder.clear_buffer(&t.kbuffer, 0, None);
-        let groups = (target.width.div_ceil(8), target.height.div_ceil(8));
         for (b, chunk) in visible.chunks(t.batch as usize).enumerate() {
             let slot = u64::from(KBufferTargets::slot_offset(b as u32));
             self.queue.write_buffer(
@@ -638,9 +637,14 @@ impl Renderer {
                     id,
                 );
             }
-            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            // The pass needs an attachment: the depth buffer, neither tested nor written.
+            let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("merge"),
+                color_attachments: &[],
+                depth_stencil_attachment: self.depth_attachment(),
                 timestamp_writes: None,
+                occlusion_query_set: None,
+                multiview_mask: None,
             });
             pass.set_pipeline(&self.pipelines.merge);
             pass.set_bind_group(
@@ -648,9 +652,8 @@ impl Renderer {
                 &t.merge_bind_group,
                 &[KBufferTargets::slot_offset(b as u32)],
             );
-            pass.dispatch_workgroups(groups.0, groups.1, 1);
+            pass.draw(0..3, 0..1);
         }
-        debug_assert!(KBufferTargets::slot_stride() >= 16);
         // 3. Composite into the target.
         let Some(outputs) = self.pipelines.outputs_for(target.format) else {
             return Ok(());

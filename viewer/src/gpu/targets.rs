@@ -286,10 +286,6 @@ impl KBufferTargets {
         i * BATCH_UNIFORM_STRIDE as u32
     }
 
-    pub fn slot_stride() -> u64 {
-        BATCH_UNIFORM_STRIDE
-    }
-
     pub fn memory(&self, depth: u64) -> TargetMemory {
         TargetMemory {
             depth,
