@@ -179,3 +179,87 @@ fn kbuffer_memory_is_bounded() {
     let per_layer = 64 * 48 * 20;
     assert_eq!(naive_many - naive_few, (many - few) as u64 * per_layer);
 }
+
+/// Scans joining between frames are uploaded once; a pose revision only moves a scan
+/// (the same image as a renderer that got the revised pose from the start).
+#[test]
+fn model_growth_and_pose_revisions() {
+    use std::sync::Arc;
+    use texel::model::{Model, ModelEvent};
+    let sensor = scenes::test_sensor();
+    let scene = scenes::box_scene();
+    let poses = scenes::box_scene_poses();
+    let cam = box_camera(&Pose::identity());
+    let s = RenderSettings::with_mode(Mode::Blended);
+    let mut model = Model::new();
+    let mut r = Renderer::new(gpu());
+    for (i, pose) in poses.iter().enumerate() {
+        model
+            .apply(ModelEvent::ScanAdded {
+                id: i as u64,
+                scan: Arc::new(scenes::scan(
+                    &scene,
+                    &sensor,
+                    pose,
+                    scenes::tint(i as u32),
+                    i as u32,
+                )),
+                world_from_scan: *pose,
+            })
+            .unwrap();
+        r.sync_model(&model).unwrap();
+        let (_, stats) = r.render_to_image(&cam, &s).unwrap();
+        assert_eq!((stats.scans, stats.drawn), (i + 1, i + 1));
+    }
+    let moved =
+        texel::pose::pose_from_parts([0.3, 0.0, 0.1], [0.0, 0.05, 0.0, 1.0]).unwrap() * poses[1];
+    model
+        .apply(ModelEvent::PoseRevised {
+            id: 1,
+            world_from_scan: moved,
+        })
+        .unwrap();
+    let (before, _) = r.render_to_image(&cam, &s).unwrap();
+    r.sync_model(&model).unwrap();
+    let (after, _) = r.render_to_image(&cam, &s).unwrap();
+    assert!(
+        fraction_within(&before, &after, 2) < 0.95,
+        "the revision must show"
+    );
+    let mut fresh = Renderer::new(gpu());
+    fresh.sync_model(&model).unwrap();
+    let (want, _) = fresh.render_to_image(&cam, &s).unwrap();
+    assert_eq!(after.as_raw(), want.as_raw());
+}
+
+/// Stretched triangles (over the box's silhouette) are removed unless kept: keeping
+/// them covers more pixels with the front scan's texture smeared from box to wall.
+#[test]
+fn stretched_triangles_are_removed_unless_kept() {
+    let id = Pose::identity();
+    let mut r = box_renderer(&id);
+    let cam = VirtualCamera::new(
+        scenes::look_at([2.5, -0.5, 0.5], [0.0, 0.0, 5.0]),
+        55.0,
+        128,
+        96,
+    )
+    .unwrap();
+    let mut hidden = RenderSettings::with_mode(Mode::ScanColour);
+    hidden.hidden.extend([1, 2]);
+    let front = texel_viewer::composite::scan_colour(0).map(|v| (v * 255.0).round() as u8);
+    let covered = |img: &image::RgbaImage| {
+        img.pixels()
+            .filter(|p| (0..3).all(|k| p[k].abs_diff(front[k]) <= 2))
+            .count()
+    };
+    let (without, _) = r.render_to_image(&cam, &hidden).unwrap();
+    hidden.keep_stretched = true;
+    let (with, _) = r.render_to_image(&cam, &hidden).unwrap();
+    assert!(
+        covered(&with) > covered(&without) + 100,
+        "{} vs {}",
+        covered(&with),
+        covered(&without)
+    );
+}
