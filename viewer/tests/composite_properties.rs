@@ -78,10 +78,10 @@ proptest! {
         let top = ranked(&px, s.effective_k());
         if let Some(best) = top.first() {
             let set: Vec<_> = top.iter().filter(|f| f.reliability >= best.reliability - s.blend_threshold).collect();
-            for ch in 0..3 {
+            for (ch, value) in got.iter().enumerate() {
                 let lo = set.iter().map(|f| f.colour[ch]).fold(f32::INFINITY, f32::min);
                 let hi = set.iter().map(|f| f.colour[ch]).fold(f32::NEG_INFINITY, f32::max);
-                prop_assert!(got[ch] >= lo - 1e-6 && got[ch] <= hi + 1e-6);
+                prop_assert!(*value >= lo - 1e-6 && *value <= hi + 1e-6);
             }
         } else {
             prop_assert_eq!(got, s.background);
