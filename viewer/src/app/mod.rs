@@ -299,7 +299,10 @@ impl App {
         // The overlay, drawn over the frame.
         let raw_input = w.egui_state.take_egui_input(&w.window);
         let viewer = &mut self.viewer;
-        let output = w.egui_ctx.run_pass(raw_input, |ctx| ui::panel(ctx, viewer));
+        let roomy = width >= 700;
+        let output = w
+            .egui_ctx
+            .run_pass(raw_input, |ctx| ui::panel(ctx, viewer, roomy));
         w.egui_state
             .handle_platform_output(&w.window, output.platform_output);
         let jobs = w

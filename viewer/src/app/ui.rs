@@ -5,9 +5,13 @@ use super::ViewerState;
 use crate::composite::{MAX_K, Mode};
 use crate::gpu::Strategy;
 
-pub(super) fn panel(ctx: &egui::Context, v: &mut ViewerState) {
+/// `roomy`: the window is wide enough to show the panel open at first (in a small
+/// window it starts folded, so the model stays visible).
+pub(super) fn panel(ctx: &egui::Context, v: &mut ViewerState, roomy: bool) {
     egui::Window::new("texel")
         .default_width(240.0)
+        .default_pos([8.0, 8.0])
+        .default_open(roomy)
         .show(ctx, |ui| {
             ui.label(format!("{:.1} frames/s", v.fps));
             ui.label(format!(
