@@ -21,6 +21,8 @@ pub enum Counter {
     LateEo,
     /// Pairs dropped because no sensor model was known yet.
     NoSensor,
+    /// Frames whose size differs from the sensor model: recorded, not paired.
+    FrameSizeMismatch,
     FuseFailures,
     RegistrationFailures,
     RegistrationDegenerate,
@@ -35,13 +37,14 @@ pub enum Counter {
 }
 
 impl Counter {
-    pub const ALL: [Counter; 16] = [
+    pub const ALL: [Counter; 17] = [
         Self::Paired,
         Self::UnpairedRange,
         Self::UnpairedEo,
         Self::LateRange,
         Self::LateEo,
         Self::NoSensor,
+        Self::FrameSizeMismatch,
         Self::FuseFailures,
         Self::RegistrationFailures,
         Self::RegistrationDegenerate,
@@ -62,6 +65,7 @@ impl Counter {
             Self::LateRange => "late_range",
             Self::LateEo => "late_eo",
             Self::NoSensor => "no_sensor",
+            Self::FrameSizeMismatch => "frame_size_mismatch",
             Self::FuseFailures => "fuse_failures",
             Self::RegistrationFailures => "registration_failures",
             Self::RegistrationDegenerate => "registration_degenerate",

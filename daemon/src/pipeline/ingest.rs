@@ -70,6 +70,17 @@ impl Ingest {
         }
     }
 
+    /// Counts a frame the sensor model does not describe; warns the first time.
+    fn size_mismatch(&self, kind: &str, width: u32, height: u32) {
+        if self.metrics.get(Counter::FrameSizeMismatch) == 0 {
+            tracing::warn!(
+                "a {kind} frame is {width}x{height}, which the sensor model does not describe; \
+                 such frames are recorded but not fused"
+            );
+        }
+        self.metrics.add(Counter::FrameSizeMismatch, 1);
+    }
+
     fn publish_sync_counters(&self) {
         let c = self.sync.counters();
         let m = &self.metrics;
@@ -114,11 +125,28 @@ impl Ingest {
                 SourceEvent::Range(frame) => {
                     arrivals.note(frame.timestamp_ns);
                     self.record(RecordItem::Range(frame.clone())).await;
-                    self.sync.push_range(frame)
+                    let fits = self.sensor.as_ref().is_none_or(|m| {
+                        (frame.width, frame.height) == (m.lidar.width, m.lidar.height)
+                    });
+                    if fits {
+                        self.sync.push_range(frame)
+                    } else {
+                        self.size_mismatch("range", frame.width, frame.height);
+                        None
+                    }
                 }
                 SourceEvent::Eo(frame) => {
                     self.record(RecordItem::Eo(frame.clone())).await;
-                    self.sync.push_eo(frame)
+                    let fits = self
+                        .sensor
+                        .as_ref()
+                        .is_none_or(|m| (frame.width, frame.height) == (m.eo.width, m.eo.height));
+                    if fits {
+                        self.sync.push_eo(frame)
+                    } else {
+                        self.size_mismatch("EO", frame.width, frame.height);
+                        None
+                    }
                 }
                 SourceEvent::Pose {
                     topic,

@@ -113,9 +113,19 @@ impl Session {
         };
         let hub = Hub::new(config.serve.client_queue);
         let metrics = Metrics::new();
+        // Sources are known to the status from the start.
+        let sources: Vec<_> = build_sources(&config)
+            .into_iter()
+            .map(|source| {
+                let m = SourceMetrics::new(source.name(), source.kind());
+                metrics.add_source(Arc::clone(&m));
+                (source, m)
+            })
+            .collect();
         let sources_done = CancellationToken::new();
         let task = tokio::spawn(run(
             config,
+            sources,
             sensor,
             registration,
             recorder,
@@ -222,6 +232,7 @@ fn depth_probe<T: Send + 'static>(name: &'static str, tx: &mpsc::Sender<T>) -> Q
 #[allow(clippy::too_many_arguments)]
 async fn run(
     config: SessionConfig,
+    sources: Vec<(Box<dyn Source>, Arc<SourceMetrics>)>,
     sensor: Option<Arc<SensorModel>>,
     registration: Box<dyn Registration>,
     recorder: Option<Recorder>,
@@ -248,9 +259,7 @@ async fn run(
     let (events_tx, events_rx) = mpsc::channel(config.pipeline.ingest_queue);
     metrics.add_queue(depth_probe("ingest", &events_tx));
     let mut source_tasks = tokio::task::JoinSet::new();
-    for (i, source) in build_sources(&config).into_iter().enumerate() {
-        let m = SourceMetrics::new(source.name(), source.kind());
-        metrics.add_source(Arc::clone(&m));
+    for (i, (source, m)) in sources.into_iter().enumerate() {
         let sink = FrameSink::new(i, events_tx.clone(), m);
         let name = source.name().to_string();
         let stop = shutdown.clone();
