@@ -49,7 +49,8 @@ use worker::Worker;
 pub enum SessionError {
     #[error("sensor file: {0}")]
     Sensor(#[from] texel::sensor::SensorError),
-    #[error("pose capture {path}: {message}")]
+    /// `message` names the file.
+    #[error("pose capture: {message}")]
     PoseCapture { path: String, message: String },
     #[error("recording: {0}")]
     Record(#[from] texel::capture::CaptureError),
