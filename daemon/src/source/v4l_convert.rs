@@ -145,3 +145,156 @@ pub fn to_eo_frame(
         timestamp_ns,
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A 16x8 test card: colour bars in pairs of pixels (so YUYV's shared chroma loses
+    /// nothing), one grey ramp row.
+    fn card() -> (u32, u32, Vec<u8>) {
+        let (w, h) = (16u32, 8u32);
+        let bars = [
+            [255, 255, 255],
+            [255, 255, 0],
+            [0, 255, 255],
+            [0, 255, 0],
+            [255, 0, 255],
+            [255, 0, 0],
+            [0, 0, 255],
+            [16, 16, 16],
+        ];
+        let mut rgb = Vec::new();
+        for v in 0..h {
+            for u in 0..w {
+                if v == h - 1 {
+                    let g = (u * 16) as u8;
+                    rgb.extend_from_slice(&[g, g, g]);
+                } else {
+                    rgb.extend_from_slice(&bars[(u / 2) as usize]);
+                }
+            }
+        }
+        (w, h, rgb)
+    }
+
+    fn max_diff(a: &[u8], b: &[u8]) -> u8 {
+        assert_eq!(a.len(), b.len());
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| x.abs_diff(*y))
+            .max()
+            .unwrap_or(0)
+    }
+
+    #[test]
+    fn yuyv_known_values() {
+        // BT.601 full range: grey stays grey; Y 76 U 85 V 255 is pure red.
+        let frame = to_eo_frame(PixelFormat::Yuyv, 2, 1, 0, &[128, 128, 128, 128], 5).unwrap();
+        assert_eq!(frame.rgb, [128, 128, 128, 128, 128, 128]);
+        assert_eq!(frame.timestamp_ns, 5);
+        let red = to_eo_frame(PixelFormat::Yuyv, 2, 1, 0, &[76, 85, 76, 255], 0).unwrap();
+        assert!(
+            max_diff(&red.rgb, &[255, 0, 0, 255, 0, 0]) <= 2,
+            "{:?}",
+            red.rgb
+        );
+    }
+
+    #[test]
+    fn yuyv_with_line_padding_matches_the_card() {
+        let (w, h, rgb) = card();
+        let (step, packed) =
+            texel::capture::encode_eo(&rgb, w, h, texel::capture::EoEncoding::Yuyv).unwrap();
+        // Pad each line to 40 bytes as drivers do, and drop the last line's padding.
+        let stride = 40u32;
+        let mut padded = Vec::new();
+        for row in packed.chunks(step as usize) {
+            padded.extend_from_slice(row);
+            padded.extend(std::iter::repeat_n(0xEE, (stride - step) as usize));
+        }
+        padded.truncate(padded.len() - (stride - step) as usize);
+        let frame = to_eo_frame(PixelFormat::Yuyv, w, h, stride, &padded, 1).unwrap();
+        assert!(frame.is_consistent());
+        assert!(max_diff(&frame.rgb, &rgb) <= 2);
+    }
+
+    #[test]
+    fn rgb3_and_grey_are_exact() {
+        let (w, h, rgb) = card();
+        assert_eq!(
+            to_eo_frame(PixelFormat::Rgb3, w, h, 0, &rgb, 0)
+                .unwrap()
+                .rgb,
+            rgb
+        );
+        let grey: Vec<u8> = (0..w * h).map(|i| (i * 2) as u8).collect();
+        let f = to_eo_frame(PixelFormat::Grey, w, h, 0, &grey, 0).unwrap();
+        for (i, g) in grey.iter().enumerate() {
+            assert_eq!(f.rgb[3 * i..3 * i + 3], [*g, *g, *g]);
+        }
+    }
+
+    fn jpeg(rgb: &[u8], w: u32, h: u32) -> Vec<u8> {
+        texel::capture::encode_compressed(rgb, w, h, "jpeg", 95).unwrap()
+    }
+
+    /// Removes every DHT segment and adds the AVI1 APP0 marker: how UVC cameras send
+    /// MJPEG (the decoder must supply the standard Huffman tables).
+    fn as_mjpeg_without_tables(jpeg: &[u8]) -> Vec<u8> {
+        let mut out = vec![0xFF, 0xD8, 0xFF, 0xE0, 0x00, 0x08];
+        out.extend_from_slice(b"AVI1\0\0");
+        let mut i = 2;
+        while i + 4 <= jpeg.len() {
+            assert_eq!(jpeg[i], 0xFF);
+            let marker = jpeg[i + 1];
+            if marker == 0xDA {
+                out.extend_from_slice(&jpeg[i..]);
+                break;
+            }
+            let len = usize::from(u16::from_be_bytes([jpeg[i + 2], jpeg[i + 3]]));
+            if marker != 0xC4 {
+                out.extend_from_slice(&jpeg[i..i + 2 + len]);
+            }
+            i += 2 + len;
+        }
+        out
+    }
+
+    #[test]
+    fn mjpeg_with_and_without_huffman_tables() {
+        let (w, h, rgb) = card();
+        let full = jpeg(&rgb, w, h);
+        let f = to_eo_frame(PixelFormat::Mjpeg, w, h, 0, &full, 0).unwrap();
+        // Colour bars through JPEG at quality 95 stay close.
+        let mean = f
+            .rgb
+            .iter()
+            .zip(&rgb)
+            .map(|(a, b)| f64::from(a.abs_diff(*b)))
+            .sum::<f64>()
+            / rgb.len() as f64;
+        assert!(mean < 8.0, "mean error {mean}");
+        let bare = as_mjpeg_without_tables(&full);
+        assert!(!bare.windows(2).any(|m| m == [0xFF, 0xC4]), "no DHT left");
+        let g = to_eo_frame(PixelFormat::Mjpeg, w, h, 0, &bare, 0).unwrap();
+        assert_eq!(g.rgb, f.rgb, "the standard tables are the encoder's");
+    }
+
+    #[test]
+    fn short_and_corrupt_buffers_are_errors_not_panics() {
+        let (w, h, rgb) = card();
+        for format in [PixelFormat::Yuyv, PixelFormat::Rgb3, PixelFormat::Grey] {
+            let e = to_eo_frame(format, w, h, 0, &rgb[..10], 0).unwrap_err();
+            assert!(matches!(e, ConvertError::Short { .. }), "{e}");
+        }
+        // A stride smaller than a line.
+        assert!(to_eo_frame(PixelFormat::Rgb3, w, h, 3, &rgb, 0).is_err());
+        let e = to_eo_frame(PixelFormat::Mjpeg, w, h, 0, b"\xFF\xD8garbage", 0).unwrap_err();
+        assert!(matches!(e, ConvertError::Decode { .. }), "{e}");
+        let e = to_eo_frame(PixelFormat::Mjpeg, 32, 8, 0, &jpeg(&rgb, w, h), 0).unwrap_err();
+        assert!(matches!(e, ConvertError::SizeMismatch { .. }), "{e}");
+        assert_eq!(PixelFormat::from_name("mjpg"), Some(PixelFormat::Mjpeg));
+        assert_eq!(PixelFormat::from_name("H264"), None);
+    }
+}

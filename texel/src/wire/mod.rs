@@ -378,13 +378,38 @@ pub(crate) fn put_pose(
     Ok(())
 }
 
+/// Reads a pose. A quaternion already of unit length (to rounding) is taken as it is,
+/// so poses round-trip bit for bit; any other non-zero one is normalised.
 pub(crate) fn read_pose(r: &mut BodyReader<'_>, field: &'static str) -> Result<Pose, WireError> {
     let mut v = [0.0f64; 7];
     for x in &mut v {
         *x = r.f64(field)?;
     }
-    pose_from_parts([v[0], v[1], v[2]], [v[3], v[4], v[5], v[6]])
-        .map_err(|e| WireError::invalid("pose", format!("{field}: {e}")))
+    // Checked here with compact messages (a hostile value's full decimal expansion
+    // could be a thousand characters long).
+    if v.iter().any(|x| !x.is_finite()) {
+        return Err(WireError::invalid("pose", format!("{field}: not finite")));
+    }
+    let q = nalgebra::Quaternion::new(v[6], v[3], v[4], v[5]);
+    if q.norm() < 1e-9 {
+        return Err(WireError::invalid(
+            "pose",
+            format!(
+                "{field}: quaternion of length {:.3e} is not a rotation",
+                q.norm()
+            ),
+        ));
+    }
+    let pose = pose_from_parts([v[0], v[1], v[2]], [v[3], v[4], v[5], v[6]])
+        .map_err(|_| WireError::invalid("pose", format!("{field}: not a rigid pose")))?;
+    if (q.norm() - 1.0).abs() <= 8.0 * f64::EPSILON {
+        Ok(Pose::from_parts(
+            pose.translation,
+            nalgebra::UnitQuaternion::new_unchecked(q),
+        ))
+    } else {
+        Ok(pose)
+    }
 }
 
 #[cfg(test)]

@@ -107,9 +107,28 @@ impl Texture {
         })
     }
 
-    /// The RGB8 frame. Decoding is bounded by the image limits and the result must
-    /// have the declared size.
+    /// The RGB8 frame. A compressed image's own header must declare the texture's
+    /// size before any pixel is decoded, so decoding allocates no more than the
+    /// declared (and bounded) size.
     pub fn decode(&self) -> Result<EoFrame, WireError> {
+        if let Some(format) = match self.format {
+            TextureFormat::Rgb8 => None,
+            TextureFormat::Png => Some(image::ImageFormat::Png),
+            TextureFormat::Jpeg => Some(image::ImageFormat::Jpeg),
+        } {
+            let dims = image::ImageReader::with_format(std::io::Cursor::new(&self.data), format)
+                .into_dimensions()
+                .map_err(|e| WireError::invalid("Texture", e.to_string()))?;
+            if dims != (self.width, self.height) {
+                return Err(WireError::invalid(
+                    "Texture",
+                    format!(
+                        "the image header says {}x{}, the message {}x{}",
+                        dims.0, dims.1, self.width, self.height
+                    ),
+                ));
+            }
+        }
         let (w, h, rgb) = match self.format {
             TextureFormat::Rgb8 => (self.width, self.height, self.data.clone()),
             TextureFormat::Png => decode_compressed("png", &self.data)
