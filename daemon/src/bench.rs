@@ -53,7 +53,7 @@ async fn run_once(capture: &Path, pace: Option<f64>) -> Result<Run, String> {
         .await
         .map_err(|e| e.to_string())?;
     let mut arrivals = Vec::new();
-    while let Some(message) = client.next().await.map_err(|e| e.to_string())? {
+    while let Some(message) = client.next_message().await.map_err(|e| e.to_string())? {
         match message {
             Message::ScanAdded(scan) => arrivals.push((scan.timestamp_ns, Instant::now())),
             Message::Goodbye { .. } => break,

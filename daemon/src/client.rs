@@ -46,7 +46,7 @@ struct FrameReader {
 }
 
 impl FrameReader {
-    fn next(&mut self) -> Result<Option<Message>, ClientError> {
+    fn take_message(&mut self) -> Result<Option<Message>, ClientError> {
         match decode_frame(&self.buf, &Limits::FROM_SERVER)? {
             Some((message, used)) => {
                 let _ = self.buf.split_to(used);
@@ -119,7 +119,7 @@ impl Client {
     }
 
     /// The next message; `None` when the server closed the connection cleanly.
-    pub async fn next(&mut self) -> Result<Option<Message>, ClientError> {
+    pub async fn next_message(&mut self) -> Result<Option<Message>, ClientError> {
         read_async(&mut self.stream, &mut self.frames).await
     }
 
@@ -141,7 +141,7 @@ async fn read_async(
     frames: &mut FrameReader,
 ) -> Result<Option<Message>, ClientError> {
     loop {
-        if let Some(m) = frames.next()? {
+        if let Some(m) = frames.take_message()? {
             return Ok(Some(m));
         }
         let n = stream
@@ -192,16 +192,16 @@ impl BlockingClient {
                 session_name: String::new(),
             },
         };
-        let first = client.next()?.ok_or(ClientError::Truncated)?;
+        let first = client.next_message()?.ok_or(ClientError::Truncated)?;
         client.server = welcome(first)?;
         Ok(client)
     }
 
     /// The next message; `None` when the server closed the connection cleanly.
-    pub fn next(&mut self) -> Result<Option<Message>, ClientError> {
+    pub fn next_message(&mut self) -> Result<Option<Message>, ClientError> {
         let mut chunk = vec![0u8; 64 * 1024];
         loop {
-            if let Some(m) = self.frames.next()? {
+            if let Some(m) = self.frames.take_message()? {
                 return Ok(Some(m));
             }
             let n = match self.stream.read(&mut chunk) {

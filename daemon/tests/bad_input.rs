@@ -265,7 +265,7 @@ async fn hostile_clients_are_refused_with_a_reason_and_the_server_carries_on() {
     tokio::time::sleep(Duration::from_millis(100)).await;
     let mut c = Client::connect(addr, "", "after").await.unwrap();
     assert!(matches!(
-        c.next().await.unwrap(),
+        c.next_message().await.unwrap(),
         Some(Message::ModelReset { scan_count: 2 })
     ));
     shutdown.cancel();

@@ -197,7 +197,7 @@ fn sigterm_drains_finalises_the_recording_tells_clients_and_exits_0_within_2_s()
     assert_eq!(client.server.session_name, "signal test");
     let mut scans = 0;
     while scans < 5 {
-        if let Some(Message::ScanAdded(_)) = client.next().unwrap() {
+        if let Some(Message::ScanAdded(_)) = client.next_message().unwrap() {
             scans += 1;
         }
     }
@@ -218,7 +218,7 @@ fn sigterm_drains_finalises_the_recording_tells_clients_and_exits_0_within_2_s()
 
     // The client was told why the stream ended.
     let reason = loop {
-        match client.next().unwrap() {
+        match client.next_message().unwrap() {
             Some(Message::Goodbye { reason }) => break reason,
             Some(_) => {}
             None => panic!("closed without a goodbye"),

@@ -44,7 +44,7 @@ async fn follow(
     mut done: impl FnMut(&Replica, &Applied) -> bool,
 ) {
     tokio::time::timeout(Duration::from_secs(20), async {
-        while let Some(m) = client.next().await.unwrap() {
+        while let Some(m) = client.next_message().await.unwrap() {
             let applied = replica.apply(m).unwrap();
             if done(replica, &applied) {
                 return;
@@ -124,7 +124,7 @@ async fn every_scan_reaches_early_and_late_clients_with_the_capture_poses() {
     for client in [&mut early, &mut late] {
         let reason = tokio::time::timeout(Duration::from_secs(3), async {
             loop {
-                match client.next().await.unwrap() {
+                match client.next_message().await.unwrap() {
                     Some(Message::Goodbye { reason }) => return reason,
                     Some(_) => continue,
                     None => panic!("closed without a goodbye"),

@@ -40,7 +40,7 @@ async fn follow_until(
     mut done: impl FnMut(&Replica, &Applied) -> bool,
 ) {
     tokio::time::timeout(Duration::from_secs(30), async {
-        while let Some(m) = client.next().await.unwrap() {
+        while let Some(m) = client.next_message().await.unwrap() {
             let applied = replica.apply(m).unwrap();
             if done(replica, &applied) {
                 return;
@@ -112,7 +112,7 @@ async fn a_client_that_reads_nothing_holds_up_nobody_and_is_resynchronised_or_dr
             SlowClientPolicy::Disconnect => {
                 let reason = tokio::time::timeout(Duration::from_secs(20), async {
                     loop {
-                        match stalled.next().await.unwrap() {
+                        match stalled.next_message().await.unwrap() {
                             Some(Message::Goodbye { reason }) => return reason,
                             Some(_) => {}
                             None => panic!("closed without a goodbye"),

@@ -155,7 +155,7 @@ impl ReplaySource {
             }
             Some(send(SourceEvent::Range(frame)))
         };
-        while let Some(next) = reader.next() {
+        for next in reader.by_ref() {
             let event = match next {
                 Ok(event) => event,
                 Err(e) if e.is_fatal() => {
