@@ -90,6 +90,17 @@ impl Session {
         config: SessionConfig,
         shutdown: CancellationToken,
     ) -> Result<Self, SessionError> {
+        let registration = build_registration(&config)?;
+        Self::start_with_registration(config, registration, shutdown).await
+    }
+
+    /// Starts a validated session with a given registration stage instead of the one
+    /// `pipeline.registration` names.
+    pub async fn start_with_registration(
+        config: SessionConfig,
+        registration: Box<dyn Registration>,
+        shutdown: CancellationToken,
+    ) -> Result<Self, SessionError> {
         let listener = if config.serve.enabled {
             let addr = config.serve.bind;
             Some(
@@ -107,7 +118,6 @@ impl Session {
             }
             _ => None,
         };
-        let registration = build_registration(&config)?;
         let recorder = match &config.record.path {
             Some(path) => Some(Recorder::start(path, &config.record)?),
             None => None,
@@ -192,7 +202,8 @@ pub fn build_sources(config: &SessionConfig) -> Vec<Box<dyn Source>> {
     sources
 }
 
-fn build_registration(config: &SessionConfig) -> Result<Box<dyn Registration>, SessionError> {
+/// The registration stage `pipeline.registration` names.
+pub fn build_registration(config: &SessionConfig) -> Result<Box<dyn Registration>, SessionError> {
     match config.pipeline.registration {
         RegistrationMode::CapturePoses => {
             let path = config
