@@ -37,7 +37,7 @@ struct Run {
     clock_origin: Option<(u64, Instant)>,
     memory: (usize, usize),
     first_scan: Option<std::sync::Arc<texel::TexelScan>>,
-    encode_ms: (f64, f64),
+    stages: Vec<texel::wire::StageLatency>,
 }
 
 async fn run_once(capture: &Path, pace: Option<f64>) -> Result<Run, String> {
@@ -68,14 +68,14 @@ async fn run_once(capture: &Path, pace: Option<f64>) -> Result<Run, String> {
         .lock()
         .ok()
         .and_then(|s| s.first().and_then(|m| m.clock_origin()));
-    let encode = metrics.latency(crate::status::Stage::Encode).percentiles();
+    let stages = metrics.snapshot().stages;
     Ok(Run {
         started,
         arrivals,
         clock_origin,
         memory: hub.memory_bytes(),
         first_scan: hub.model().scans().first().map(|s| s.scan.clone()),
-        encode_ms: encode,
+        stages,
     })
 }
 
@@ -114,13 +114,15 @@ pub async fn run(capture: &Path, speed: f64) -> Result<String, String> {
             }
         ),
     );
-    w(
-        &mut out,
-        format!(
-            "encode (texture + mesh) per scan: p50 {:.2} ms, p99 {:.2} ms",
-            fast.encode_ms.0, fast.encode_ms.1
-        ),
-    );
+    for s in &fast.stages {
+        w(
+            &mut out,
+            format!(
+                "  stage {:<10} p50 {:>7.2} ms  p99 {:>7.2} ms  ({} samples)",
+                s.stage, s.p50_ms, s.p99_ms, s.samples
+            ),
+        );
+    }
     let (scan_bytes, frame_bytes) = fast.memory;
     w(
         &mut out,
@@ -158,21 +160,43 @@ pub async fn run(capture: &Path, speed: f64) -> Result<String, String> {
     // 3. Texture encodings, on the first scan's texture.
     if let Some(scan) = fast.first_scan {
         let raw = scan.texture.rgb.len();
-        for format in [TextureFormat::Rgb8, TextureFormat::Png, TextureFormat::Jpeg] {
+        // The daemon's encoders, and the `image` crate's JPEG encoder as the baseline.
+        let mut baseline_ms = None;
+        for (name, format, daemon_encoder) in [
+            ("rgb8", TextureFormat::Rgb8, true),
+            ("png", TextureFormat::Png, true),
+            (
+                "jpeg q90 (image crate, baseline)",
+                TextureFormat::Jpeg,
+                false,
+            ),
+            ("jpeg q90 (jpeg-encoder, used)", TextureFormat::Jpeg, true),
+        ] {
             let t = Instant::now();
             let reps = 5;
             let mut size = 0;
             for _ in 0..reps {
-                size = Texture::encode(&scan.texture, format, 90)
-                    .map_err(|e| e.to_string())?
-                    .data
-                    .len();
+                let texture = if daemon_encoder {
+                    crate::texture::encode(&scan.texture, format, 90)
+                } else {
+                    Texture::encode(&scan.texture, format, 90)
+                };
+                size = texture.map_err(|e| e.to_string())?.data.len();
             }
             let ms = t.elapsed().as_secs_f64() * 1e3 / f64::from(reps);
+            let ratio = match baseline_ms {
+                Some(b) if format == TextureFormat::Jpeg => {
+                    format!(" ({:.2}x the baseline's speed)", b / ms)
+                }
+                _ => String::new(),
+            };
+            if !daemon_encoder {
+                baseline_ms = Some(ms);
+            }
             w(
                 &mut out,
                 format!(
-                    "texture {}x{} as {format:?}: {size} bytes ({:.3} of raw), encode {ms:.2} ms",
+                    "texture {}x{} as {name}: {size} bytes ({:.3} of raw), encode {ms:.2} ms{ratio}",
                     scan.texture.width,
                     scan.texture.height,
                     size as f64 / raw as f64

@@ -47,6 +47,7 @@ pub struct RecordSummary {
 pub struct Recorder {
     pub tx: mpsc::Sender<RecordItem>,
     pub messages: Arc<AtomicU64>,
+    pub errors: Arc<AtomicU64>,
     pub path: PathBuf,
     thread: JoinHandle<RecordSummary>,
 }
@@ -67,11 +68,12 @@ impl Recorder {
         let writer = CaptureWriter::create(path, options)?;
         let (tx, rx) = mpsc::channel(config.queue);
         let messages = Arc::new(AtomicU64::new(0));
-        let counted = Arc::clone(&messages);
+        let errors = Arc::new(AtomicU64::new(0));
+        let counters = (Arc::clone(&messages), Arc::clone(&errors));
         let owned = path.to_path_buf();
         let thread = std::thread::Builder::new()
             .name("texel-record".into())
-            .spawn(move || write_loop(writer, rx, counted, owned))
+            .spawn(move || write_loop(writer, rx, counters, owned))
             .map_err(|e| CaptureError::Write {
                 path: path.display().to_string(),
                 message: format!("cannot start the recorder thread: {e}"),
@@ -79,6 +81,7 @@ impl Recorder {
         Ok(Self {
             tx,
             messages,
+            errors,
             path: path.to_path_buf(),
             thread,
         })
@@ -100,7 +103,7 @@ impl Recorder {
 fn write_loop<W: std::io::Write + std::io::Seek>(
     mut writer: CaptureWriter<W>,
     mut rx: mpsc::Receiver<RecordItem>,
-    messages: Arc<AtomicU64>,
+    (messages, errors): (Arc<AtomicU64>, Arc<AtomicU64>),
     path: PathBuf,
 ) -> RecordSummary {
     let mut summary = RecordSummary {
@@ -118,6 +121,7 @@ fn write_loop<W: std::io::Write + std::io::Seek>(
                 summary.first_error = Some(e.to_string());
             }
             summary.errors += 1;
+            errors.store(summary.errors, Ordering::Relaxed);
         }
     };
     while let Some(item) = rx.blocking_recv() {

@@ -194,6 +194,7 @@ pub struct Metrics {
 pub struct RecordingProbe {
     pub path: std::path::PathBuf,
     pub messages: Arc<AtomicU64>,
+    pub errors: Arc<AtomicU64>,
 }
 
 impl Default for Metrics {
@@ -332,6 +333,7 @@ impl Metrics {
             path: r.path.display().to_string(),
             bytes: std::fs::metadata(&r.path).map(|m| m.len()).unwrap_or(0),
             messages: r.messages.load(Ordering::Relaxed),
+            errors: r.errors.load(Ordering::Relaxed),
         });
         Status {
             uptime_s: self.started.elapsed().as_secs_f64(),
@@ -384,6 +386,9 @@ pub fn status_line(s: &Status) -> String {
     }
     if let Some(r) = &s.recording {
         line.push_str(&format!("; recording {} B, {} msgs", r.bytes, r.messages));
+        if r.errors > 0 {
+            line.push_str(&format!(", {} write errors", r.errors));
+        }
     }
     line.push_str(&format!("; clients {}", s.clients));
     line

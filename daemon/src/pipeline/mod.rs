@@ -101,6 +101,11 @@ impl Session {
         registration: Box<dyn Registration>,
         shutdown: CancellationToken,
     ) -> Result<Self, SessionError> {
+        // Library users get the same checks as the command line (a token off
+        // loopback, bounded queues).
+        config
+            .validate(&format!("session {:?}", config.session.name))
+            .map_err(|e| SessionError::Config(e.to_string()))?;
         let listener = if config.serve.enabled {
             let addr = config.serve.bind;
             Some(
@@ -263,6 +268,7 @@ async fn run(
             Some(crate::status::RecordingProbe {
                 path: r.path.clone(),
                 messages: Arc::clone(&r.messages),
+                errors: Arc::clone(&r.errors),
             });
         metrics.add_queue(depth_probe("record", &r.tx));
     }

@@ -130,8 +130,9 @@ impl Worker {
     }
 
     fn encode(&self, id: ScanId, scan: &TexelScan, pose: Pose) -> Result<Bytes, String> {
-        let wire = WireScan::from_scan(id, scan, pose, self.texture, self.jpeg_quality)
+        let texture = crate::texture::encode(&scan.texture, self.texture, self.jpeg_quality)
             .map_err(|e| e.to_string())?;
+        let wire = WireScan::with_texture(id, scan, pose, texture).map_err(|e| e.to_string())?;
         let bytes = Message::ScanAdded(Box::new(wire))
             .encode()
             .map_err(|e| e.to_string())?;

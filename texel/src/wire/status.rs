@@ -49,6 +49,8 @@ pub struct RecordingStatus {
     pub path: String,
     pub bytes: u64,
     pub messages: u64,
+    /// Writes that failed (a full disk, say); the first is logged.
+    pub errors: u64,
 }
 
 /// Everything the periodic status reports.
