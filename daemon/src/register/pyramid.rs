@@ -1,0 +1,409 @@
+//! Range-image pyramids of a scan: per lidar pixel, the point, its normal from the
+//! range grid, its EO intensity and that intensity's gradient in the tangent plane,
+//! at full resolution and at successive halvings (KinectFusion, Newcombe et al. 2011,
+//! Sec. 3.2). Built once per scan; used as the moving scan (source) and, later, as a
+//! model-side keyframe (target) that others are projected into.
+
+use std::sync::Arc;
+
+use nalgebra::{Matrix3, Vector2, Vector3};
+use texel::{PinholeCamera, Pose, TexelScan};
+
+/// Steepest incidence (ray to surface normal) at which neighbouring pixels are still
+/// taken as one surface when downsampling and when differencing for normals.
+const MAX_INCIDENCE_TAN: f64 = 5.67; // tan(80°)
+/// Range-noise allowance of the same rule, in standard deviations.
+const NOISE_ALLOWANCE_SIGMAS: f64 = 3.0;
+/// Collinear tangents (sine of their angle below this) give no normal.
+const MIN_NORMAL_SINE: f64 = 1.0e-6;
+
+/// Flags of a pyramid pixel.
+pub const HAS_POINT: u8 = 1;
+pub const HAS_NORMAL: u8 = 2;
+pub const HAS_INTENSITY: u8 = 4;
+
+/// Projects scan-frame points into the scan's lidar grid (full-resolution pixels).
+#[derive(Debug, Clone)]
+pub struct GridProjector {
+    lidar_from_scan: Pose,
+    camera: PinholeCamera,
+    max_r2: Option<f64>,
+}
+
+impl GridProjector {
+    pub fn new(camera: &PinholeCamera, scan_from_lidar: &Pose) -> Self {
+        Self {
+            lidar_from_scan: scan_from_lidar.inverse(),
+            camera: camera.clone(),
+            max_r2: camera.max_radius_squared(),
+        }
+    }
+
+    pub fn lidar_from_scan(&self) -> &Pose {
+        &self.lidar_from_scan
+    }
+
+    /// The full-resolution pixel of a point given in the lidar frame; `None` behind
+    /// the sensor or outside the distortion model's domain.
+    #[inline]
+    pub fn project_lidar(&self, p: &Vector3<f64>) -> Option<Vector2<f64>> {
+        self.camera.project_with_domain(p, self.max_r2).ok()
+    }
+
+    /// Angle between neighbouring full-resolution pixels, radians (`1 / f`).
+    pub fn pixel_pitch_rad(&self) -> f64 {
+        1.0 / self.camera.fx.max(self.camera.fy)
+    }
+}
+
+/// One pyramid level. Arrays are row-major over `width x height`; coordinates are in
+/// the scan frame (the scan's EO optical frame).
+#[derive(Debug, Clone, Default)]
+pub struct Level {
+    pub width: usize,
+    pub height: usize,
+    /// `2^level`: full-resolution pixels per level pixel along each axis.
+    pub scale: f64,
+    pub flags: Vec<u8>,
+    pub points: Vec<[f32; 3]>,
+    /// Unit normals facing the sensor; zero where there is none.
+    pub normals: Vec<[f32; 3]>,
+    /// Range from the lidar centre, metres.
+    pub ranges_m: Vec<f32>,
+    /// Range noise sigma at the point, metres.
+    pub sigma_m: Vec<f32>,
+    /// EO luminance in [0, 1].
+    pub intensity: Vec<f32>,
+    /// Gradient of the intensity along the surface (perpendicular to the normal),
+    /// per metre (Park, Zhou & Koltun 2017, Sec. 3).
+    pub gradient: Vec<[f32; 3]>,
+}
+
+impl Level {
+    #[inline]
+    pub fn has(&self, index: usize, flag: u8) -> bool {
+        self.flags.get(index).is_some_and(|f| f & flag == flag)
+    }
+
+    #[inline]
+    pub fn point(&self, index: usize) -> Vector3<f64> {
+        let p = self.points[index];
+        Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]))
+    }
+
+    #[inline]
+    pub fn normal(&self, index: usize) -> Vector3<f64> {
+        let p = self.normals[index];
+        Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]))
+    }
+
+    #[inline]
+    pub fn gradient(&self, index: usize) -> Vector3<f64> {
+        let p = self.gradient[index];
+        Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]))
+    }
+
+    /// Pixels with a point and a normal, every `stride`-th in each direction.
+    pub fn samples(&self, stride: usize) -> Vec<u32> {
+        let stride = stride.max(1);
+        let mut out = Vec::with_capacity(self.width * self.height / (stride * stride) + 1);
+        for v in (0..self.height).step_by(stride) {
+            for u in (0..self.width).step_by(stride) {
+                let i = v * self.width + u;
+                if self.has(i, HAS_POINT | HAS_NORMAL) {
+                    out.push(i as u32);
+                }
+            }
+        }
+        out
+    }
+
+    /// Pixels with a point.
+    pub fn point_count(&self) -> usize {
+        self.flags.iter().filter(|&&f| f & HAS_POINT != 0).count()
+    }
+}
+
+/// A scan with its range-image pyramid.
+#[derive(Debug, Clone)]
+pub struct ScanPyramid {
+    pub scan: Arc<TexelScan>,
+    pub projector: GridProjector,
+    /// Finest first.
+    pub levels: Vec<Level>,
+}
+
+impl ScanPyramid {
+    /// Builds `levels` levels (at least one; fewer if the grid becomes smaller than
+    /// 4 pixels). `lidar` is the camera model the scan's range grid was taken with.
+    pub fn build(scan: Arc<TexelScan>, lidar: &PinholeCamera, levels: u32) -> Self {
+        let projector = GridProjector::new(lidar, &scan.scan_from_lidar);
+        let pitch = projector.pixel_pitch_rad();
+        let mut out = Vec::with_capacity(levels.max(1) as usize);
+        // Sec. 3.2 of KinectFusion: the finest level from the measurements...
+        let mut level = finest_level(&scan, &projector);
+        compute_normals_and_gradients(&mut level, pitch, scan.cop_m);
+        out.push(level);
+        // ... each coarser one by averaging 2x2 blocks within one surface.
+        while out.len() < levels.max(1) as usize {
+            let Some(finer) = out.last() else { break };
+            if finer.width < 8 || finer.height < 8 {
+                break;
+            }
+            let mut coarser = downsample(finer, pitch * finer.scale);
+            let coarse_pitch = pitch * coarser.scale;
+            compute_normals_and_gradients(&mut coarser, coarse_pitch, scan.cop_m);
+            out.push(coarser);
+        }
+        Self {
+            scan,
+            projector,
+            levels: out,
+        }
+    }
+
+    pub fn level_count(&self) -> usize {
+        self.levels.len()
+    }
+}
+
+/// Luminance of an sRGB-coded colour in [0, 1] (Rec. 709 weights on the coded values:
+/// what matters is that both scans use the same rule).
+fn luminance(rgb: [u8; 3]) -> f32 {
+    (0.2126 * f32::from(rgb[0]) + 0.7152 * f32::from(rgb[1]) + 0.0722 * f32::from(rgb[2])) / 255.0
+}
+
+fn finest_level(scan: &TexelScan, projector: &GridProjector) -> Level {
+    let (w, h) = (scan.grid_width as usize, scan.grid_height as usize);
+    let n = w * h;
+    let mut level = Level {
+        width: w,
+        height: h,
+        scale: 1.0,
+        flags: vec![0; n],
+        points: vec![[0.0; 3]; n],
+        normals: vec![[0.0; 3]; n],
+        ranges_m: vec![0.0; n],
+        sigma_m: vec![0.0; n],
+        intensity: vec![0.0; n],
+        gradient: vec![[0.0; 3]; n],
+    };
+    let lidar_origin = projector.lidar_from_scan.inverse().translation.vector;
+    for (pixel, &vertex) in scan.pixel_vertex.iter().enumerate().take(n) {
+        let Some(p) = scan.vertices.get(vertex as usize) else {
+            continue;
+        };
+        if !p.iter().all(|c| c.is_finite()) {
+            continue;
+        }
+        let pv = Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
+        let range = (pv - lidar_origin).norm();
+        level.flags[pixel] = HAS_POINT;
+        level.points[pixel] = *p;
+        level.ranges_m[pixel] = range as f32;
+        level.sigma_m[pixel] = scan.range_noise.sigma_at(range) as f32;
+        if let Some(rgb) = scan.vertex_colour(vertex as usize) {
+            level.intensity[pixel] = luminance(rgb);
+            level.flags[pixel] |= HAS_INTENSITY;
+        }
+    }
+    level
+}
+
+/// Two ranges belong to one surface when they differ by less than a surface at the
+/// steepest accepted incidence would make them, plus the noise allowance.
+#[inline]
+fn same_surface(r_a: f32, r_b: f32, sigma_a: f32, sigma_b: f32, pitch_rad: f64) -> bool {
+    let (a, b) = (f64::from(r_a), f64::from(r_b));
+    let sigma = f64::from(sigma_a.max(sigma_b));
+    (a - b).abs() <= a.min(b) * pitch_rad * MAX_INCIDENCE_TAN + NOISE_ALLOWANCE_SIGMAS * sigma * 2.0
+}
+
+/// Halves the resolution: each coarse pixel averages the block's points that lie on
+/// the same surface as the block's nearest one (so depth edges are not blurred
+/// into points floating between surfaces).
+fn downsample(finer: &Level, pitch_rad: f64) -> Level {
+    let (w, h) = (finer.width / 2, finer.height / 2);
+    let n = w * h;
+    let mut out = Level {
+        width: w,
+        height: h,
+        scale: finer.scale * 2.0,
+        flags: vec![0; n],
+        points: vec![[0.0; 3]; n],
+        normals: vec![[0.0; 3]; n],
+        ranges_m: vec![0.0; n],
+        sigma_m: vec![0.0; n],
+        intensity: vec![0.0; n],
+        gradient: vec![[0.0; 3]; n],
+    };
+    for v in 0..h {
+        for u in 0..w {
+            let block = [
+                (2 * v) * finer.width + 2 * u,
+                (2 * v) * finer.width + 2 * u + 1,
+                (2 * v + 1) * finer.width + 2 * u,
+                (2 * v + 1) * finer.width + 2 * u + 1,
+            ];
+            let nearest = block
+                .iter()
+                .copied()
+                .filter(|&i| finer.has(i, HAS_POINT))
+                .min_by(|&a, &b| finer.ranges_m[a].total_cmp(&finer.ranges_m[b]));
+            let Some(nearest) = nearest else { continue };
+            let mut sum = Vector3::zeros();
+            let (mut range, mut sigma, mut count) = (0.0f64, 0.0f64, 0.0f64);
+            let (mut intensity, mut intensity_count) = (0.0f64, 0.0f64);
+            for &i in &block {
+                if !finer.has(i, HAS_POINT)
+                    || !same_surface(
+                        finer.ranges_m[nearest],
+                        finer.ranges_m[i],
+                        finer.sigma_m[nearest],
+                        finer.sigma_m[i],
+                        pitch_rad,
+                    )
+                {
+                    continue;
+                }
+                sum += finer.point(i);
+                range += f64::from(finer.ranges_m[i]);
+                sigma += f64::from(finer.sigma_m[i]);
+                count += 1.0;
+                if finer.has(i, HAS_INTENSITY) {
+                    intensity += f64::from(finer.intensity[i]);
+                    intensity_count += 1.0;
+                }
+            }
+            // count >= 1: the nearest point always passes its own test.
+            let k = v * w + u;
+            let p = sum / count;
+            out.flags[k] = HAS_POINT;
+            out.points[k] = [p.x as f32, p.y as f32, p.z as f32];
+            out.ranges_m[k] = (range / count) as f32;
+            out.sigma_m[k] = (sigma / count) as f32;
+            if intensity_count > 0.0 {
+                out.intensity[k] = (intensity / intensity_count) as f32;
+                out.flags[k] |= HAS_INTENSITY;
+            }
+        }
+    }
+    out
+}
+
+/// A difference vector across pixel `c` along one grid axis (central where both
+/// neighbours are on `c`'s surface, one-sided otherwise) and the intensity
+/// difference along it, when both ends have intensity.
+fn tangent(
+    level: &Level,
+    c: usize,
+    minus: Option<usize>,
+    plus: Option<usize>,
+    pitch_rad: f64,
+) -> Option<(Vector3<f64>, Option<f64>)> {
+    let on_surface = |i: Option<usize>| {
+        i.filter(|&i| {
+            level.has(i, HAS_POINT)
+                && same_surface(
+                    level.ranges_m[c],
+                    level.ranges_m[i],
+                    level.sigma_m[c],
+                    level.sigma_m[i],
+                    pitch_rad,
+                )
+        })
+    };
+    let (a, b) = match (on_surface(minus), on_surface(plus)) {
+        (Some(m), Some(p)) => (m, p),
+        (Some(m), None) => (m, c),
+        (None, Some(p)) => (c, p),
+        (None, None) => return None,
+    };
+    let d = level.point(b) - level.point(a);
+    let di = (level.has(a, HAS_INTENSITY) && level.has(b, HAS_INTENSITY))
+        .then(|| f64::from(level.intensity[b]) - f64::from(level.intensity[a]));
+    Some((d, di))
+}
+
+/// Normals from the range grid: the cross product of the two grid-axis tangents,
+/// oriented towards the centre of projection (KinectFusion, Sec. 3.2). Intensity
+/// gradients: the vector `d` in the tangent plane with `d·t_u = ΔI_u` and
+/// `d·t_v = ΔI_v` (Park, Zhou & Koltun 2017, Eq. 11-12 solved on the grid).
+fn compute_normals_and_gradients(level: &mut Level, pitch_rad: f64, cop: [f64; 3]) {
+    let (w, h) = (level.width, level.height);
+    let cop = Vector3::new(cop[0], cop[1], cop[2]);
+    for v in 0..h {
+        for u in 0..w {
+            let c = v * w + u;
+            if !level.has(c, HAS_POINT) {
+                continue;
+            }
+            let left = (u > 0).then(|| c - 1);
+            let right = (u + 1 < w).then_some(c + 1);
+            let up = (v > 0).then(|| c - w);
+            let down = (v + 1 < h).then_some(c + w);
+            let (Some((tu, iu)), Some((tv, iv))) = (
+                tangent(level, c, left, right, pitch_rad),
+                tangent(level, c, up, down, pitch_rad),
+            ) else {
+                continue;
+            };
+            let n = tu.cross(&tv);
+            let n2 = n.norm_squared();
+            let scale2 = tu.norm_squared() * tv.norm_squared();
+            if !(n2 > MIN_NORMAL_SINE * MIN_NORMAL_SINE * scale2) || !n2.is_finite() {
+                continue;
+            }
+            let mut n = n / n2.sqrt();
+            if n.dot(&(cop - level.point(c))) < 0.0 {
+                n = -n;
+            }
+            level.normals[c] = [n.x as f32, n.y as f32, n.z as f32];
+            level.flags[c] |= HAS_NORMAL;
+            if let (Some(du), Some(dv)) = (iu, iv)
+                && let Some(g) = tangent_gradient(&n, &tu, &tv, du, dv)
+            {
+                level.gradient[c] = [g.x as f32, g.y as f32, g.z as f32];
+            }
+        }
+    }
+}
+
+/// Solves `d = a t_u' + b t_v'` (`t'` the tangents projected onto the plane normal
+/// to `n`) with `d·t_u' = du`, `d·t_v' = dv`; `None` when the tangents are parallel.
+fn tangent_gradient(
+    n: &Vector3<f64>,
+    tu: &Vector3<f64>,
+    tv: &Vector3<f64>,
+    du: f64,
+    dv: f64,
+) -> Option<Vector3<f64>> {
+    let project = Matrix3::identity() - n * n.transpose();
+    let (eu, ev) = (project * tu, project * tv);
+    let (a11, a12, a22) = (eu.dot(&eu), eu.dot(&ev), ev.dot(&ev));
+    let det = a11 * a22 - a12 * a12;
+    if !(det > MIN_NORMAL_SINE * a11 * a22) {
+        return None;
+    }
+    let a = (a22 * du - a12 * dv) / det;
+    let b = (a11 * dv - a12 * du) / det;
+    let d = eu * a + ev * b;
+    d.iter().all(|c| c.is_finite()).then_some(d)
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    #[test]
+    fn tangent_gradient_recovers_a_linear_ramp() {
+        // I = 0.5 x on the plane z = 2 seen along z.
+        let n = Vector3::new(0.0, 0.0, -1.0);
+        let tu = Vector3::new(0.02, 0.0, 0.0);
+        let tv = Vector3::new(0.0, 0.02, 0.0);
+        let g = tangent_gradient(&n, &tu, &tv, 0.5 * 0.02, 0.0).unwrap();
+        assert!((g - Vector3::new(0.5, 0.0, 0.0)).norm() < 1e-12);
+        assert!(tangent_gradient(&n, &tu, &tu, 0.1, 0.1).is_none());
+    }
+}
