@@ -111,7 +111,7 @@ impl Default for AlignConfig {
             max_normal_angle_deg: 45.0,
             convergence_rotation_rad: 2.0e-5,
             convergence_translation_m: 2.0e-5,
-            degeneracy_threshold: 0.01,
+            degeneracy_threshold: 0.001,
             min_correspondences: 50,
             min_overlap: 0.15,
             min_inlier_ratio: 0.5,

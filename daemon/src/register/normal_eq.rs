@@ -215,6 +215,9 @@ pub fn solve_remapped(
             degenerate.push(DegenerateDirection::new(v.into_owned(), ratio));
             continue;
         }
+        if std::env::var_os("TEXEL_DEBUG_EIGEN").is_some() {
+            degenerate.push(DegenerateDirection::new(v.into_owned(), ratio));
+        }
         delta_scaled -= v * (v.dot(&g_scaled) / (lambda + damping));
     }
     let delta = delta_scaled.component_mul(&d_inv);

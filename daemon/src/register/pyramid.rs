@@ -142,7 +142,7 @@ impl ScanPyramid {
         let mut out = Vec::with_capacity(levels.max(1) as usize);
         // Sec. 3.2 of KinectFusion: the finest level from the measurements...
         let mut level = finest_level(&scan, &projector);
-        compute_normals_and_gradients(&mut level, pitch, scan.cop_m);
+        compute_normals_and_gradients(&mut level, pitch, scan.cop_m, normal_radius(0));
         out.push(level);
         // ... each coarser one by averaging 2x2 blocks within one surface.
         while out.len() < levels.max(1) as usize {
@@ -152,7 +152,8 @@ impl ScanPyramid {
             }
             let mut coarser = downsample(finer, pitch * finer.scale);
             let coarse_pitch = pitch * coarser.scale;
-            compute_normals_and_gradients(&mut coarser, coarse_pitch, scan.cop_m);
+            let radius = normal_radius(out.len());
+            compute_normals_and_gradients(&mut coarser, coarse_pitch, scan.cop_m, radius);
             out.push(coarser);
         }
         Self {
@@ -165,6 +166,12 @@ impl ScanPyramid {
     pub fn level_count(&self) -> usize {
         self.levels.len()
     }
+}
+
+/// Half-width of the normal-fit window at a level: 3 at full resolution (a 7x7
+/// window), one less per coarser level, at least 1.
+fn normal_radius(level: usize) -> usize {
+    3usize.saturating_sub(level).max(1)
 }
 
 /// Luminance of an sRGB-coded colour in [0, 1] (Rec. 709 weights on the coded values:
@@ -325,48 +332,153 @@ fn tangent(
     Some((d, di))
 }
 
-/// Normals from the range grid: the cross product of the two grid-axis tangents,
-/// oriented towards the centre of projection (KinectFusion, Sec. 3.2). Intensity
-/// gradients: the vector `d` in the tangent plane with `d·t_u = ΔI_u` and
-/// `d·t_v = ΔI_v` (Park, Zhou & Koltun 2017, Eq. 11-12 solved on the grid).
-fn compute_normals_and_gradients(level: &mut Level, pitch_rad: f64, cop: [f64; 3]) {
+/// Summed-area tables of `[1, x, y, z, xx, xy, xz, yy, yz, zz]` over a level's
+/// points, `(w + 1) x (h + 1)` entries of 10 sums each.
+fn moment_tables(level: &Level) -> Vec<[f64; 10]> {
+    let (w, h) = (level.width, level.height);
+    let mut table = vec![[0.0f64; 10]; (w + 1) * (h + 1)];
+    for v in 0..h {
+        let mut row = [0.0f64; 10];
+        for u in 0..w {
+            let c = v * w + u;
+            if level.has(c, HAS_POINT) {
+                let p = level.point(c);
+                let m = [
+                    1.0,
+                    p.x,
+                    p.y,
+                    p.z,
+                    p.x * p.x,
+                    p.x * p.y,
+                    p.x * p.z,
+                    p.y * p.y,
+                    p.y * p.z,
+                    p.z * p.z,
+                ];
+                for (r, x) in row.iter_mut().zip(m) {
+                    *r += x;
+                }
+            }
+            let above = table[v * (w + 1) + u + 1];
+            let out = &mut table[(v + 1) * (w + 1) + u + 1];
+            for k in 0..10 {
+                out[k] = above[k] + row[k];
+            }
+        }
+    }
+    table
+}
+
+/// Normals from the range grid: a least-squares plane through the points of a
+/// `(2r + 1)²` window, fitted as depth along the viewing ray over the two directions
+/// across it, from summed-area tables in O(1) per pixel (normal estimation on
+/// organised clouds with integral images, Holzer et al. 2012). A window whose
+/// points do not lie on one plane within the noise (a depth edge) gives no normal.
+/// Normals face the centre of projection (KinectFusion, Sec. 3.2).
+///
+/// Intensity gradients: the vector `d` in the tangent plane with `d·t_u = ΔI_u` and
+/// `d·t_v = ΔI_v` over the grid neighbours (Park, Zhou & Koltun 2017, Eq. 11-12
+/// solved on the grid).
+fn compute_normals_and_gradients(level: &mut Level, pitch_rad: f64, cop: [f64; 3], radius: usize) {
     let (w, h) = (level.width, level.height);
     let cop = Vector3::new(cop[0], cop[1], cop[2]);
+    let table = moment_tables(level);
+    let at = |u: usize, v: usize| &table[v * (w + 1) + u];
+    // Fewest points for a plane fit: over half the window, and at least 5.
+    let min_points = (((2 * radius + 1) * (2 * radius + 1)) / 2).max(5) as f64;
     for v in 0..h {
         for u in 0..w {
             let c = v * w + u;
             if !level.has(c, HAS_POINT) {
                 continue;
             }
+            let (u0, u1) = (u.saturating_sub(radius), (u + radius + 1).min(w));
+            let (v0, v1) = (v.saturating_sub(radius), (v + radius + 1).min(h));
+            let (a, b, cc, d) = (at(u0, v0), at(u1, v0), at(u0, v1), at(u1, v1));
+            let sum: [f64; 10] = std::array::from_fn(|k| d[k] - b[k] - cc[k] + a[k]);
+            let n = sum[0];
+            if n < min_points {
+                continue;
+            }
+            let point = level.point(c);
+            let sigma = f64::from(level.sigma_m[c]);
+            let Some(normal) = fit_plane_normal(&sum, &point, &cop, sigma) else {
+                continue;
+            };
+            level.normals[c] = [normal.x as f32, normal.y as f32, normal.z as f32];
+            level.flags[c] |= HAS_NORMAL;
+            // The gradient needs both grid-axis tangents with intensities.
             let left = (u > 0).then(|| c - 1);
             let right = (u + 1 < w).then_some(c + 1);
             let up = (v > 0).then(|| c - w);
             let down = (v + 1 < h).then_some(c + w);
-            let (Some((tu, iu)), Some((tv, iv))) = (
+            if let (Some((tu, Some(du))), Some((tv, Some(dv)))) = (
                 tangent(level, c, left, right, pitch_rad),
                 tangent(level, c, up, down, pitch_rad),
-            ) else {
-                continue;
-            };
-            let n = tu.cross(&tv);
-            let n2 = n.norm_squared();
-            let scale2 = tu.norm_squared() * tv.norm_squared();
-            if !(n2 > MIN_NORMAL_SINE * MIN_NORMAL_SINE * scale2) || !n2.is_finite() {
-                continue;
-            }
-            let mut n = n / n2.sqrt();
-            if n.dot(&(cop - level.point(c))) < 0.0 {
-                n = -n;
-            }
-            level.normals[c] = [n.x as f32, n.y as f32, n.z as f32];
-            level.flags[c] |= HAS_NORMAL;
-            if let (Some(du), Some(dv)) = (iu, iv)
-                && let Some(g) = tangent_gradient(&n, &tu, &tv, du, dv)
+            ) && let Some(g) = tangent_gradient(&normal, &tu, &tv, du, dv)
             {
                 level.gradient[c] = [g.x as f32, g.y as f32, g.z as f32];
             }
         }
     }
+}
+
+/// Steepest plane the fit accepts: |slope| of depth across the ray (tan 85°).
+const MAX_FIT_SLOPE: f64 = 11.4;
+
+/// The normal of the plane fitted to window moments `sum`, with `h` the depth along
+/// the ray from `point` to `cop` and `(s, t)` the directions across it: solves
+/// `h = a s + b t + c` in least squares. `None` for too steep a plane, a singular
+/// fit, or points off the plane by more than the noise allows.
+fn fit_plane_normal(
+    sum: &[f64; 10],
+    point: &Vector3<f64>,
+    cop: &Vector3<f64>,
+    sigma_m: f64,
+) -> Option<Vector3<f64>> {
+    let n = sum[0];
+    let mean = Vector3::new(sum[1], sum[2], sum[3]) / n;
+    let second = Matrix3::new(
+        sum[4], sum[5], sum[6], sum[5], sum[7], sum[8], sum[6], sum[8], sum[9],
+    ) / n;
+    let cov = second - mean * mean.transpose();
+    let to_cop = cop - point;
+    let len = to_cop.norm();
+    if !(len > 0.0) || !len.is_finite() {
+        return None;
+    }
+    let axis = to_cop / len;
+    // Any unit vector not parallel to the axis makes an orthonormal basis.
+    let helper = if axis.x.abs() < 0.9 {
+        Vector3::x()
+    } else {
+        Vector3::y()
+    };
+    let s = axis.cross(&helper).normalize();
+    let t = axis.cross(&s);
+    let (css, cst, ctt) = (s.dot(&(cov * s)), s.dot(&(cov * t)), t.dot(&(cov * t)));
+    let (csh, cth, chh) = (s.dot(&(cov * axis)), t.dot(&(cov * axis)), axis.dot(&(cov * axis)));
+    let det = css * ctt - cst * cst;
+    let trace = css + ctt;
+    if !(det > 1.0e-9 * trace * trace) || !(trace > 0.0) {
+        return None;
+    }
+    let a = (ctt * csh - cst * cth) / det;
+    let b = (css * cth - cst * csh) / det;
+    if !(a.abs() < MAX_FIT_SLOPE && b.abs() < MAX_FIT_SLOPE) {
+        return None;
+    }
+    // Residual variance of the depth about the fitted plane.
+    let residual = (chh - a * csh - b * cth).max(0.0);
+    let allowed = NOISE_ALLOWANCE_SIGMAS * sigma_m * (1.0 + a * a + b * b).sqrt();
+    if residual > allowed * allowed {
+        return None;
+    }
+    let normal = axis - s * a - t * b;
+    let len = normal.norm();
+    // len >= 1: the axis component is 1.
+    let normal = normal / len;
+    normal.iter().all(|c| c.is_finite()).then_some(normal)
 }
 
 /// Solves `d = a t_u' + b t_v'` (`t'` the tangents projected onto the plane normal
