@@ -1,0 +1,139 @@
+//! `exposure`: exposure, saturation and the camera response curve.
+//!
+//! Model: the linear scene value is scaled by `2^ev`, clipped at 1 (the sensor
+//! saturates), and encoded by the camera response curve `response`:
+//! `srgb` (IEC 61966-2-1), `gamma` (`x^(1/gamma)`), `linear`, or `s_curve` (gamma
+//! `gamma`, then a smoothstep contrast curve blended in by `contrast`, as consumer
+//! cameras' tone curves do). Without this effect a frame is exposed at 0 EV and
+//! encoded with the sRGB curve (the clean render).
+
+use serde::{Deserialize, Serialize};
+
+use super::{EffectParams, ParamDoc, Target, check_range};
+use crate::material::linear_to_srgb;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Response {
+    Srgb,
+    Gamma,
+    Linear,
+    SCurve,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Exposure {
+    pub ev: f64,
+    pub response: Response,
+    pub gamma: f64,
+    pub contrast: f64,
+}
+
+impl Default for Exposure {
+    fn default() -> Self {
+        Self {
+            ev: 0.5,
+            response: Response::SCurve,
+            gamma: 2.2,
+            contrast: 0.3,
+        }
+    }
+}
+
+impl EffectParams for Exposure {
+    const NAME: &'static str = "exposure";
+    const TARGET: Target = Target::Eo;
+    const MODEL: &'static str = "Linear value × 2^ev, clipped at 1 (saturation), encoded \
+        by the response curve: srgb, gamma (x^(1/gamma)), linear, or s_curve (gamma then \
+        a smoothstep contrast blend). Without it: 0 EV and sRGB.";
+    const PARAMS: &'static [ParamDoc] = &[
+        ParamDoc {
+            name: "ev",
+            unit: "stops",
+            what: "exposure relative to the clean render (+1 doubles the light)",
+        },
+        ParamDoc {
+            name: "response",
+            unit: "srgb|gamma|linear|s_curve",
+            what: "camera response curve",
+        },
+        ParamDoc {
+            name: "gamma",
+            unit: "1",
+            what: "encoding gamma of the gamma and s_curve responses",
+        },
+        ParamDoc {
+            name: "contrast",
+            unit: "1",
+            what: "s_curve: blend of the smoothstep contrast curve, 0..1",
+        },
+    ];
+
+    fn validate(&self) -> Result<(), String> {
+        check_range("ev", self.ev, -20.0..=20.0)?;
+        check_range("gamma", self.gamma, 0.1..=10.0)?;
+        check_range("contrast", self.contrast, 0.0..=1.0)
+    }
+}
+
+/// The clean render's exposure: 0 EV, sRGB.
+pub const CLEAN: Exposure = Exposure {
+    ev: 0.0,
+    response: Response::Srgb,
+    gamma: 2.2,
+    contrast: 0.0,
+};
+
+impl Exposure {
+    /// Scale applied to linear values before saturation.
+    #[inline]
+    pub fn gain(&self) -> f32 {
+        2f64.powf(self.ev) as f32
+    }
+
+    /// Encodes a linear value already scaled and clipped to [0, 1] into [0, 1].
+    #[inline]
+    pub fn encode(&self, x: f32) -> f32 {
+        let x = if x.is_finite() {
+            x.clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
+        match self.response {
+            Response::Srgb => linear_to_srgb(x),
+            Response::Linear => x,
+            Response::Gamma => x.powf(1.0 / self.gamma as f32),
+            Response::SCurve => {
+                let g = x.powf(1.0 / self.gamma as f32);
+                let s = g * g * (3.0 - 2.0 * g);
+                g + (s - g) * self.contrast as f32
+            }
+        }
+    }
+
+    /// A [`LUT_SIZE`]-entry table from clipped linear values to 8-bit codes.
+    pub fn lut(&self) -> Vec<u8> {
+        (0..LUT_SIZE)
+            .map(|i| {
+                let x = i as f32 / (LUT_SIZE - 1) as f32;
+                (self.encode(x) * 255.0 + 0.5).clamp(0.0, 255.0) as u8
+            })
+            .collect()
+    }
+}
+
+/// Entries of [`Exposure::lut`].
+pub const LUT_SIZE: usize = 16384;
+
+/// Looks a linear value in [0, 1] up in a table from [`Exposure::lut`].
+#[inline]
+pub fn lut_lookup(lut: &[u8], x: f32) -> u8 {
+    let x = if x.is_finite() {
+        x.clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    let i = (x * (LUT_SIZE - 1) as f32 + 0.5) as usize;
+    lut.get(i.min(LUT_SIZE - 1)).copied().unwrap_or(0)
+}

@@ -1,0 +1,78 @@
+//! `sensor_noise`: photon shot noise and read noise of the EO sensor.
+//!
+//! Model: a pixel value `x` in linear units (1 = full well) collects `N = x · full_well_e`
+//! photo-electrons; the measured charge is `N + √N · n₁ + read_noise_e · n₂` with
+//! `n₁, n₂ ~ N(0, 1)` per pixel, channel and frame (the Gaussian limit of Poisson shot
+//! noise, accurate above a few electrons), clipped to `[0, full_well_e]` (saturation),
+//! then divided by `full_well_e` again.
+
+use serde::{Deserialize, Serialize};
+
+use super::{EffectParams, ParamDoc, Target, check_range};
+use crate::rng::PixelRng;
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SensorNoise {
+    pub full_well_e: f64,
+    pub read_noise_e: f64,
+}
+
+impl Default for SensorNoise {
+    fn default() -> Self {
+        Self {
+            full_well_e: 6000.0,
+            read_noise_e: 4.0,
+        }
+    }
+}
+
+impl EffectParams for SensorNoise {
+    const NAME: &'static str = "sensor_noise";
+    const TARGET: Target = Target::Eo;
+    const MODEL: &'static str = "Linear value x → N = x·full_well_e electrons; measured \
+        N + √N·N(0,1) (shot) + read_noise_e·N(0,1) (read), clipped to [0, full_well_e], \
+        per pixel, channel and frame.";
+    const PARAMS: &'static [ParamDoc] = &[
+        ParamDoc {
+            name: "full_well_e",
+            unit: "e-",
+            what: "electrons at saturation (linear value 1)",
+        },
+        ParamDoc {
+            name: "read_noise_e",
+            unit: "e- rms",
+            what: "read noise standard deviation",
+        },
+    ];
+
+    fn validate(&self) -> Result<(), String> {
+        check_range("full_well_e", self.full_well_e, 1.0..=1.0e9)?;
+        check_range("read_noise_e", self.read_noise_e, 0.0..=1.0e6)
+    }
+}
+
+impl SensorNoise {
+    /// Noisy linear values of one RGB pixel (inputs clipped to [0, 1] first).
+    #[inline]
+    pub fn apply(&self, rgb: [f32; 3], rng: &PixelRng) -> [f32; 3] {
+        let (a, b) = rng.normal_pair(0);
+        let (c, d) = rng.normal_pair(1);
+        let (e, f) = rng.normal_pair(2);
+        let shots = [a, c, e];
+        let reads = [b, d, f];
+        let mut out = [0.0f32; 3];
+        for k in 0..3 {
+            let x = f64::from(rgb[k]);
+            let x = if x.is_finite() {
+                x.clamp(0.0, 1.0)
+            } else {
+                0.0
+            };
+            let electrons = x * self.full_well_e;
+            let measured = electrons + electrons.sqrt() * shots[k] + self.read_noise_e * reads[k];
+            out[k] = (measured.clamp(0.0, self.full_well_e) / self.full_well_e) as f32;
+        }
+        out
+    }
+}

@@ -1,0 +1,600 @@
+//! Scene geometry in world coordinates (f64): the primitives a scene is made of, their
+//! exact ray intersections, and the hit record (distance, point, normal, texture
+//! coordinates in metres, object and material ids).
+
+pub mod bvh;
+pub mod mesh;
+
+use nalgebra::{Point3, Vector3};
+
+pub use bvh::Bvh;
+
+/// Intersections closer than this to the ray origin are ignored (metres), so a
+/// shadow ray leaving a surface does not hit that surface again.
+pub const MIN_HIT_DISTANCE: f64 = 1.0e-9;
+
+/// A ray in world coordinates; `dir` is a unit vector, so hit distances are metres
+/// along the ray (radial ranges).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Ray {
+    pub origin: Point3<f64>,
+    pub dir: Vector3<f64>,
+}
+
+impl Ray {
+    #[inline]
+    pub fn at(&self, t: f64) -> Point3<f64> {
+        self.origin + self.dir * t
+    }
+}
+
+/// The closest intersection of a ray with the scene.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Hit {
+    /// Distance along the (unit) ray, metres.
+    pub distance_m: f64,
+    /// Unit geometric normal as the primitive defines it (not flipped towards the ray).
+    pub normal: Vector3<f64>,
+    /// Texture coordinates in metres on the surface (see each primitive).
+    pub uv_m: [f64; 2],
+    /// Index of the scene object (`[[objects]]` order).
+    pub object: u32,
+    /// Index of the material in the scene's material table.
+    pub material: u32,
+}
+
+/// Axis-aligned bounding box.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Aabb {
+    pub min: [f64; 3],
+    pub max: [f64; 3],
+}
+
+impl Aabb {
+    pub const EMPTY: Self = Self {
+        min: [f64::INFINITY; 3],
+        max: [f64::NEG_INFINITY; 3],
+    };
+
+    pub fn grow_point(&mut self, p: &Point3<f64>) {
+        for a in 0..3 {
+            self.min[a] = self.min[a].min(p[a]);
+            self.max[a] = self.max[a].max(p[a]);
+        }
+    }
+
+    pub fn grow(&mut self, b: &Aabb) {
+        for a in 0..3 {
+            self.min[a] = self.min[a].min(b.min[a]);
+            self.max[a] = self.max[a].max(b.max[a]);
+        }
+    }
+
+    pub fn centroid(&self, axis: usize) -> f64 {
+        0.5 * (self.min[axis] + self.max[axis])
+    }
+
+    /// Half the surface area (the SAH only needs ratios); 0 for an empty box.
+    pub fn half_area(&self) -> f64 {
+        let d = [0, 1, 2].map(|a| (self.max[a] - self.min[a]).max(0.0));
+        d[0] * d[1] + d[1] * d[2] + d[2] * d[0]
+    }
+}
+
+/// What a primitive is.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Shape {
+    /// A parallelogram `corner + a·edge_u + b·edge_v`, `a, b` in [0, 1]; uv is metres
+    /// from its centre along the (unit) edge directions. Planes and box faces.
+    Parallelogram {
+        corner: Point3<f64>,
+        edge_u: Vector3<f64>,
+        edge_v: Vector3<f64>,
+        normal: Vector3<f64>,
+        /// Dual basis: `a = (p - corner)·dual_u`, `b = (p - corner)·dual_v`.
+        dual_u: Vector3<f64>,
+        dual_v: Vector3<f64>,
+    },
+    /// An unbounded plane through `origin`; uv is metres along `axis_u`, `axis_v`.
+    InfinitePlane {
+        origin: Point3<f64>,
+        axis_u: Vector3<f64>,
+        axis_v: Vector3<f64>,
+        normal: Vector3<f64>,
+    },
+    /// A sphere; uv is (radius × longitude, radius × polar angle) around `axis_z`.
+    Sphere {
+        center: Point3<f64>,
+        radius: f64,
+        axis_x: Vector3<f64>,
+        axis_y: Vector3<f64>,
+        axis_z: Vector3<f64>,
+    },
+    /// A capped cylinder around `axis_z` through `center`, from `-half_height` to
+    /// `+half_height`; uv on the side is (radius × angle, height), on the caps the
+    /// local (x, y).
+    Cylinder {
+        center: Point3<f64>,
+        radius: f64,
+        half_height: f64,
+        axis_x: Vector3<f64>,
+        axis_y: Vector3<f64>,
+        axis_z: Vector3<f64>,
+    },
+    /// A triangle with per-vertex uv (metres or texture units, as the mesh gives).
+    Triangle {
+        v0: Point3<f64>,
+        e1: Vector3<f64>,
+        e2: Vector3<f64>,
+        normal: Vector3<f64>,
+        uv: [[f64; 2]; 3],
+    },
+}
+
+/// A shape with the ids of what it belongs to.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Primitive {
+    pub shape: Shape,
+    pub object: u32,
+    pub material: u32,
+}
+
+/// Distance and local data of an intersection, before ids are attached.
+struct LocalHit {
+    t: f64,
+    normal: Vector3<f64>,
+    uv: [f64; 2],
+}
+
+#[inline]
+fn in_range(t: f64, t_max: f64) -> bool {
+    t > MIN_HIT_DISTANCE && t < t_max
+}
+
+impl Primitive {
+    /// The primitive's bounds; `None` for unbounded shapes.
+    pub fn bounds(&self) -> Option<Aabb> {
+        let mut b = Aabb::EMPTY;
+        match &self.shape {
+            Shape::Parallelogram {
+                corner,
+                edge_u,
+                edge_v,
+                ..
+            } => {
+                for p in [
+                    *corner,
+                    corner + edge_u,
+                    corner + edge_v,
+                    corner + edge_u + edge_v,
+                ] {
+                    b.grow_point(&p);
+                }
+            }
+            Shape::InfinitePlane { .. } => return None,
+            Shape::Sphere { center, radius, .. } => {
+                for a in 0..3 {
+                    b.min[a] = center[a] - radius;
+                    b.max[a] = center[a] + radius;
+                }
+            }
+            Shape::Cylinder {
+                center,
+                radius,
+                half_height,
+                axis_z,
+                ..
+            } => {
+                // Bounds of the two cap discs: per axis, the disc's extent is
+                // radius · sqrt(1 - axis_z[a]²).
+                for a in 0..3 {
+                    let disc = radius * (1.0 - axis_z[a] * axis_z[a]).max(0.0).sqrt();
+                    let h = (half_height * axis_z[a]).abs();
+                    b.min[a] = center[a] - h - disc;
+                    b.max[a] = center[a] + h + disc;
+                }
+            }
+            Shape::Triangle { v0, e1, e2, .. } => {
+                b.grow_point(v0);
+                b.grow_point(&(v0 + e1));
+                b.grow_point(&(v0 + e2));
+            }
+        }
+        // Pad flat boxes so slab tests never divide a zero-width box into NaN.
+        for a in 0..3 {
+            let pad = 1.0e-9 * (1.0 + b.max[a].abs().max(b.min[a].abs()));
+            b.min[a] -= pad;
+            b.max[a] += pad;
+        }
+        Some(b)
+    }
+
+    /// The closest intersection with `t` in (`MIN_HIT_DISTANCE`, `t_max`).
+    #[inline]
+    pub fn intersect(&self, ray: &Ray, t_max: f64) -> Option<Hit> {
+        let local = self.intersect_local(ray, t_max)?;
+        Some(Hit {
+            distance_m: local.t,
+            normal: local.normal,
+            uv_m: local.uv,
+            object: self.object,
+            material: self.material,
+        })
+    }
+
+    #[inline]
+    fn intersect_local(&self, ray: &Ray, t_max: f64) -> Option<LocalHit> {
+        match &self.shape {
+            Shape::Parallelogram {
+                corner,
+                edge_u,
+                edge_v,
+                normal,
+                dual_u,
+                dual_v,
+            } => {
+                let denom = normal.dot(&ray.dir);
+                if denom == 0.0 {
+                    return None;
+                }
+                let t = normal.dot(&(corner - ray.origin)) / denom;
+                if !in_range(t, t_max) {
+                    return None;
+                }
+                let local = ray.at(t) - corner;
+                let a = local.dot(dual_u);
+                let b = local.dot(dual_v);
+                if !(0.0..=1.0).contains(&a) || !(0.0..=1.0).contains(&b) {
+                    return None;
+                }
+                Some(LocalHit {
+                    t,
+                    normal: *normal,
+                    uv: [(a - 0.5) * edge_u.norm(), (b - 0.5) * edge_v.norm()],
+                })
+            }
+            Shape::InfinitePlane {
+                origin,
+                axis_u,
+                axis_v,
+                normal,
+            } => {
+                let denom = normal.dot(&ray.dir);
+                if denom == 0.0 {
+                    return None;
+                }
+                let t = normal.dot(&(origin - ray.origin)) / denom;
+                if !in_range(t, t_max) {
+                    return None;
+                }
+                let local = ray.at(t) - origin;
+                Some(LocalHit {
+                    t,
+                    normal: *normal,
+                    uv: [local.dot(axis_u), local.dot(axis_v)],
+                })
+            }
+            Shape::Sphere {
+                center,
+                radius,
+                axis_x,
+                axis_y,
+                axis_z,
+            } => {
+                // |o + t d - c|² = r² with |d| = 1: t² + 2 b t + c = 0. The
+                // "b² - c" form with the centre-relative closest approach keeps the
+                // discriminant accurate for far spheres.
+                let oc = ray.origin - center;
+                let b = oc.dot(&ray.dir);
+                let closest = oc - ray.dir * b;
+                let disc = radius * radius - closest.norm_squared();
+                if disc < 0.0 {
+                    return None;
+                }
+                let s = disc.sqrt();
+                // Numerically stable roots: q = -b - sign(b) s.
+                let q = if b > 0.0 { -b - s } else { -b + s };
+                let (mut t0, mut t1) = (
+                    q,
+                    if q != 0.0 {
+                        (oc.norm_squared() - radius * radius) / q
+                    } else {
+                        q
+                    },
+                );
+                if t0 > t1 {
+                    std::mem::swap(&mut t0, &mut t1);
+                }
+                let t = if in_range(t0, t_max) {
+                    t0
+                } else if in_range(t1, t_max) {
+                    t1
+                } else {
+                    return None;
+                };
+                // radius > 0 by construction.
+                let n = (ray.at(t) - center) / *radius;
+                let (x, y, z) = (n.dot(axis_x), n.dot(axis_y), n.dot(axis_z));
+                let longitude = y.atan2(x);
+                let polar = z.clamp(-1.0, 1.0).acos();
+                Some(LocalHit {
+                    t,
+                    normal: n,
+                    uv: [radius * longitude, radius * polar],
+                })
+            }
+            Shape::Cylinder {
+                center,
+                radius,
+                half_height,
+                axis_x,
+                axis_y,
+                axis_z,
+            } => intersect_cylinder(
+                ray,
+                t_max,
+                center,
+                *radius,
+                *half_height,
+                [axis_x, axis_y, axis_z],
+            ),
+            Shape::Triangle {
+                v0,
+                e1,
+                e2,
+                normal,
+                uv,
+            } => {
+                // Möller-Trumbore.
+                let p = ray.dir.cross(e2);
+                let det = e1.dot(&p);
+                if det == 0.0 {
+                    return None;
+                }
+                let inv = 1.0 / det;
+                let s = ray.origin - v0;
+                let b1 = s.dot(&p) * inv;
+                if !(0.0..=1.0).contains(&b1) {
+                    return None;
+                }
+                let q = s.cross(e1);
+                let b2 = ray.dir.dot(&q) * inv;
+                if b2 < 0.0 || b1 + b2 > 1.0 {
+                    return None;
+                }
+                let t = e2.dot(&q) * inv;
+                if !in_range(t, t_max) {
+                    return None;
+                }
+                let b0 = 1.0 - b1 - b2;
+                Some(LocalHit {
+                    t,
+                    normal: *normal,
+                    uv: [
+                        b0 * uv[0][0] + b1 * uv[1][0] + b2 * uv[2][0],
+                        b0 * uv[0][1] + b1 * uv[1][1] + b2 * uv[2][1],
+                    ],
+                })
+            }
+        }
+    }
+}
+
+fn intersect_cylinder(
+    ray: &Ray,
+    t_max: f64,
+    center: &Point3<f64>,
+    radius: f64,
+    half_height: f64,
+    axes: [&Vector3<f64>; 3],
+) -> Option<LocalHit> {
+    let [ax, ay, az] = axes;
+    let oc = ray.origin - center;
+    let (ox, oy, oz) = (oc.dot(ax), oc.dot(ay), oc.dot(az));
+    let (dx, dy, dz) = (ray.dir.dot(ax), ray.dir.dot(ay), ray.dir.dot(az));
+    let mut best: Option<LocalHit> = None;
+    let mut limit = t_max;
+    // Side: (ox + t dx)² + (oy + t dy)² = r².
+    let a = dx * dx + dy * dy;
+    if a > 0.0 {
+        let b = ox * dx + oy * dy;
+        let c = ox * ox + oy * oy - radius * radius;
+        let disc = b * b - a * c;
+        if disc >= 0.0 {
+            let s = disc.sqrt();
+            let q = if b > 0.0 { -b - s } else { -b + s };
+            let mut roots = [q / a, if q != 0.0 { c / q } else { q / a }];
+            if roots[0] > roots[1] {
+                roots.swap(0, 1);
+            }
+            for t in roots {
+                if in_range(t, limit) {
+                    let z = oz + t * dz;
+                    if z.abs() <= half_height {
+                        let (x, y) = (ox + t * dx, oy + t * dy);
+                        let normal = (ax * x + ay * y) / radius;
+                        best = Some(LocalHit {
+                            t,
+                            normal,
+                            uv: [radius * y.atan2(x), z],
+                        });
+                        limit = t;
+                        break;
+                    }
+                }
+            }
+        }
+    }
+    // Caps: z = ±half_height.
+    if dz != 0.0 {
+        for sign in [-1.0, 1.0] {
+            let t = (sign * half_height - oz) / dz;
+            if in_range(t, limit) {
+                let (x, y) = (ox + t * dx, oy + t * dy);
+                if x * x + y * y <= radius * radius {
+                    best = Some(LocalHit {
+                        t,
+                        normal: az * sign,
+                        uv: [x, y],
+                    });
+                    limit = t;
+                }
+            }
+        }
+    }
+    best
+}
+
+/// Builds a parallelogram primitive; `None` when the edges are degenerate.
+pub fn parallelogram(
+    corner: Point3<f64>,
+    edge_u: Vector3<f64>,
+    edge_v: Vector3<f64>,
+    object: u32,
+    material: u32,
+) -> Option<Primitive> {
+    let n = edge_u.cross(&edge_v);
+    let area = n.norm();
+    if !(area > 0.0 && area.is_finite()) {
+        return None;
+    }
+    let normal = n / area;
+    // Dual basis of (edge_u, edge_v) within the plane.
+    let dual_u = edge_v.cross(&normal) / area;
+    let dual_v = normal.cross(&edge_u) / area;
+    Some(Primitive {
+        shape: Shape::Parallelogram {
+            corner,
+            edge_u,
+            edge_v,
+            normal,
+            dual_u,
+            dual_v,
+        },
+        object,
+        material,
+    })
+}
+
+/// Builds a triangle; `None` when it has no area.
+pub fn triangle(
+    v: [Point3<f64>; 3],
+    uv: [[f64; 2]; 3],
+    object: u32,
+    material: u32,
+) -> Option<Primitive> {
+    let e1 = v[1] - v[0];
+    let e2 = v[2] - v[0];
+    let n = e1.cross(&e2);
+    let len = n.norm();
+    if !(len > 0.0 && len.is_finite()) {
+        return None;
+    }
+    Some(Primitive {
+        shape: Shape::Triangle {
+            v0: v[0],
+            e1,
+            e2,
+            normal: n / len,
+            uv,
+        },
+        object,
+        material,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn ray(o: [f64; 3], d: [f64; 3]) -> Ray {
+        Ray {
+            origin: Point3::new(o[0], o[1], o[2]),
+            dir: Vector3::new(d[0], d[1], d[2]).normalize(),
+        }
+    }
+
+    #[test]
+    fn sphere_hits_front_and_back() {
+        let s = Primitive {
+            shape: Shape::Sphere {
+                center: Point3::new(0.0, 0.0, 5.0),
+                radius: 1.0,
+                axis_x: Vector3::x(),
+                axis_y: Vector3::y(),
+                axis_z: Vector3::z(),
+            },
+            object: 0,
+            material: 0,
+        };
+        let h = s
+            .intersect(&ray([0.0; 3], [0.0, 0.0, 1.0]), f64::INFINITY)
+            .unwrap();
+        assert!((h.distance_m - 4.0).abs() < 1e-12);
+        assert!((h.normal - Vector3::new(0.0, 0.0, -1.0)).norm() < 1e-12);
+        // From inside: the far wall.
+        let h = s
+            .intersect(&ray([0.0, 0.0, 5.0], [1.0, 0.0, 0.0]), f64::INFINITY)
+            .unwrap();
+        assert!((h.distance_m - 1.0).abs() < 1e-12);
+        assert!(
+            s.intersect(&ray([0.0; 3], [0.0, 1.0, 0.0]), f64::INFINITY)
+                .is_none()
+        );
+    }
+
+    #[test]
+    fn cylinder_side_and_cap() {
+        let c = Primitive {
+            shape: Shape::Cylinder {
+                center: Point3::new(0.0, 0.0, 0.0),
+                radius: 0.5,
+                half_height: 1.0,
+                axis_x: Vector3::x(),
+                axis_y: Vector3::y(),
+                axis_z: Vector3::z(),
+            },
+            object: 0,
+            material: 0,
+        };
+        let h = c
+            .intersect(&ray([3.0, 0.0, 0.2], [-1.0, 0.0, 0.0]), f64::INFINITY)
+            .unwrap();
+        assert!((h.distance_m - 2.5).abs() < 1e-12);
+        let h = c
+            .intersect(&ray([0.1, 0.0, 4.0], [0.0, 0.0, -1.0]), f64::INFINITY)
+            .unwrap();
+        assert!((h.distance_m - 3.0).abs() < 1e-12);
+        assert_eq!(h.normal, Vector3::z());
+        assert!(
+            c.intersect(&ray([3.0, 0.0, 1.5], [-1.0, 0.0, 0.0]), f64::INFINITY)
+                .is_none()
+        );
+    }
+
+    #[test]
+    fn parallelogram_bounds_and_uv() {
+        let p = parallelogram(
+            Point3::new(-1.0, -1.0, 2.0),
+            Vector3::new(2.0, 0.0, 0.0),
+            Vector3::new(0.0, 2.0, 0.0),
+            3,
+            4,
+        )
+        .unwrap();
+        let h = p
+            .intersect(&ray([0.5, 0.25, 0.0], [0.0, 0.0, 1.0]), f64::INFINITY)
+            .unwrap();
+        assert!((h.distance_m - 2.0).abs() < 1e-12);
+        assert!((h.uv_m[0] - 0.5).abs() < 1e-12 && (h.uv_m[1] - 0.25).abs() < 1e-12);
+        assert_eq!((h.object, h.material), (3, 4));
+        assert!(
+            p.intersect(&ray([1.5, 0.0, 0.0], [0.0, 0.0, 1.0]), f64::INFINITY)
+                .is_none()
+        );
+        assert!(
+            p.intersect(&ray([0.0, 0.0, 0.0], [0.0, 0.0, 1.0]), 1.5)
+                .is_none()
+        );
+    }
+}

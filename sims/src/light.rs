@@ -1,0 +1,141 @@
+//! Lights and the shading model.
+//!
+//! Radiance leaving a surface point towards the camera (linear RGB, arbitrary units
+//! in which 1.0 is white at exposure 0):
+//!
+//! ```text
+//! L = albedo ⊙ (ambient + Σ_l E_l · max(0, n·l) · V_l)
+//!   + [specular effect only] k_s · Σ_l E_l · max(0, n·h)^shininess · [n·l > 0] · V_l
+//! ```
+//!
+//! with `E_l` the light's colour × intensity (divided by the squared distance for a
+//! point light, whose intensity is given at 1 m), `V_l` 1 unless the light casts
+//! shadows and the shadow ray is blocked, and `n` the normal turned towards the
+//! camera (surfaces are two-sided).
+
+use nalgebra::{Point3, Vector3};
+
+use crate::geometry::{Bvh, Ray};
+use crate::material::{Material, Rgb};
+
+/// Point lights closer than this to the shaded point are treated as this far (m),
+/// so the inverse-square law stays finite.
+const MIN_LIGHT_DISTANCE_M: f64 = 1.0e-3;
+
+/// Shadow rays start this far off the surface (m) to clear it.
+pub const SHADOW_BIAS_M: f64 = 1.0e-6;
+
+#[derive(Debug, Clone, PartialEq)]
+pub enum Light {
+    /// Light from a direction; `towards_light` is a unit vector.
+    Directional {
+        towards_light: Vector3<f64>,
+        color: Rgb,
+        intensity: f32,
+        shadows: bool,
+    },
+    /// A point light; `intensity` is the irradiance at 1 m.
+    Point {
+        position: Point3<f64>,
+        color: Rgb,
+        intensity: f32,
+        shadows: bool,
+    },
+}
+
+/// The scene's lighting.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Lighting {
+    pub ambient: Rgb,
+    pub lights: Vec<Light>,
+}
+
+/// Everything shading needs about one visible point.
+pub struct ShadePoint<'a> {
+    pub point: Point3<f64>,
+    /// Unit normal facing the camera.
+    pub normal: Vector3<f64>,
+    /// Unit vector from the point towards the camera.
+    pub to_eye: Vector3<f64>,
+    pub albedo: Rgb,
+    pub material: &'a Material,
+}
+
+impl Lighting {
+    /// Radiance towards the eye; `specular` (a multiplier on the material's `k_s`)
+    /// switches the Blinn-Phong lobe on.
+    pub fn shade(&self, bvh: &Bvh, p: &ShadePoint<'_>, specular: Option<f32>) -> Rgb {
+        let mut diffuse = self.ambient;
+        let mut glossy = [0.0f32; 3];
+        let k_s = specular.map_or(0.0, |s| s * p.material.specular);
+        let use_specular = k_s > 0.0;
+        for light in &self.lights {
+            let (to_light, distance, irradiance, shadows) = match light {
+                Light::Directional {
+                    towards_light,
+                    color,
+                    intensity,
+                    shadows,
+                } => (
+                    *towards_light,
+                    f64::INFINITY,
+                    [
+                        color[0] * intensity,
+                        color[1] * intensity,
+                        color[2] * intensity,
+                    ],
+                    *shadows,
+                ),
+                Light::Point {
+                    position,
+                    color,
+                    intensity,
+                    shadows,
+                } => {
+                    let d = position - p.point;
+                    let dist = d.norm().max(MIN_LIGHT_DISTANCE_M);
+                    let falloff = (*intensity as f64 / (dist * dist)) as f32;
+                    (
+                        d / dist,
+                        dist,
+                        [color[0] * falloff, color[1] * falloff, color[2] * falloff],
+                        *shadows,
+                    )
+                }
+            };
+            let cos = p.normal.dot(&to_light);
+            if cos <= 0.0 {
+                continue;
+            }
+            if shadows {
+                let ray = Ray {
+                    origin: p.point + p.normal * SHADOW_BIAS_M,
+                    dir: to_light,
+                };
+                if bvh.any_hit(&ray, distance - 2.0 * SHADOW_BIAS_M) {
+                    continue;
+                }
+            }
+            let c = cos as f32;
+            for k in 0..3 {
+                diffuse[k] += irradiance[k] * c;
+            }
+            if use_specular {
+                let h = to_light + p.to_eye;
+                let len = h.norm();
+                if len > 1.0e-12 {
+                    let nh = (p.normal.dot(&h) / len).max(0.0) as f32;
+                    let lobe = k_s * nh.powf(p.material.shininess.max(1.0));
+                    for k in 0..3 {
+                        glossy[k] += irradiance[k] * lobe;
+                    }
+                }
+            }
+        }
+        [
+            p.albedo[0] * diffuse[0] + glossy[0],
+            p.albedo[1] * diffuse[1] + glossy[1],
+            p.albedo[2] * diffuse[2] + glossy[2],
+        ]
+    }
+}
