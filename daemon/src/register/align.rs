@@ -180,6 +180,9 @@ struct Associated {
 /// The normal equations and statistics of one pose.
 struct Evaluation {
     total: NormalEquations,
+    /// Every pair with weight 1: what the geometry alone constrains.
+    geometry: NormalEquations,
+    per_target_geometry: Vec<NormalEquations>,
     per_target: Vec<NormalEquations>,
     per_target_count: Vec<usize>,
     overlapping: usize,
@@ -312,7 +315,7 @@ impl<'a> Problem<'a> {
         let n_targets = self.targets.len();
         let kernel_k = config.kernel_threshold();
         let per_chunk = map_chunks(&residuals, config.parallel, |chunk| {
-            let mut eqs = vec![NormalEquations::default(); n_targets];
+            let mut eqs = vec![NormalEquations::default(); 2 * n_targets];
             for res in chunk {
                 let s = if res.photometric {
                     photometric_scale
@@ -323,18 +326,27 @@ impl<'a> Problem<'a> {
                 let w = kernel::weight(config.kernel, kernel_k, e);
                 let cost = kernel::cost(config.kernel, kernel_k, e) * s * s;
                 eqs[res.target as usize].add(&res.j, res.r, w, cost);
+                if !res.photometric {
+                    eqs[n_targets + res.target as usize].add(&res.j, res.r, 1.0, 0.0);
+                }
             }
             eqs
         });
-        let mut per_target = vec![NormalEquations::default(); n_targets];
+        let mut sums = vec![NormalEquations::default(); 2 * n_targets];
         for eqs in &per_chunk {
-            for (acc, e) in per_target.iter_mut().zip(eqs) {
+            for (acc, e) in sums.iter_mut().zip(eqs) {
                 acc.merge(e);
             }
         }
+        let per_target_geometry = sums.split_off(n_targets);
+        let per_target = sums;
         let mut total = NormalEquations::default();
         for e in &per_target {
             total.merge(e);
+        }
+        let mut geometry = NormalEquations::default();
+        for e in &per_target_geometry {
+            geometry.merge(e);
         }
         let mut per_target_count = vec![0usize; n_targets];
         for r in residuals.iter().filter(|r| !r.photometric) {
@@ -342,6 +354,8 @@ impl<'a> Problem<'a> {
         }
         Evaluation {
             total,
+            geometry,
+            per_target_geometry,
             per_target,
             per_target_count,
             overlapping,
@@ -407,6 +421,7 @@ impl<'a> Problem<'a> {
         };
         solve_remapped(
             &evaluation.total,
+            &evaluation.geometry,
             self.length_m,
             config.degeneracy_threshold,
             damping,
@@ -472,8 +487,15 @@ fn finish(
     let target_information = evaluation
         .per_target
         .iter()
-        .map(|eq| {
-            let s = solve_remapped(eq, problem.length_m, config.degeneracy_threshold, 0.0);
+        .zip(&evaluation.per_target_geometry)
+        .map(|(eq, geometry)| {
+            let s = solve_remapped(
+                eq,
+                geometry,
+                problem.length_m,
+                config.degeneracy_threshold,
+                0.0,
+            );
             covariance_and_information(&s, problem.length_m, evaluation.geometric_scale, &prior).1
         })
         .collect();

@@ -1,7 +1,7 @@
 //! The 6x6 normal equations of a step, reduced in a fixed order, and their solution
 //! with degeneracy analysis and solution remapping (Zhang, Kaess & Singh 2016).
 
-use nalgebra::{Matrix6, SymmetricEigen, Vector6};
+use nalgebra::{DMatrix, DVector, Matrix6, SymmetricEigen, Vector6};
 use rayon::prelude::*;
 use serde::Serialize;
 
@@ -159,12 +159,12 @@ pub struct Step {
     /// The update `δ = (ω, v)`, zero along degenerate directions.
     pub delta: Vector6<f64>,
     pub degenerate: Vec<DegenerateDirection>,
-    /// Eigenvectors (columns, scaled coordinates) and eigenvalues of the scaled
-    /// normal matrix, for the covariance.
-    pub eigenvectors: Matrix6<f64>,
-    pub eigenvalues: Vector6<f64>,
-    /// Which eigen-directions are degenerate.
-    pub is_degenerate: [bool; 6],
+    /// Orthonormal bases (scaled coordinates, as columns) of the observable and the
+    /// degenerate subspaces.
+    pub observable: Vec<Vector6<f64>>,
+    pub unobservable: Vec<Vector6<f64>>,
+    /// Scaled weighted normal matrix, for the covariance.
+    pub hessian_scaled: Matrix6<f64>,
 }
 
 /// `D = diag(L, L, L, 1, 1, 1)`: scaled coordinates `δ' = D δ` put rotations in metres
@@ -173,36 +173,42 @@ fn scaling(length_m: f64) -> Vector6<f64> {
     Vector6::new(length_m, length_m, length_m, 1.0, 1.0, 1.0)
 }
 
+fn scaled(h: &Matrix6<f64>, d_inv: &Vector6<f64>) -> Matrix6<f64> {
+    Matrix6::from_fn(|a, b| h[(a, b)] * d_inv[a] * d_inv[b])
+}
+
 /// Solves `H δ = -g` in the observable subspace only.
 ///
 /// Zhang, Kaess & Singh (2016), Sec. IV-V: the eigenvectors of the normal matrix whose
 /// eigenvalues fall below `threshold · λ_max` span directions the constraints do not
-/// fix; the update is projected off them ("solution remapping", `δ = V_f⁻¹ V_u δ_u`,
-/// which for a symmetric matrix is the projection onto the well-conditioned
-/// eigenvectors), so the estimate keeps its prior (the initial guess) there.
-/// `damping` (Levenberg-Marquardt) is added to the kept eigenvalues. The analysis
-/// runs in scaled coordinates (`length_m` converts radians to metres) so that
-/// rotation and translation eigenvalues compare.
+/// fix; the update is confined to the other eigenvectors ("solution remapping",
+/// `δ = V_f⁻¹ V_u δ_u`, for a symmetric matrix the projection onto the
+/// well-conditioned eigenvectors), so the estimate keeps its prior (the initial
+/// guess) there. Observability is a property of the geometry, so it is judged on
+/// `geometry` (every gated pair with weight 1): a robust kernel that has not yet
+/// admitted the few points constraining a weak direction must not make it look
+/// unobservable. The step itself solves the robustly `weighted` system restricted to
+/// the observable subspace, with `damping` (Levenberg-Marquardt) on its diagonal.
+/// The analysis runs in scaled coordinates (`length_m` converts radians to metres)
+/// so that rotation and translation eigenvalues compare.
 pub fn solve_remapped(
-    equations: &NormalEquations,
+    weighted: &NormalEquations,
+    geometry: &NormalEquations,
     length_m: f64,
     threshold: f64,
     damping: f64,
 ) -> Step {
     let d = scaling(length_m);
     let d_inv = d.map(|x| 1.0 / x);
-    // H' = D⁻¹ H D⁻¹, g' = D⁻¹ g.
-    let h = equations.hessian();
-    let h_scaled = Matrix6::from_fn(|a, b| h[(a, b)] * d_inv[a] * d_inv[b]);
-    let g_scaled = equations.gradient().component_mul(&d_inv);
-    let eigen = SymmetricEigen::new(h_scaled);
+    let h_geometry = scaled(&geometry.hessian(), &d_inv);
+    let eigen = SymmetricEigen::new(h_geometry);
     let lambda_max = eigen.eigenvalues.max();
-    let mut delta_scaled = Vector6::zeros();
-    let mut is_degenerate = [false; 6];
+    let mut observable = Vec::new();
+    let mut unobservable = Vec::new();
     let mut degenerate = Vec::new();
     for i in 0..6 {
         let lambda = eigen.eigenvalues[i];
-        let v = eigen.eigenvectors.column(i);
+        let v = eigen.eigenvectors.column(i).into_owned();
         // A finite, positive largest eigenvalue is needed to compare against; without
         // one (no constraints at all) every direction is degenerate.
         let ratio = if lambda_max.is_finite() && lambda_max > 0.0 {
@@ -210,15 +216,37 @@ pub fn solve_remapped(
         } else {
             0.0
         };
-        if !(ratio > threshold) || !(lambda > 0.0) {
-            is_degenerate[i] = true;
-            degenerate.push(DegenerateDirection::new(v.into_owned(), ratio));
-            continue;
+        if ratio > threshold && lambda > 0.0 {
+            observable.push(v);
+        } else {
+            degenerate.push(DegenerateDirection::new(v, ratio));
+            unobservable.push(v);
         }
-        if std::env::var_os("TEXEL_DEBUG_EIGEN").is_some() {
-            degenerate.push(DegenerateDirection::new(v.into_owned(), ratio));
+    }
+    // The weighted system in the observable basis B: (Bᵀ H B) y = -Bᵀ g, δ' = B y.
+    let h_weighted = scaled(&weighted.hessian(), &d_inv);
+    let g_weighted = weighted.gradient().component_mul(&d_inv);
+    let m = observable.len();
+    let mut delta_scaled = Vector6::zeros();
+    if m > 0 {
+        let reduced = DMatrix::from_fn(m, m, |a, b| {
+            observable[a].dot(&(h_weighted * observable[b]))
+        });
+        let rhs = DVector::from_fn(m, |a, _| -observable[a].dot(&g_weighted));
+        let reduced_eigen = SymmetricEigen::new(reduced);
+        let top = reduced_eigen.eigenvalues.max();
+        for k in 0..m {
+            let lambda = reduced_eigen.eigenvalues[k];
+            // Directions the weights left without support are not moved either.
+            if !(lambda > 1.0e-12 * top.max(0.0)) || !lambda.is_finite() {
+                continue;
+            }
+            let u = reduced_eigen.eigenvectors.column(k);
+            let y = u * (u.dot(&rhs) / (lambda + damping));
+            for (a, basis) in observable.iter().enumerate() {
+                delta_scaled += basis * y[a];
+            }
         }
-        delta_scaled -= v * (v.dot(&g_scaled) / (lambda + damping));
     }
     let delta = delta_scaled.component_mul(&d_inv);
     let delta = if delta.iter().all(|c| c.is_finite()) {
@@ -231,15 +259,16 @@ pub fn solve_remapped(
     Step {
         delta,
         degenerate,
-        eigenvectors: eigen.eigenvectors,
-        eigenvalues: eigen.eigenvalues,
-        is_degenerate,
+        observable,
+        unobservable,
+        hessian_scaled: h_weighted,
     }
 }
 
-/// The covariance of the solution in `(ω, v)` coordinates: `s² / λ` along observable
-/// eigen-directions (`s` the residual scale in noise sigmas), the prior's variance
-/// along degenerate ones; and its inverse, the information matrix.
+/// The covariance of the solution in `(ω, v)` coordinates: `s²` times the inverse of
+/// the weighted normal matrix within the observable subspace (`s` the residual
+/// scale in noise sigmas), the prior's variance along degenerate directions, never
+/// more than the prior anywhere; and its inverse, the information matrix.
 pub fn covariance_and_information(
     step: &Step,
     length_m: f64,
@@ -248,23 +277,16 @@ pub fn covariance_and_information(
 ) -> (Matrix6<f64>, Matrix6<f64>) {
     let d = scaling(length_m);
     let prior_scaled = prior_sigmas.component_mul(&d).map(|s| s * s);
+    let prior_var = |v: &Vector6<f64>| -> f64 {
+        v.iter()
+            .zip(prior_scaled.iter())
+            .map(|(c, p)| c * c * p)
+            .sum()
+    };
     let s2 = residual_scale * residual_scale;
     let mut cov = Matrix6::zeros();
     let mut info = Matrix6::zeros();
-    for i in 0..6 {
-        let v = step.eigenvectors.column(i);
-        let prior_var: f64 = v
-            .iter()
-            .zip(prior_scaled.iter())
-            .map(|(c, p)| c * c * p)
-            .sum();
-        let lambda = step.eigenvalues[i];
-        let var = if step.is_degenerate[i] || !(lambda > 0.0) {
-            prior_var
-        } else {
-            // Never more certain in a direction than the data, never less than the prior.
-            (s2 / lambda).min(prior_var)
-        };
+    let mut add = |v: Vector6<f64>, var: f64| {
         let var = if var.is_finite() && var > 0.0 {
             var
         } else {
@@ -273,6 +295,32 @@ pub fn covariance_and_information(
         let vv = v * v.transpose();
         cov += vv * var;
         info += vv / var;
+    };
+    let m = step.observable.len();
+    if m > 0 {
+        let reduced = DMatrix::from_fn(m, m, |a, b| {
+            step.observable[a].dot(&(step.hessian_scaled * step.observable[b]))
+        });
+        let eigen = SymmetricEigen::new(reduced);
+        for k in 0..m {
+            let u = eigen.eigenvectors.column(k);
+            let mut v = Vector6::zeros();
+            for (a, basis) in step.observable.iter().enumerate() {
+                v += basis * u[a];
+            }
+            let lambda = eigen.eigenvalues[k];
+            let p = prior_var(&v);
+            // Never more certain in a direction than the data, never less than the prior.
+            let var = if lambda > 0.0 {
+                (s2 / lambda).min(p)
+            } else {
+                p
+            };
+            add(v, var);
+        }
+    }
+    for v in &step.unobservable {
+        add(*v, prior_var(v));
     }
     let d_inv = d.map(|x| 1.0 / x);
     let cov = Matrix6::from_fn(|a, b| cov[(a, b)] * d_inv[a] * d_inv[b]);
@@ -303,7 +351,7 @@ mod tests {
             let j = Vector6::from_column_slice(&row);
             eq.add(&row, -j.dot(&truth), 1.0, 0.0);
         }
-        let step = solve_remapped(&eq, 1.0, 1e-6, 0.0);
+        let step = solve_remapped(&eq, &eq, 1.0, 1e-6, 0.0);
         assert!(step.degenerate.is_empty());
         assert!((step.delta - truth).norm() < 1e-12);
     }
@@ -317,7 +365,7 @@ mod tests {
             let row = [-y, x, 0.0, 0.0, 0.0, -1.0];
             eq.add(&row, 0.05, 1.0, 0.0);
         }
-        let step = solve_remapped(&eq, 2.0, 1e-6, 0.0);
+        let step = solve_remapped(&eq, &eq, 2.0, 1e-6, 0.0);
         assert_eq!(step.degenerate.len(), 3);
         assert!(step.delta[2].abs() < 1e-12);
         assert!(step.delta[3].abs() < 1e-12 && step.delta[4].abs() < 1e-12);
@@ -340,7 +388,13 @@ mod tests {
 
     #[test]
     fn no_equations_mean_no_step() {
-        let step = solve_remapped(&NormalEquations::default(), 1.0, 0.01, 0.0);
+        let step = solve_remapped(
+            &NormalEquations::default(),
+            &NormalEquations::default(),
+            1.0,
+            0.01,
+            0.0,
+        );
         assert_eq!(step.delta, Vector6::zeros());
         assert_eq!(step.degenerate.len(), 6);
     }

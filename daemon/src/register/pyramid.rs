@@ -457,7 +457,11 @@ fn fit_plane_normal(
     let s = axis.cross(&helper).normalize();
     let t = axis.cross(&s);
     let (css, cst, ctt) = (s.dot(&(cov * s)), s.dot(&(cov * t)), t.dot(&(cov * t)));
-    let (csh, cth, chh) = (s.dot(&(cov * axis)), t.dot(&(cov * axis)), axis.dot(&(cov * axis)));
+    let (csh, cth, chh) = (
+        s.dot(&(cov * axis)),
+        t.dot(&(cov * axis)),
+        axis.dot(&(cov * axis)),
+    );
     let det = css * ctt - cst * cst;
     let trace = css + ctt;
     if !(det > 1.0e-9 * trace * trace) || !(trace > 0.0) {
