@@ -4,3 +4,4 @@
 pub mod export;
 pub mod info;
 pub mod register;
+pub mod register_cli;

@@ -37,6 +37,19 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
     },
+    /// Register a capture offline: write a copy with /texel/pose for every registered
+    /// frame, and optionally a JSON report (status, time, fitness, errors vs truth).
+    Register {
+        /// The capture (MCAP) file.
+        capture: PathBuf,
+        #[arg(long)]
+        out: PathBuf,
+        /// TOML overrides of the registration defaults.
+        #[arg(long)]
+        config: Option<PathBuf>,
+        #[arg(long)]
+        report: Option<PathBuf>,
+    },
 }
 
 fn main() -> ExitCode {
@@ -83,5 +96,11 @@ fn main() -> ExitCode {
                 ExitCode::FAILURE
             }
         },
+        Command::Register {
+            capture,
+            out,
+            config,
+            report,
+        } => texel_daemon::register_cli::run(&capture, &out, config.as_deref(), report.as_deref()),
     }
 }
