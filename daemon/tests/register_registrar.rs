@@ -101,8 +101,8 @@ fn a_failed_scan_stays_out_of_the_model_and_identical_frames_do_not_move() {
     let scene = Scene::room();
     let truth = orbit(60);
     let mut reg = Registrar::with_anchor(RegistrationConfig::default(), truth[0]);
-    for k in 0..4 {
-        reg.register(frame(&scene, &s, &truth[k], k), &s.model.lidar);
+    for (k, pose) in truth.iter().enumerate().take(4) {
+        reg.register(frame(&scene, &s, pose, k), &s.model.lidar);
     }
     let before = reg.poses().len();
     // A frame that looks the other way (nothing in common with the window at the

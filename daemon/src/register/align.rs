@@ -378,19 +378,19 @@ impl<'a> Problem<'a> {
                 // Nothing to constrain the pose at this level: keep it.
                 break;
             }
-            if config.solver == Solver::LevenbergMarquardt {
-                if let Some((prev_pose, prev_eval)) = previous.take() {
-                    if mean_cost(&evaluation) > mean_cost(&prev_eval) {
-                        // The step raised the cost: go back and damp harder.
-                        *pose = prev_pose;
-                        evaluation = prev_eval;
-                        damping *= 10.0;
-                        if damping > LM_MAX_DAMPING {
-                            break;
-                        }
-                    } else {
-                        damping = (damping / 3.0).max(1.0e-9);
+            if config.solver == Solver::LevenbergMarquardt
+                && let Some((prev_pose, prev_eval)) = previous.take()
+            {
+                if mean_cost(&evaluation) > mean_cost(&prev_eval) {
+                    // The step raised the cost: go back and damp harder.
+                    *pose = prev_pose;
+                    evaluation = prev_eval;
+                    damping *= 10.0;
+                    if damping > LM_MAX_DAMPING {
+                        break;
                     }
+                } else {
+                    damping = (damping / 3.0).max(1.0e-9);
                 }
             }
             let step = self.solve(&evaluation, config, damping);

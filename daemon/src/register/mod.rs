@@ -4,6 +4,10 @@
 //! SE(3)), and global refinement by a pose graph with loop closures. Synchronous,
 //! pure and I/O-free: the daemon runs it on a blocking thread.
 
+// Negated comparisons (`!(x > 0.0)`) are deliberate throughout: a NaN takes the
+// degenerate branch with them, where `x <= 0.0` would let it through.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+
 pub mod align;
 pub mod associate;
 pub mod config;
