@@ -5,3 +5,4 @@ pub mod export;
 pub mod info;
 pub mod register;
 pub mod register_cli;
+pub mod tradeoffs;

@@ -19,6 +19,7 @@ use texel::pose::pose_difference;
 use texel::{FuseConfig, Pose, Sensor, SensorModel, fuse};
 use thiserror::Error;
 
+use crate::register::clock::{Stopwatch, quantile};
 use crate::register::{
     ConfigError, DegenerateDirection, Fitness, Registrar, RegistrationConfig, RegistrationStatus,
 };
@@ -45,7 +46,12 @@ pub struct FrameReport {
     /// Retried later and registered then.
     pub recovered: bool,
     pub scan_id: Option<u64>,
+    /// Fusion of the frame into a scan (not part of registration), wall time.
+    pub fuse_ms: f64,
+    /// Registration of the scan (pyramid, alignment, keyframes, loop closure, pose
+    /// graph), wall time and the process's CPU time.
     pub time_ms: f64,
+    pub cpu_ms: f64,
     pub iterations: u32,
     pub fitness: Fitness,
     pub degenerate: Vec<DegenerateDirection>,
@@ -72,8 +78,12 @@ pub struct RegisterReport {
     pub recovered: usize,
     pub keyframes: u64,
     pub loop_closures: u64,
+    /// Registration time per frame (without fusion): wall...
     pub time_median_ms: f64,
     pub time_p95_ms: f64,
+    /// ... and CPU time (all threads).
+    pub cpu_median_ms: f64,
+    pub cpu_p95_ms: f64,
     pub path_length_m: Option<f64>,
     /// Absolute trajectory error (RMSE of positions), millimetres.
     pub ate_rmse_mm: Option<f64>,
@@ -179,8 +189,10 @@ pub fn register_capture(
                 continue;
             }
         };
+        let fuse_ms = started.elapsed().as_secs_f64() * 1000.0;
+        let watch = Stopwatch::start();
         let result = registrar.register(scan, &sensor.model.lidar);
-        let time_ms = started.elapsed().as_secs_f64() * 1000.0;
+        let elapsed = watch.elapsed();
         if let Some(id) = result.scan_id {
             index_of_id.insert(id, index);
         }
@@ -203,7 +215,9 @@ pub fn register_capture(
             status: result.status.clone(),
             recovered: false,
             scan_id: result.scan_id,
-            time_ms,
+            fuse_ms,
+            time_ms: elapsed.wall_ms,
+            cpu_ms: elapsed.cpu_ms,
             iterations: result.iterations,
             fitness: result.fitness,
             degenerate: result.degenerate.clone(),
@@ -260,7 +274,9 @@ fn failed_frame(index: usize, timestamp_ns: u64) -> FrameReport {
         },
         recovered: false,
         scan_id: None,
+        fuse_ms: 0.0,
         time_ms: 0.0,
+        cpu_ms: 0.0,
         iterations: 0,
         fitness: Fitness::default(),
         degenerate: Vec::new(),
@@ -310,14 +326,6 @@ fn write_output(
     Ok(())
 }
 
-fn percentile(sorted: &[f64], p: f64) -> f64 {
-    if sorted.is_empty() {
-        return 0.0;
-    }
-    let i = ((sorted.len() - 1) as f64 * p).round() as usize;
-    sorted[i.min(sorted.len() - 1)]
-}
-
 fn summarise(
     capture: &str,
     mut frames: Vec<FrameReport>,
@@ -360,12 +368,13 @@ fn summarise(
             previous = Some((*est, *tr));
         }
     }
-    let mut times: Vec<f64> = frames
-        .iter()
-        .filter(|f| f.status.is_registered() && f.iterations > 0)
-        .map(|f| f.time_ms)
-        .collect();
-    times.sort_by(f64::total_cmp);
+    let timed = || {
+        frames
+            .iter()
+            .filter(|f| f.status.is_registered() && f.iterations > 0)
+    };
+    let times: Vec<f64> = timed().map(|f| f.time_ms).collect();
+    let cpu: Vec<f64> = timed().map(|f| f.cpu_ms).collect();
     let stats = registrar.map(|r| r.stats()).unwrap_or_default();
     let has_truth = count > 0;
     RegisterReport {
@@ -382,8 +391,10 @@ fn summarise(
         recovered: frames.iter().filter(|f| f.recovered).count(),
         keyframes: stats.keyframes,
         loop_closures: stats.loop_closures,
-        time_median_ms: percentile(&times, 0.5),
-        time_p95_ms: percentile(&times, 0.95),
+        time_median_ms: quantile(&times, 0.5),
+        time_p95_ms: quantile(&times, 0.95),
+        cpu_median_ms: quantile(&cpu, 0.5),
+        cpu_p95_ms: quantile(&cpu, 0.95),
         path_length_m: has_truth.then_some(path),
         ate_rmse_mm: has_truth.then(|| (sq_sum / count as f64).sqrt() * 1000.0),
         drift_percent: match last_error_m {
@@ -415,7 +426,7 @@ pub fn run(
     match register_capture(capture, out, config, report, progress) {
         Ok(r) => {
             println!(
-                "registered {} of {} frames ({} failed, {} recovered, {} keyframes, {} loop closures); time per frame median {:.2} ms, p95 {:.2} ms -> {}",
+                "registered {} of {} frames ({} failed, {} recovered, {} keyframes, {} loop closures); registration time per frame (without fusion) median {:.2} ms, p95 {:.2} ms; CPU median {:.2} ms, p95 {:.2} ms -> {}",
                 r.registered,
                 r.frames,
                 r.failed,
@@ -424,6 +435,8 @@ pub fn run(
                 r.loop_closures,
                 r.time_median_ms,
                 r.time_p95_ms,
+                r.cpu_median_ms,
+                r.cpu_p95_ms,
                 out.display()
             );
             if let (Some(ate), Some(drift)) = (r.ate_rmse_mm, r.drift_percent) {

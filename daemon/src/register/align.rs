@@ -2,7 +2,7 @@
 //! robust point-to-plane (plus optional photometric) Gauss-Newton or
 //! Levenberg-Marquardt on SE(3) with degeneracy-aware updates. Pure and synchronous.
 
-use nalgebra::{Matrix6, Vector6};
+use nalgebra::{Matrix6, Vector3, Vector6};
 use texel::Pose;
 use texel::pose::pose_difference;
 
@@ -10,7 +10,7 @@ use super::associate::{Association, Gates, TargetView, associate, photometric, p
 use super::config::{AlignConfig, Solver};
 use super::kernel;
 use super::normal_eq::{
-    NormalEquations, Step, covariance_and_information, map_chunks, solve_remapped,
+    NormalEquations, Step, covariance_and_information, map_chunks, map_each, solve_remapped,
 };
 use super::pyramid::{HAS_INTENSITY, Level, ScanPyramid};
 use super::result::{Alignment, FailureReason, Fitness};
@@ -114,20 +114,34 @@ pub fn align(
 
     let mut pose = *initial;
     let mut iterations = 0u32;
+    let mut last: Option<(Problem<'_>, Evaluation)> = None;
     for level in (0..levels).rev() {
-        let stride = (config.point_stride as usize >> level).max(1);
+        // The same stride at every level: a coarse level has a quarter of the samples
+        // of the one below, so the coarse iterations that do the large moves are cheap.
         let samples = if level == 0 {
             finest_samples.clone()
         } else {
-            source.levels[level].samples(stride)
+            source.levels[level].samples(config.point_stride as usize)
         };
-        let problem = Problem::new(source, targets, level, samples, config);
-        iterations += problem.iterate(&mut pose, config);
+        let problem = Problem::new(source, targets, level, &samples, config);
+        let outcome = problem.iterate(&mut pose, config);
+        iterations += outcome.iterations;
+        if level == 0 {
+            last = outcome.converged_at.map(|e| (problem, e));
+        }
     }
 
-    // Final evaluation at the estimate, on the finest level.
-    let problem = Problem::new(source, targets, 0, finest_samples, config);
-    let evaluation = problem.evaluate(&pose, config);
+    // Fitness, covariance and information at the estimate, on the finest level: the
+    // last linearisation when the finest level converged (its final step was below
+    // the convergence thresholds), else a fresh evaluation.
+    let (problem, evaluation) = match last {
+        Some(last) => last,
+        None => {
+            let problem = Problem::new(source, targets, 0, &finest_samples, config);
+            let evaluation = problem.evaluate(&pose, config, true);
+            (problem, evaluation)
+        }
+    };
     finish(initial, pose, iterations, &problem, &evaluation, config)
 }
 
@@ -146,16 +160,28 @@ fn failed(initial: &Pose, targets: usize, reason: FailureReason) -> Alignment {
     }
 }
 
+/// One source sample, unpacked once per level.
+#[derive(Clone, Copy)]
+struct SourceSample {
+    p: Vector3<f64>,
+    n: Vector3<f64>,
+    sigma_m: f64,
+    intensity: Option<f32>,
+}
+
 /// One level's data: the source samples and the targets at that level.
 struct Problem<'a> {
-    source: &'a Level,
     targets: &'a [AlignTarget<'a>],
     level: usize,
-    samples: Vec<u32>,
+    samples: Vec<SourceSample>,
     gates: Gates,
     /// RMS distance of the samples from the source origin: converts rotation to
     /// metres for the degeneracy analysis.
     length_m: f64,
+    /// Convergence thresholds at this level: the configured ones times `2^level`
+    /// (a coarse level only has to bring the estimate within reach of the next).
+    convergence_rotation_rad: f64,
+    convergence_translation_m: f64,
 }
 
 /// One residual, already divided by its sigma (so `j` and `r` are unitless).
@@ -182,6 +208,7 @@ struct Evaluation {
     total: NormalEquations,
     /// Every pair with weight 1: what the geometry alone constrains.
     geometry: NormalEquations,
+    /// Per target (only for the final evaluation).
     per_target_geometry: Vec<NormalEquations>,
     per_target: Vec<NormalEquations>,
     per_target_count: Vec<usize>,
@@ -192,19 +219,40 @@ struct Evaluation {
     geometric_scale: f64,
 }
 
+/// How a level's iterations ended.
+struct Outcome {
+    iterations: u32,
+    /// The last evaluation, when the final step was below the thresholds.
+    converged_at: Option<Evaluation>,
+}
+
+/// Most targets per evaluation with per-target sums on the stack.
+const MAX_TARGETS: usize = 16;
+
 impl<'a> Problem<'a> {
     fn new(
         source: &'a ScanPyramid,
         targets: &'a [AlignTarget<'a>],
         level: usize,
-        samples: Vec<u32>,
+        indices: &[u32],
         config: &AlignConfig,
     ) -> Self {
         let source_level = &source.levels[level];
-        let sum_sq: f64 = samples
+        let samples: Vec<SourceSample> = indices
             .iter()
-            .map(|&i| source_level.point(i as usize).norm_squared())
-            .sum();
+            .map(|&i| {
+                let i = i as usize;
+                SourceSample {
+                    p: source_level.point(i),
+                    n: source_level.normal(i),
+                    sigma_m: f64::from(source_level.sigma_m(i)),
+                    intensity: source_level
+                        .has(i, HAS_INTENSITY)
+                        .then(|| source_level.intensity(i)),
+                }
+            })
+            .collect();
+        let sum_sq: f64 = samples.iter().map(|s| s.p.norm_squared()).sum();
         let length_m = if samples.is_empty() {
             1.0
         } else {
@@ -212,17 +260,18 @@ impl<'a> Problem<'a> {
                 .sqrt()
                 .max(MIN_LENGTH_SCALE_M)
         };
-        let gate = config.max_correspondence_distance_m * f64::from(1u32 << level.min(16));
+        let level_scale = f64::from(1u32 << level.min(16));
         Self {
-            source: source_level,
             targets,
             level,
             samples,
             gates: Gates {
-                max_distance_m: gate,
+                max_distance_m: config.max_correspondence_distance_m * level_scale,
                 min_normal_cosine: config.max_normal_angle_deg.to_radians().cos(),
             },
             length_m,
+            convergence_rotation_rad: config.convergence_rotation_rad * level_scale,
+            convergence_translation_m: config.convergence_translation_m * level_scale,
         }
     }
 
@@ -237,22 +286,24 @@ impl<'a> Problem<'a> {
             .collect()
     }
 
-    /// Steps 1-4 of the recipe at one pose.
-    fn evaluate(&self, world_from_source: &Pose, config: &AlignConfig) -> Evaluation {
+    /// Steps 1-4 of the recipe at one pose; `per_target` also keeps the sums of each
+    /// target apart (for the pose graph's edges).
+    fn evaluate(
+        &self,
+        world_from_source: &Pose,
+        config: &AlignConfig,
+        per_target: bool,
+    ) -> Evaluation {
         let views = self.views(world_from_source);
         let photometric_weight = config.photometric_weight;
-        let sqrt_photometric = photometric_weight.sqrt();
+        let photometric_scale = photometric_weight.sqrt() / config.intensity_sigma;
         let inlier_sigmas = config.inlier_sigmas;
-        let source = self.source;
         // Steps 1-2: associate and form residuals, chunk by chunk.
         let chunks = map_chunks(&self.samples, config.parallel, |chunk| {
             let mut out = Associated::default();
             out.residuals.reserve(chunk.len());
-            for &i in chunk {
-                let i = i as usize;
-                let p = source.point(i);
-                let n = source.normal(i);
-                let pair = match associate(&p, &n, &views, &self.gates) {
+            for sample in chunk {
+                let pair = match associate(&sample.p, &sample.n, &views, &self.gates) {
                     Association::Outside => continue,
                     Association::Rejected => {
                         out.overlapping += 1;
@@ -264,99 +315,95 @@ impl<'a> Problem<'a> {
                 out.correspondences += 1;
                 let view = &views[pair.target];
                 let sigma = {
-                    let (a, b) = (
-                        f64::from(source.sigma_m[i]),
-                        f64::from(view.level.sigma_m[pair.index]),
-                    );
+                    let (a, b) = (sample.sigma_m, f64::from(view.level.sigma_m(pair.index)));
                     (a * a + b * b).sqrt().max(1.0e-6)
                 };
-                let (r, j) = point_to_plane(&pair, &p, &view.rotation);
+                let (r, j) = point_to_plane(&pair, &sample.p, &view.rotation);
                 if r.abs() <= inlier_sigmas * sigma {
                     out.inliers += 1;
                     out.inlier_sq_sum_m2 += r * r;
                 }
+                let inv_sigma = 1.0 / sigma;
                 out.residuals.push(Residual {
-                    j: j.map(|x| x / sigma),
-                    r: r / sigma,
+                    j: j.map(|x| x * inv_sigma),
+                    r: r * inv_sigma,
                     target: pair.target as u8,
                     photometric: false,
                 });
-                if photometric_weight > 0.0 {
-                    let intensity = source.has(i, HAS_INTENSITY).then(|| source.intensity[i]);
-                    if let Some((r, j)) =
-                        photometric(&pair, view.level, intensity, &p, &view.rotation)
-                    {
-                        let s = sqrt_photometric / config.intensity_sigma;
-                        out.residuals.push(Residual {
-                            j: j.map(|x| x * s),
-                            r: r * s,
-                            target: pair.target as u8,
-                            photometric: true,
-                        });
-                    }
+                if photometric_weight > 0.0
+                    && let Some((r, j)) =
+                        photometric(&pair, view.level, sample.intensity, &sample.p, &view.rotation)
+                {
+                    out.residuals.push(Residual {
+                        j: j.map(|x| x * photometric_scale),
+                        r: r * photometric_scale,
+                        target: pair.target as u8,
+                        photometric: true,
+                    });
                 }
             }
             out
         });
-        let mut residuals = Vec::with_capacity(self.samples.len());
         let (mut overlapping, mut correspondences, mut inliers, mut inlier_sq_sum_m2) =
             (0, 0, 0, 0.0);
-        for c in chunks {
+        for c in &chunks {
             overlapping += c.overlapping;
             correspondences += c.correspondences;
             inliers += c.inliers;
             inlier_sq_sum_m2 += c.inlier_sq_sum_m2;
-            residuals.extend(c.residuals);
         }
         // Step 3: robust scales (never below the noise: scale 1 in sigma units).
-        let geometric_scale = robust_scale(residuals.iter().filter(|r| !r.photometric));
-        let photometric_scale = robust_scale(residuals.iter().filter(|r| r.photometric));
+        let all = || chunks.iter().flat_map(|c| c.residuals.iter());
+        let geometric_scale = robust_scale(all().filter(|r| !r.photometric));
+        let photometric_scale = robust_scale(all().filter(|r| r.photometric));
         // Step 4: weighted normal equations, per target, in fixed chunk order.
-        let n_targets = self.targets.len();
+        let n_targets = self.targets.len().min(MAX_TARGETS);
         let kernel_k = config.kernel_threshold();
-        let per_chunk = map_chunks(&residuals, config.parallel, |chunk| {
-            let mut eqs = vec![NormalEquations::default(); 2 * n_targets];
-            for res in chunk {
+        let kernel_kind = config.kernel;
+        let per_chunk = map_each(&chunks, config.parallel, |group| {
+            let mut weighted = [NormalEquations::default(); MAX_TARGETS];
+            let mut geometry = [NormalEquations::default(); MAX_TARGETS];
+            for res in &group.residuals {
                 let s = if res.photometric {
                     photometric_scale
                 } else {
                     geometric_scale
                 };
                 let e = res.r / s;
-                let w = kernel::weight(config.kernel, kernel_k, e);
-                let cost = kernel::cost(config.kernel, kernel_k, e) * s * s;
-                eqs[res.target as usize].add(&res.j, res.r, w, cost);
+                let w = kernel::weight(kernel_kind, kernel_k, e);
+                let cost = kernel::cost(kernel_kind, kernel_k, e) * s * s;
+                let t = usize::from(res.target).min(MAX_TARGETS - 1);
+                weighted[t].add(&res.j, res.r, w, cost);
                 if !res.photometric {
-                    eqs[n_targets + res.target as usize].add(&res.j, res.r, 1.0, 0.0);
+                    geometry[t].add(&res.j, res.r, 1.0, 0.0);
                 }
             }
-            eqs
+            (weighted, geometry)
         });
-        let mut sums = vec![NormalEquations::default(); 2 * n_targets];
-        for eqs in &per_chunk {
-            for (acc, e) in sums.iter_mut().zip(eqs) {
-                acc.merge(e);
+        let mut per_target_weighted = vec![NormalEquations::default(); n_targets];
+        let mut per_target_geometry = vec![NormalEquations::default(); n_targets];
+        for (weighted, geometry) in &per_chunk {
+            for t in 0..n_targets {
+                per_target_weighted[t].merge(&weighted[t]);
+                per_target_geometry[t].merge(&geometry[t]);
             }
         }
-        let per_target_geometry = sums.split_off(n_targets);
-        let per_target = sums;
         let mut total = NormalEquations::default();
-        for e in &per_target {
-            total.merge(e);
-        }
         let mut geometry = NormalEquations::default();
-        for e in &per_target_geometry {
-            geometry.merge(e);
+        for t in 0..n_targets {
+            total.merge(&per_target_weighted[t]);
+            geometry.merge(&per_target_geometry[t]);
         }
-        let mut per_target_count = vec![0usize; n_targets];
-        for r in residuals.iter().filter(|r| !r.photometric) {
-            per_target_count[r.target as usize] += 1;
+        let per_target_count = per_target_geometry.iter().map(|e| e.count).collect();
+        if !per_target {
+            per_target_weighted.clear();
+            per_target_geometry.clear();
         }
         Evaluation {
             total,
             geometry,
             per_target_geometry,
-            per_target,
+            per_target: per_target_weighted,
             per_target_count,
             overlapping,
             correspondences,
@@ -366,13 +413,15 @@ impl<'a> Problem<'a> {
         }
     }
 
-    /// Steps 5-6, repeated; returns the iterations taken.
-    fn iterate(&self, pose: &mut Pose, config: &AlignConfig) -> u32 {
+    /// Steps 5-6, repeated until a step is below the level's thresholds or the
+    /// iterations run out.
+    fn iterate(&self, pose: &mut Pose, config: &AlignConfig) -> Outcome {
         let mut iterations = 0;
         let mut damping = LM_INITIAL_DAMPING;
         let mut previous: Option<(Pose, Evaluation)> = None;
+        let finest = self.level == 0;
         while iterations < config.max_iterations {
-            let mut evaluation = self.evaluate(pose, config);
+            let mut evaluation = self.evaluate(pose, config, finest);
             iterations += 1;
             if evaluation.total.count < 6 {
                 // Nothing to constrain the pose at this level: keep it.
@@ -395,16 +444,26 @@ impl<'a> Problem<'a> {
             }
             let step = self.solve(&evaluation, config, damping);
             let (angle, dist) = se3::tangent_size(&step.delta);
+            let converged =
+                angle < self.convergence_rotation_rad && dist < self.convergence_translation_m;
             let before = *pose;
             *pose *= se3::exp(&step.delta);
+            if converged {
+                // A step below the thresholds: the evaluation it came from describes
+                // the estimate (fitness, covariance) up to that step.
+                return Outcome {
+                    iterations,
+                    converged_at: Some(evaluation),
+                };
+            }
             if config.solver == Solver::LevenbergMarquardt {
                 previous = Some((before, evaluation));
             }
-            if angle < config.convergence_rotation_rad && dist < config.convergence_translation_m {
-                break;
-            }
         }
-        iterations
+        Outcome {
+            iterations,
+            converged_at: None,
+        }
     }
 
     fn solve(&self, evaluation: &Evaluation, config: &AlignConfig, damping: f64) -> Step {

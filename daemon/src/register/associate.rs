@@ -7,19 +7,93 @@
 
 use nalgebra::{Matrix3, Vector3};
 use texel::Pose;
+use texel::camera::Distortion;
 
 use super::pyramid::{GridProjector, HAS_INTENSITY, HAS_NORMAL, HAS_POINT, Level};
+
+/// Points nearer the lidar plane than this (metres) do not project.
+const MIN_PROJECT_DEPTH_M: f64 = 1.0e-9;
+
+/// The lidar camera model unpacked into plain numbers for the inner loop: pinhole
+/// intrinsics and, when there is one, the `plumb_bob` distortion
+/// (`texel::camera::PinholeCamera::normalized_to_pixel`, written out).
+#[derive(Debug, Clone, Copy)]
+struct Projection {
+    fx: f64,
+    fy: f64,
+    cx: f64,
+    cy: f64,
+    skew: f64,
+    /// `[k1, k2, k3, p1, p2]`, or `None` for an ideal pinhole.
+    distortion: Option<[f64; 5]>,
+    /// Normalised radius squared beyond which the distortion model is not used.
+    max_r2: f64,
+}
+
+impl Projection {
+    fn new(projector: &GridProjector) -> Self {
+        let camera = projector.camera();
+        let distortion = match &camera.distortion {
+            Distortion::None => None,
+            Distortion::PlumbBob(d) => Some([d.k1, d.k2, d.k3, d.p1, d.p2]),
+        };
+        Self {
+            fx: camera.fx,
+            fy: camera.fy,
+            cx: camera.cx,
+            cy: camera.cy,
+            skew: camera.skew,
+            distortion,
+            max_r2: projector.max_radius_squared().unwrap_or(f64::INFINITY),
+        }
+    }
+
+    /// The full-resolution pixel of a lidar-frame point; `None` behind the sensor,
+    /// outside the distortion domain, or not finite.
+    #[inline(always)]
+    fn pixel(&self, p: &Vector3<f64>) -> Option<(f64, f64)> {
+        // Negated so that NaN is refused too.
+        if !(p.z >= MIN_PROJECT_DEPTH_M) {
+            return None;
+        }
+        let inv_z = 1.0 / p.z;
+        let (x, y) = (p.x * inv_z, p.y * inv_z);
+        let r2 = x * x + y * y;
+        if !(r2 < self.max_r2) {
+            return None;
+        }
+        let (xd, yd) = match self.distortion {
+            None => (x, y),
+            Some([k1, k2, k3, p1, p2]) => {
+                let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
+                let xy = x * y;
+                (
+                    x * radial + 2.0 * p1 * xy + p2 * (r2 + 2.0 * x * x),
+                    y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * xy,
+                )
+            }
+        };
+        Some((
+            self.fx * xd + self.skew * yd + self.cx,
+            self.fy * yd + self.cy,
+        ))
+    }
+}
 
 /// A target as the association sees it for one iteration.
 pub struct TargetView<'a> {
     pub level: &'a Level,
-    pub projector: &'a GridProjector,
     /// `target_from_source` as a rotation and translation.
     pub rotation: Matrix3<f64>,
     pub translation: Vector3<f64>,
     /// `target_lidar_from_source`, for projection.
-    pub lidar_rotation: Matrix3<f64>,
-    pub lidar_translation: Vector3<f64>,
+    lidar_rotation: Matrix3<f64>,
+    lidar_translation: Vector3<f64>,
+    projection: Projection,
+    /// Level pixels per full-resolution pixel.
+    inv_scale: f64,
+    width: f64,
+    height: f64,
 }
 
 impl<'a> TargetView<'a> {
@@ -27,7 +101,6 @@ impl<'a> TargetView<'a> {
         let lidar_from_source = projector.lidar_from_scan() * target_from_source;
         Self {
             level,
-            projector,
             rotation: target_from_source
                 .rotation
                 .to_rotation_matrix()
@@ -35,24 +108,29 @@ impl<'a> TargetView<'a> {
             translation: target_from_source.translation.vector,
             lidar_rotation: lidar_from_source.rotation.to_rotation_matrix().into_inner(),
             lidar_translation: lidar_from_source.translation.vector,
+            projection: Projection::new(projector),
+            inv_scale: 1.0 / level.scale,
+            width: level.width as f64,
+            height: level.height as f64,
         }
     }
 
     /// The target pixel (level index) a source point lands on, if it has a point.
-    #[inline]
+    #[inline(always)]
     fn pixel_of(&self, p_source: &Vector3<f64>) -> Option<usize> {
         let p_lidar = self.lidar_rotation * p_source + self.lidar_translation;
-        let px = self.projector.project_lidar(&p_lidar)?;
+        let (px, py) = self.projection.pixel(&p_lidar)?;
         // Full-resolution pixel centres at integers; a level pixel covers `scale` of
-        // them, so its centre is at `scale·(u + 0.5) - 0.5`.
-        let scale = self.level.scale;
-        let u = ((px.x + 0.5) / scale - 0.5).round();
-        let v = ((px.y + 0.5) / scale - 0.5).round();
-        if !(u >= 0.0 && v >= 0.0 && u < self.level.width as f64 && v < self.level.height as f64) {
+        // them, so its centre is at `scale·(u + 0.5) - 0.5` and the nearest level pixel
+        // is `floor((x + 0.5) / scale)`. The comparisons refuse NaN as well.
+        let u = (px + 0.5) * self.inv_scale;
+        let v = (py + 0.5) * self.inv_scale;
+        if !(u >= 0.0 && v >= 0.0 && u < self.width && v < self.height) {
             return None;
         }
+        // Non-negative: truncation is the floor.
         let index = v as usize * self.level.width + u as usize;
-        self.level.has(index, HAS_POINT).then_some(index)
+        (self.level.flags.get(index).copied().unwrap_or(0) & HAS_POINT != 0).then_some(index)
     }
 }
 
@@ -101,16 +179,17 @@ pub fn associate(
             continue;
         };
         landed = true;
-        if !target.level.has(index, HAS_NORMAL) {
+        let level = target.level;
+        if level.flags[index] & HAS_NORMAL == 0 {
             continue;
         }
         let p_target = target.rotation * p_source + target.translation;
-        let q = target.level.point(index);
+        let q = level.point(index);
         let d2 = (p_target - q).norm_squared();
         if !(d2 <= max_d2) || best.as_ref().is_some_and(|(b, _)| *b <= d2) {
             continue;
         }
-        let n = target.level.normal(index);
+        let n = level.normal(index);
         if (target.rotation * n_source).dot(&n) < gates.min_normal_cosine {
             continue;
         }
@@ -142,7 +221,7 @@ pub fn point_to_plane(
     rotation: &Matrix3<f64>,
 ) -> (f64, [f64; 6]) {
     let r = pair.n.dot(&(pair.p_target - pair.q));
-    let m = rotation.transpose() * pair.n;
+    let m = rotation.tr_mul(&pair.n);
     let c = p_source.cross(&m);
     (r, [c.x, c.y, c.z, m.x, m.y, m.z])
 }
@@ -150,7 +229,7 @@ pub fn point_to_plane(
 /// Photometric residual `I_t(q) + d·(T p - q) - I_s(p)` with `d` the target's
 /// intensity gradient in its tangent plane, and its Jacobian `[p × m, m]`,
 /// `m = Rᵀ d` (Park, Zhou & Koltun 2017, Eq. 9-13). `None` where either side lacks
-/// intensity.
+/// intensity or the target has no gradients.
 #[inline]
 pub fn photometric(
     pair: &Pair,
@@ -163,9 +242,9 @@ pub fn photometric(
     if !target.has(pair.index, HAS_INTENSITY) {
         return None;
     }
-    let d = target.gradient(pair.index);
-    let r = f64::from(target.intensity[pair.index]) + d.dot(&(pair.p_target - pair.q)) - i_s;
-    let m = rotation.transpose() * d;
+    let d = target.gradient(pair.index)?;
+    let r = f64::from(target.intensity(pair.index)) + d.dot(&(pair.p_target - pair.q)) - i_s;
+    let m = rotation.tr_mul(&d);
     let c = p_source.cross(&m);
     Some((r, [c.x, c.y, c.z, m.x, m.y, m.z]))
 }

@@ -49,8 +49,7 @@ pub struct AlignConfig {
     pub pyramid_levels: u32,
     /// Iterations at most per pyramid level.
     pub max_iterations: u32,
-    /// Use every n-th source pixel in each direction at the finest level (coarser
-    /// levels use all of theirs).
+    /// Use every n-th source pixel in each direction, at every level.
     pub point_stride: u32,
     pub kernel: RobustKernel,
     /// Kernel threshold in units of the residual scale; the kernel's usual constant
@@ -68,7 +67,8 @@ pub struct AlignConfig {
     pub max_correspondence_distance_m: f64,
     /// Correspondences whose normals differ by more than this are rejected.
     pub max_normal_angle_deg: f64,
-    /// A level stops when a step rotates less than this...
+    /// The finest level stops when a step rotates less than this (a coarser level `ℓ`
+    /// when it rotates less than `2^ℓ` times this)...
     pub convergence_rotation_rad: f64,
     /// ... and translates less than this.
     pub convergence_translation_m: f64,
@@ -109,8 +109,8 @@ impl Default for AlignConfig {
             solver: Solver::GaussNewton,
             max_correspondence_distance_m: 0.1,
             max_normal_angle_deg: 45.0,
-            convergence_rotation_rad: 2.0e-5,
-            convergence_translation_m: 2.0e-5,
+            convergence_rotation_rad: 1.0e-4,
+            convergence_translation_m: 1.0e-4,
             degeneracy_threshold: 0.001,
             min_correspondences: 50,
             min_overlap: 0.15,

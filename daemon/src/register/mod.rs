@@ -10,6 +10,7 @@
 
 pub mod align;
 pub mod associate;
+pub mod clock;
 pub mod config;
 pub mod graph;
 pub mod kernel;
@@ -23,6 +24,6 @@ pub mod se3;
 pub use align::{AlignTarget, align, align_pair};
 pub use config::{AlignConfig, ConfigError, RegistrationConfig, RobustKernel, Solver};
 pub use normal_eq::DegenerateDirection;
-pub use pyramid::ScanPyramid;
+pub use pyramid::{PyramidOptions, ScanPyramid};
 pub use registrar::{Registrar, RegistrarStats};
 pub use result::{Alignment, FailureReason, Fitness, RegistrationResult, RegistrationStatus};

@@ -24,6 +24,21 @@ where
     }
 }
 
+/// Maps every item (chunk results, already fixed in number and order) and returns
+/// the results in item order, on the rayon pool or on this thread.
+pub fn map_each<T, A, F>(items: &[T], parallel: bool, map: F) -> Vec<A>
+where
+    T: Sync,
+    A: Send,
+    F: Fn(&T) -> A + Sync + Send,
+{
+    if parallel && items.len() > 1 {
+        items.par_iter().map(map).collect()
+    } else {
+        items.iter().map(map).collect()
+    }
+}
+
 /// `Σ w JᵀJ` (upper triangle), `Σ w Jᵀr`, and the robust cost, accumulated
 /// sequentially.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -22,6 +22,15 @@ pub const HAS_POINT: u8 = 1;
 pub const HAS_NORMAL: u8 = 2;
 pub const HAS_INTENSITY: u8 = 4;
 
+/// What a pyramid is built with.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PyramidOptions {
+    /// Levels (at least one; fewer if the grid becomes smaller than 4 pixels).
+    pub levels: u32,
+    /// Intensity gradients in the tangent plane, needed only by the photometric term.
+    pub gradients: bool,
+}
+
 /// Projects scan-frame points into the scan's lidar grid (full-resolution pixels).
 #[derive(Debug, Clone)]
 pub struct GridProjector {
@@ -43,6 +52,15 @@ impl GridProjector {
         &self.lidar_from_scan
     }
 
+    pub fn camera(&self) -> &PinholeCamera {
+        &self.camera
+    }
+
+    /// The distortion model's domain bound (normalised radius squared), if any.
+    pub fn max_radius_squared(&self) -> Option<f64> {
+        self.max_r2
+    }
+
     /// The full-resolution pixel of a point given in the lidar frame; `None` behind
     /// the sensor or outside the distortion model's domain.
     #[inline]
@@ -56,8 +74,21 @@ impl GridProjector {
     }
 }
 
-/// One pyramid level. Arrays are row-major over `width x height`; coordinates are in
-/// the scan frame (the scan's EO optical frame).
+/// What association reads of one pyramid pixel, packed in 32 bytes so that a lookup
+/// touches one cache line: the point, its unit normal (facing the sensor; zero where
+/// there is none), its range-noise sigma and EO luminance. Coordinates are in the
+/// scan frame (the scan's EO optical frame).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Surfel {
+    pub point: [f32; 3],
+    pub normal: [f32; 3],
+    /// Range noise sigma at the point, metres.
+    pub sigma_m: f32,
+    /// EO luminance in [0, 1].
+    pub intensity: f32,
+}
+
+/// One pyramid level. Arrays are row-major over `width x height`.
 #[derive(Debug, Clone, Default)]
 pub struct Level {
     pub width: usize,
@@ -65,21 +96,29 @@ pub struct Level {
     /// `2^level`: full-resolution pixels per level pixel along each axis.
     pub scale: f64,
     pub flags: Vec<u8>,
-    pub points: Vec<[f32; 3]>,
-    /// Unit normals facing the sensor; zero where there is none.
-    pub normals: Vec<[f32; 3]>,
+    pub surfels: Vec<Surfel>,
     /// Range from the lidar centre, metres.
     pub ranges_m: Vec<f32>,
-    /// Range noise sigma at the point, metres.
-    pub sigma_m: Vec<f32>,
-    /// EO luminance in [0, 1].
-    pub intensity: Vec<f32>,
     /// Gradient of the intensity along the surface (perpendicular to the normal),
-    /// per metre (Park, Zhou & Koltun 2017, Sec. 3).
+    /// per metre (Park, Zhou & Koltun 2017, Sec. 3); empty when the pyramid was built
+    /// without gradients.
     pub gradient: Vec<[f32; 3]>,
 }
 
 impl Level {
+    fn empty(width: usize, height: usize, scale: f64) -> Self {
+        let n = width * height;
+        Self {
+            width,
+            height,
+            scale,
+            flags: vec![0; n],
+            surfels: vec![Surfel::default(); n],
+            ranges_m: vec![0.0; n],
+            gradient: Vec::new(),
+        }
+    }
+
     #[inline]
     pub fn has(&self, index: usize, flag: u8) -> bool {
         self.flags.get(index).is_some_and(|f| f & flag == flag)
@@ -87,20 +126,39 @@ impl Level {
 
     #[inline]
     pub fn point(&self, index: usize) -> Vector3<f64> {
-        let p = self.points[index];
+        let p = self.surfels[index].point;
         Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]))
     }
 
     #[inline]
     pub fn normal(&self, index: usize) -> Vector3<f64> {
-        let p = self.normals[index];
+        let p = self.surfels[index].normal;
         Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]))
     }
 
     #[inline]
-    pub fn gradient(&self, index: usize) -> Vector3<f64> {
-        let p = self.gradient[index];
-        Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]))
+    pub fn sigma_m(&self, index: usize) -> f32 {
+        self.surfels[index].sigma_m
+    }
+
+    #[inline]
+    pub fn intensity(&self, index: usize) -> f32 {
+        self.surfels[index].intensity
+    }
+
+    /// The intensity gradient, where the level has gradients.
+    #[inline]
+    pub fn gradient(&self, index: usize) -> Option<Vector3<f64>> {
+        let p = self.gradient.get(index)?;
+        Some(Vector3::new(
+            f64::from(p[0]),
+            f64::from(p[1]),
+            f64::from(p[2]),
+        ))
+    }
+
+    pub fn has_gradients(&self) -> bool {
+        !self.gradient.is_empty()
     }
 
     /// Pixels with a point and a normal, every `stride`-th in each direction.
@@ -134,26 +192,44 @@ pub struct ScanPyramid {
 }
 
 impl ScanPyramid {
-    /// Builds `levels` levels (at least one; fewer if the grid becomes smaller than
-    /// 4 pixels). `lidar` is the camera model the scan's range grid was taken with.
+    /// Builds `levels` levels with intensity gradients. `lidar` is the camera model
+    /// the scan's range grid was taken with.
     pub fn build(scan: Arc<TexelScan>, lidar: &PinholeCamera, levels: u32) -> Self {
+        Self::build_with(
+            scan,
+            lidar,
+            PyramidOptions {
+                levels,
+                gradients: true,
+            },
+        )
+    }
+
+    /// Builds the pyramid as `options` say.
+    pub fn build_with(scan: Arc<TexelScan>, lidar: &PinholeCamera, options: PyramidOptions) -> Self {
         let projector = GridProjector::new(lidar, &scan.scan_from_lidar);
         let pitch = projector.pixel_pitch_rad();
-        let mut out = Vec::with_capacity(levels.max(1) as usize);
+        let levels = options.levels.max(1) as usize;
+        let mut out = Vec::with_capacity(levels);
         // Sec. 3.2 of KinectFusion: the finest level from the measurements...
         let mut level = finest_level(&scan, &projector);
-        compute_normals_and_gradients(&mut level, pitch, scan.cop_m, normal_radius(0));
+        compute_normals(&mut level, scan.cop_m, normal_radius(0));
+        if options.gradients {
+            compute_gradients(&mut level, pitch);
+        }
         out.push(level);
         // ... each coarser one by averaging 2x2 blocks within one surface.
-        while out.len() < levels.max(1) as usize {
+        while out.len() < levels {
             let Some(finer) = out.last() else { break };
             if finer.width < 8 || finer.height < 8 {
                 break;
             }
             let mut coarser = downsample(finer, pitch * finer.scale);
             let coarse_pitch = pitch * coarser.scale;
-            let radius = normal_radius(out.len());
-            compute_normals_and_gradients(&mut coarser, coarse_pitch, scan.cop_m, radius);
+            compute_normals(&mut coarser, scan.cop_m, normal_radius(out.len()));
+            if options.gradients {
+                compute_gradients(&mut coarser, coarse_pitch);
+            }
             out.push(coarser);
         }
         Self {
@@ -182,21 +258,9 @@ fn luminance(rgb: [u8; 3]) -> f32 {
 
 fn finest_level(scan: &TexelScan, projector: &GridProjector) -> Level {
     let (w, h) = (scan.grid_width as usize, scan.grid_height as usize);
-    let n = w * h;
-    let mut level = Level {
-        width: w,
-        height: h,
-        scale: 1.0,
-        flags: vec![0; n],
-        points: vec![[0.0; 3]; n],
-        normals: vec![[0.0; 3]; n],
-        ranges_m: vec![0.0; n],
-        sigma_m: vec![0.0; n],
-        intensity: vec![0.0; n],
-        gradient: vec![[0.0; 3]; n],
-    };
+    let mut level = Level::empty(w, h, 1.0);
     let lidar_origin = projector.lidar_from_scan.inverse().translation.vector;
-    for (pixel, &vertex) in scan.pixel_vertex.iter().enumerate().take(n) {
+    for (pixel, &vertex) in scan.pixel_vertex.iter().enumerate().take(w * h) {
         let Some(p) = scan.vertices.get(vertex as usize) else {
             continue;
         };
@@ -206,11 +270,12 @@ fn finest_level(scan: &TexelScan, projector: &GridProjector) -> Level {
         let pv = Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
         let range = (pv - lidar_origin).norm();
         level.flags[pixel] = HAS_POINT;
-        level.points[pixel] = *p;
         level.ranges_m[pixel] = range as f32;
-        level.sigma_m[pixel] = scan.range_noise.sigma_at(range) as f32;
+        let surfel = &mut level.surfels[pixel];
+        surfel.point = *p;
+        surfel.sigma_m = scan.range_noise.sigma_at(range) as f32;
         if let Some(rgb) = scan.vertex_colour(vertex as usize) {
-            level.intensity[pixel] = luminance(rgb);
+            surfel.intensity = luminance(rgb);
             level.flags[pixel] |= HAS_INTENSITY;
         }
     }
@@ -231,19 +296,7 @@ fn same_surface(r_a: f32, r_b: f32, sigma_a: f32, sigma_b: f32, pitch_rad: f64) 
 /// into points floating between surfaces).
 fn downsample(finer: &Level, pitch_rad: f64) -> Level {
     let (w, h) = (finer.width / 2, finer.height / 2);
-    let n = w * h;
-    let mut out = Level {
-        width: w,
-        height: h,
-        scale: finer.scale * 2.0,
-        flags: vec![0; n],
-        points: vec![[0.0; 3]; n],
-        normals: vec![[0.0; 3]; n],
-        ranges_m: vec![0.0; n],
-        sigma_m: vec![0.0; n],
-        intensity: vec![0.0; n],
-        gradient: vec![[0.0; 3]; n],
-    };
+    let mut out = Level::empty(w, h, finer.scale * 2.0);
     for v in 0..h {
         for u in 0..w {
             let block = [
@@ -266,8 +319,8 @@ fn downsample(finer: &Level, pitch_rad: f64) -> Level {
                     || !same_surface(
                         finer.ranges_m[nearest],
                         finer.ranges_m[i],
-                        finer.sigma_m[nearest],
-                        finer.sigma_m[i],
+                        finer.sigma_m(nearest),
+                        finer.sigma_m(i),
                         pitch_rad,
                     )
                 {
@@ -275,10 +328,10 @@ fn downsample(finer: &Level, pitch_rad: f64) -> Level {
                 }
                 sum += finer.point(i);
                 range += f64::from(finer.ranges_m[i]);
-                sigma += f64::from(finer.sigma_m[i]);
+                sigma += f64::from(finer.sigma_m(i));
                 count += 1.0;
                 if finer.has(i, HAS_INTENSITY) {
-                    intensity += f64::from(finer.intensity[i]);
+                    intensity += f64::from(finer.intensity(i));
                     intensity_count += 1.0;
                 }
             }
@@ -286,11 +339,12 @@ fn downsample(finer: &Level, pitch_rad: f64) -> Level {
             let k = v * w + u;
             let p = sum / count;
             out.flags[k] = HAS_POINT;
-            out.points[k] = [p.x as f32, p.y as f32, p.z as f32];
             out.ranges_m[k] = (range / count) as f32;
-            out.sigma_m[k] = (sigma / count) as f32;
+            let surfel = &mut out.surfels[k];
+            surfel.point = [p.x as f32, p.y as f32, p.z as f32];
+            surfel.sigma_m = (sigma / count) as f32;
             if intensity_count > 0.0 {
-                out.intensity[k] = (intensity / intensity_count) as f32;
+                surfel.intensity = (intensity / intensity_count) as f32;
                 out.flags[k] |= HAS_INTENSITY;
             }
         }
@@ -314,8 +368,8 @@ fn tangent(
                 && same_surface(
                     level.ranges_m[c],
                     level.ranges_m[i],
-                    level.sigma_m[c],
-                    level.sigma_m[i],
+                    level.sigma_m(c),
+                    level.sigma_m(i),
                     pitch_rad,
                 )
         })
@@ -328,33 +382,27 @@ fn tangent(
     };
     let d = level.point(b) - level.point(a);
     let di = (level.has(a, HAS_INTENSITY) && level.has(b, HAS_INTENSITY))
-        .then(|| f64::from(level.intensity[b]) - f64::from(level.intensity[a]));
+        .then(|| f64::from(level.intensity(b)) - f64::from(level.intensity(a)));
     Some((d, di))
 }
 
 /// Summed-area tables of `[1, x, y, z, xx, xy, xz, yy, yz, zz]` over a level's
-/// points, `(w + 1) x (h + 1)` entries of 10 sums each.
-fn moment_tables(level: &Level) -> Vec<[f64; 10]> {
+/// points, `(w + 1) x (h + 1)` entries of 10 sums each. Coordinates are taken
+/// relative to `origin` (a point of the level) so the sums stay small and the
+/// window covariances keep their precision.
+fn moment_tables(level: &Level, origin: &[f64; 3]) -> Vec<[f64; 10]> {
     let (w, h) = (level.width, level.height);
     let mut table = vec![[0.0f64; 10]; (w + 1) * (h + 1)];
     for v in 0..h {
         let mut row = [0.0f64; 10];
         for u in 0..w {
             let c = v * w + u;
-            if level.has(c, HAS_POINT) {
-                let p = level.point(c);
-                let m = [
-                    1.0,
-                    p.x,
-                    p.y,
-                    p.z,
-                    p.x * p.x,
-                    p.x * p.y,
-                    p.x * p.z,
-                    p.y * p.y,
-                    p.y * p.z,
-                    p.z * p.z,
-                ];
+            if level.flags[c] & HAS_POINT != 0 {
+                let p = level.surfels[c].point;
+                let x = f64::from(p[0]) - origin[0];
+                let y = f64::from(p[1]) - origin[1];
+                let z = f64::from(p[2]) - origin[2];
+                let m = [1.0, x, y, z, x * x, x * y, x * z, y * y, y * z, z * z];
                 for (r, x) in row.iter_mut().zip(m) {
                     *r += x;
                 }
@@ -370,44 +418,67 @@ fn moment_tables(level: &Level) -> Vec<[f64; 10]> {
 }
 
 /// Normals from the range grid: a least-squares plane through the points of a
-/// `(2r + 1)²` window, fitted as depth along the viewing ray over the two directions
-/// across it, from summed-area tables in O(1) per pixel (normal estimation on
-/// organised clouds with integral images, Holzer et al. 2012). A window whose
-/// points do not lie on one plane within the noise (a depth edge) gives no normal.
-/// Normals face the centre of projection (KinectFusion, Sec. 3.2).
-///
-/// Intensity gradients: the vector `d` in the tangent plane with `d·t_u = ΔI_u` and
-/// `d·t_v = ΔI_v` over the grid neighbours (Park, Zhou & Koltun 2017, Eq. 11-12
-/// solved on the grid).
-fn compute_normals_and_gradients(level: &mut Level, pitch_rad: f64, cop: [f64; 3], radius: usize) {
+/// `(2r + 1)²` window, fitted as depth along the viewing ray, from summed-area
+/// tables in O(1) per pixel (normal estimation on organised clouds with integral
+/// images, Holzer et al. 2012). A window whose points do not lie on one plane within
+/// the noise (a depth edge) gives no normal. Normals face the centre of projection
+/// (KinectFusion, Sec. 3.2).
+fn compute_normals(level: &mut Level, cop: [f64; 3], radius: usize) {
     let (w, h) = (level.width, level.height);
-    let cop = Vector3::new(cop[0], cop[1], cop[2]);
-    let table = moment_tables(level);
-    let at = |u: usize, v: usize| &table[v * (w + 1) + u];
+    let origin = level
+        .flags
+        .iter()
+        .position(|f| f & HAS_POINT != 0)
+        .map_or([0.0; 3], |i| level.surfels[i].point.map(f64::from));
+    let table = moment_tables(level, &origin);
+    let cop = Vector3::new(cop[0] - origin[0], cop[1] - origin[1], cop[2] - origin[2]);
     // Fewest points for a plane fit: over half the window, and at least 5.
     let min_points = (((2 * radius + 1) * (2 * radius + 1)) / 2).max(5) as f64;
+    let stride = w + 1;
     for v in 0..h {
+        let (v0, v1) = (v.saturating_sub(radius), (v + radius + 1).min(h));
         for u in 0..w {
             let c = v * w + u;
-            if !level.has(c, HAS_POINT) {
+            if level.flags[c] & HAS_POINT == 0 {
                 continue;
             }
             let (u0, u1) = (u.saturating_sub(radius), (u + radius + 1).min(w));
-            let (v0, v1) = (v.saturating_sub(radius), (v + radius + 1).min(h));
-            let (a, b, cc, d) = (at(u0, v0), at(u1, v0), at(u0, v1), at(u1, v1));
+            let (a, b) = (&table[v0 * stride + u0], &table[v0 * stride + u1]);
+            let (cc, d) = (&table[v1 * stride + u0], &table[v1 * stride + u1]);
             let sum: [f64; 10] = std::array::from_fn(|k| d[k] - b[k] - cc[k] + a[k]);
-            let n = sum[0];
-            if n < min_points {
+            if sum[0] < min_points {
                 continue;
             }
-            let point = level.point(c);
-            let sigma = f64::from(level.sigma_m[c]);
-            let Some(normal) = fit_plane_normal(&sum, &point, &cop, sigma) else {
+            let surfel = level.surfels[c];
+            let point = Vector3::new(
+                f64::from(surfel.point[0]) - origin[0],
+                f64::from(surfel.point[1]) - origin[1],
+                f64::from(surfel.point[2]) - origin[2],
+            );
+            let Some(normal) = fit_plane_normal(&sum, &point, &cop, f64::from(surfel.sigma_m))
+            else {
                 continue;
             };
-            level.normals[c] = [normal.x as f32, normal.y as f32, normal.z as f32];
+            level.surfels[c].normal = [normal.x as f32, normal.y as f32, normal.z as f32];
             level.flags[c] |= HAS_NORMAL;
-            // The gradient needs both grid-axis tangents with intensities.
+        }
+    }
+}
+
+/// Intensity gradients: the vector `d` in the tangent plane with `d·t_u = ΔI_u` and
+/// `d·t_v = ΔI_v` over the grid neighbours (Park, Zhou & Koltun 2017, Eq. 11-12
+/// solved on the grid). Only where a pixel has a normal and both grid-axis tangents
+/// have intensities.
+fn compute_gradients(level: &mut Level, pitch_rad: f64) {
+    let (w, h) = (level.width, level.height);
+    let mut gradient = vec![[0.0f32; 3]; w * h];
+    for v in 0..h {
+        for u in 0..w {
+            let c = v * w + u;
+            if !level.has(c, HAS_NORMAL) {
+                continue;
+            }
+            let normal = level.normal(c);
             let left = (u > 0).then(|| c - 1);
             let right = (u + 1 < w).then_some(c + 1);
             let up = (v > 0).then(|| c - w);
@@ -417,18 +488,24 @@ fn compute_normals_and_gradients(level: &mut Level, pitch_rad: f64, cop: [f64; 3
                 tangent(level, c, up, down, pitch_rad),
             ) && let Some(g) = tangent_gradient(&normal, &tu, &tv, du, dv)
             {
-                level.gradient[c] = [g.x as f32, g.y as f32, g.z as f32];
+                gradient[c] = [g.x as f32, g.y as f32, g.z as f32];
             }
         }
     }
+    level.gradient = gradient;
 }
 
-/// Steepest plane the fit accepts: |slope| of depth across the ray (tan 85°).
+/// Steepest plane the fit accepts: slope of depth across the ray, tan 85°.
 const MAX_FIT_SLOPE: f64 = 11.4;
 
-/// The normal of the plane fitted to window moments `sum`, with `h` the depth along
-/// the ray from `point` to `cop` and `(s, t)` the directions across it: solves
-/// `h = a s + b t + c` in least squares. `None` for too steep a plane, a singular
+/// The normal of the plane fitted to window moments `sum` as depth along the ray
+/// axis `a` (from `point` to `cop`): with `C` the window covariance, the plane
+/// `n·(x - mean) = 0` with `n·a = 1` that minimises the depth residuals
+/// `Σ (n·(x - mean))² = nᵀ C n` is `n = C⁻¹a / (aᵀC⁻¹a)` (a Lagrange multiplier).
+/// Using the adjugate (`adj C = det C · C⁻¹`) keeps it defined for exactly planar
+/// windows: `y = adj(C) a`, whose `a·y` is the determinant of the covariance across
+/// the ray (zero when the points are collinear), and whose residual variance is
+/// `det C / a·y` (the Schur complement). `None` for too steep a plane, a singular
 /// fit, or points off the plane by more than the noise allows.
 fn fit_plane_normal(
     sum: &[f64; 10],
@@ -437,51 +514,57 @@ fn fit_plane_normal(
     sigma_m: f64,
 ) -> Option<Vector3<f64>> {
     let n = sum[0];
-    let mean = Vector3::new(sum[1], sum[2], sum[3]) / n;
-    let second = Matrix3::new(
-        sum[4], sum[5], sum[6], sum[5], sum[7], sum[8], sum[6], sum[8], sum[9],
-    ) / n;
-    let cov = second - mean * mean.transpose();
+    if !(n > 0.0) {
+        return None;
+    }
+    let inv = 1.0 / n;
+    let (mx, my, mz) = (sum[1] * inv, sum[2] * inv, sum[3] * inv);
+    let cxx = sum[4] * inv - mx * mx;
+    let cxy = sum[5] * inv - mx * my;
+    let cxz = sum[6] * inv - mx * mz;
+    let cyy = sum[7] * inv - my * my;
+    let cyz = sum[8] * inv - my * mz;
+    let czz = sum[9] * inv - mz * mz;
     let to_cop = cop - point;
     let len = to_cop.norm();
     if !(len > 0.0) || !len.is_finite() {
         return None;
     }
-    let axis = to_cop / len;
-    // Any unit vector not parallel to the axis makes an orthonormal basis.
-    let helper = if axis.x.abs() < 0.9 {
-        Vector3::x()
-    } else {
-        Vector3::y()
-    };
-    let s = axis.cross(&helper).normalize();
-    let t = axis.cross(&s);
-    let (css, cst, ctt) = (s.dot(&(cov * s)), s.dot(&(cov * t)), t.dot(&(cov * t)));
-    let (csh, cth, chh) = (
-        s.dot(&(cov * axis)),
-        t.dot(&(cov * axis)),
-        axis.dot(&(cov * axis)),
+    let a = to_cop / len;
+    // The adjugate of the symmetric covariance.
+    let axx = cyy * czz - cyz * cyz;
+    let axy = cxz * cyz - cxy * czz;
+    let axz = cxy * cyz - cxz * cyy;
+    let ayy = cxx * czz - cxz * cxz;
+    let ayz = cxy * cxz - cxx * cyz;
+    let azz = cxx * cyy - cxy * cxy;
+    let y = Vector3::new(
+        axx * a.x + axy * a.y + axz * a.z,
+        axy * a.x + ayy * a.y + ayz * a.z,
+        axz * a.x + ayz * a.y + azz * a.z,
     );
-    let det = css * ctt - cst * cst;
-    let trace = css + ctt;
-    if !(det > 1.0e-9 * trace * trace) || !(trace > 0.0) {
+    let det_across = a.dot(&y);
+    let c_aa = a.x * (cxx * a.x + cxy * a.y + cxz * a.z)
+        + a.y * (cxy * a.x + cyy * a.y + cyz * a.z)
+        + a.z * (cxz * a.x + cyz * a.y + czz * a.z);
+    let trace_across = cxx + cyy + czz - c_aa;
+    if !(trace_across > 0.0) || !(det_across > 1.0e-9 * trace_across * trace_across) {
         return None;
     }
-    let a = (ctt * csh - cst * cth) / det;
-    let b = (css * cth - cst * csh) / det;
-    if !(a.abs() < MAX_FIT_SLOPE && b.abs() < MAX_FIT_SLOPE) {
+    // n with n·a = 1: its length² is 1 + slope².
+    let scaled = y / det_across;
+    let len2 = scaled.norm_squared();
+    if !(len2 < 1.0 + MAX_FIT_SLOPE * MAX_FIT_SLOPE) {
         return None;
     }
-    // Residual variance of the depth about the fitted plane.
-    let residual = (chh - a * csh - b * cth).max(0.0);
-    let allowed = NOISE_ALLOWANCE_SIGMAS * sigma_m * (1.0 + a * a + b * b).sqrt();
-    if residual > allowed * allowed {
+    let det_c = cxx * axx + cxy * axy + cxz * axz;
+    let residual = (det_c / det_across).max(0.0);
+    let allowed = NOISE_ALLOWANCE_SIGMAS * sigma_m;
+    if residual > allowed * allowed * len2 {
         return None;
     }
-    let normal = axis - s * a - t * b;
-    let len = normal.norm();
-    // len >= 1: the axis component is 1.
-    let normal = normal / len;
+    // len2 >= 1: the axis component is 1.
+    let normal = scaled / len2.sqrt();
     normal.iter().all(|c| c.is_finite()).then_some(normal)
 }
 

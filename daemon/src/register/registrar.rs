@@ -14,7 +14,7 @@ use super::align::{AlignTarget, align};
 use super::config::RegistrationConfig;
 use super::graph::{Edge, PoseGraph};
 use super::motion::MotionModel;
-use super::pyramid::ScanPyramid;
+use super::pyramid::{PyramidOptions, ScanPyramid};
 use super::result::{Alignment, FailureReason, Fitness, RegistrationResult, RegistrationStatus};
 
 /// Fewest correspondences with one keyframe for the pair to become a graph edge.
@@ -22,11 +22,13 @@ const MIN_EDGE_CORRESPONDENCES: usize = 12;
 
 /// A registered scan.
 struct Node {
-    scan: Arc<TexelScan>,
     lidar: Arc<PinholeCamera>,
     timestamp_ns: u64,
     /// Its position in the keyframe sequence, if it is a keyframe.
     keyframe: Option<usize>,
+    /// A keyframe's pyramid, built once when the scan arrived and kept for loop
+    /// closure (never rebuilt per registration).
+    pyramid: Option<Arc<ScanPyramid>>,
 }
 
 /// A keyframe of the window, with its pyramid.
@@ -152,10 +154,13 @@ impl Registrar {
         let lidar = self.shared_camera(lidar);
         let timestamp_ns = scan.timestamp_ns;
         let seq = scan.seq;
-        let pyramid = Arc::new(ScanPyramid::build(
+        let pyramid = Arc::new(ScanPyramid::build_with(
             scan,
             &lidar,
-            self.config.align.pyramid_levels,
+            PyramidOptions {
+                levels: self.config.align.pyramid_levels,
+                gradients: self.config.align.photometric_weight > 0.0,
+            },
         ));
         if self.nodes.is_empty() {
             return self.anchor_first(pyramid, lidar);
@@ -192,10 +197,10 @@ impl Registrar {
         let scan = Arc::clone(&pyramid.scan);
         let id = self.graph.add_node(self.anchor);
         self.nodes.push(Node {
-            scan: Arc::clone(&scan),
             lidar,
             timestamp_ns: scan.timestamp_ns,
             keyframe: Some(0),
+            pyramid: Some(Arc::clone(&pyramid)),
         });
         self.keyframes.push(id);
         self.window.push_back(WindowEntry { node: id, pyramid });
@@ -270,10 +275,10 @@ impl Registrar {
             }
         }
         self.nodes.push(Node {
-            scan: Arc::clone(&scan),
             lidar,
             timestamp_ns: scan.timestamp_ns,
             keyframe: None,
+            pyramid: None,
         });
         self.events.push(ModelEvent::ScanAdded {
             id: id as ScanId,
@@ -323,6 +328,7 @@ impl Registrar {
         self.keyframes.push(node);
         if let Some(n) = self.nodes.get_mut(node) {
             n.keyframe = Some(ordinal);
+            n.pyramid = Some(Arc::clone(&pyramid));
         }
         self.window.push_back(WindowEntry { node, pyramid });
         while self.window.len() > self.config.keyframes.window as usize {
@@ -362,12 +368,9 @@ impl Registrar {
         candidates.truncate(g.loop_max_candidates as usize);
         let mut accepted = 0;
         for (_, old) in candidates {
-            let old_node = &self.nodes[old];
-            let old_pyramid = ScanPyramid::build(
-                Arc::clone(&old_node.scan),
-                &old_node.lidar,
-                self.config.align.pyramid_levels,
-            );
+            let Some(old_pyramid) = self.nodes[old].pyramid.clone() else {
+                continue;
+            };
             let world_from_old = self.graph.poses()[old];
             let targets = [AlignTarget {
                 pyramid: &old_pyramid,
