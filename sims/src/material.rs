@@ -37,7 +37,7 @@ pub enum Texture {
         palette: Vec<Rgb>,
         scale_m: f64,
         octaves: u32,
-        seed: u64,
+        table: Arc<NoiseTable>,
     },
 }
 
@@ -85,10 +85,19 @@ fn lerp(a: Rgb, b: Rgb, t: f32) -> Rgb {
     ]
 }
 
+/// `x.floor()` without a libm call on targets without SSE4.1 (finite inputs within
+/// ±2⁶³; others saturate, which only shifts a texture pattern).
+#[inline]
+fn fast_floor(x: f64) -> f64 {
+    let i = x as i64;
+    let f = i as f64;
+    if f > x { f - 1.0 } else { f }
+}
+
 /// Integral of the unit square wave (0 on [0,1), 1 on [1,2), period 2) from 0 to x.
 #[inline]
 fn square_wave_integral(x: f64) -> f64 {
-    let half = (x * 0.5).floor();
+    let half = fast_floor(x * 0.5);
     half + (x - 2.0 * half - 1.0).max(0.0)
 }
 
@@ -96,7 +105,7 @@ fn square_wave_integral(x: f64) -> f64 {
 #[inline]
 fn filtered_square_wave(x: f64, w: f64) -> f64 {
     if w < 1.0e-4 {
-        let half = (x * 0.5).floor();
+        let half = fast_floor(x * 0.5);
         return if x - 2.0 * half >= 1.0 { 1.0 } else { 0.0 };
     }
     (square_wave_integral(x + 0.5 * w) - square_wave_integral(x - 0.5 * w)) / w
@@ -143,14 +152,13 @@ impl Texture {
                 palette,
                 scale_m,
                 octaves,
-                seed,
+                table,
             } => {
-                let v = fbm(
+                let v = table.fbm(
                     uv[0] / scale_m,
                     uv[1] / scale_m,
                     footprint_m / scale_m,
                     *octaves,
-                    *seed,
                 );
                 ramp(palette, v as f32)
             }
@@ -171,54 +179,82 @@ pub fn ramp(palette: &[Rgb], t: f32) -> Rgb {
     }
 }
 
-#[inline]
-fn lattice(ix: i64, iy: i64, seed: u64) -> f64 {
-    let h =
-        mix64(seed ^ mix64((ix as u64).wrapping_mul(0x9E37_79B9) ^ (iy as u64).rotate_left(32)));
-    (h >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
+/// Side of the lattice of random values behind value noise; the noise repeats every
+/// `NOISE_PERIOD` lattice cells (per octave, with octaves offset from each other, so
+/// repeats are not visible).
+const NOISE_PERIOD: usize = 256;
+
+/// Random lattice values of one seed, looked up instead of hashed per sample.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NoiseTable {
+    values: Vec<f32>,
 }
 
-/// Smooth value noise in [0, 1].
-fn value_noise(x: f64, y: f64, seed: u64) -> f64 {
-    let (fx, fy) = (x.floor(), y.floor());
-    let (ix, iy) = (fx as i64, fy as i64);
-    let (tx, ty) = (x - fx, y - fy);
-    let sx = tx * tx * (3.0 - 2.0 * tx);
-    let sy = ty * ty * (3.0 - 2.0 * ty);
-    let a = lattice(ix, iy, seed);
-    let b = lattice(ix + 1, iy, seed);
-    let c = lattice(ix, iy + 1, seed);
-    let d = lattice(ix + 1, iy + 1, seed);
-    let top = a + (b - a) * sx;
-    let bottom = c + (d - c) * sx;
-    top + (bottom - top) * sy
-}
+impl NoiseTable {
+    pub fn new(seed: u64) -> Self {
+        let values = (0..NOISE_PERIOD * NOISE_PERIOD)
+            .map(|i| (mix64(seed ^ mix64(i as u64 + 1)) >> 40) as f32 / (1u64 << 24) as f32)
+            .collect();
+        Self { values }
+    }
 
-/// Fractional Brownian motion of value noise in [0, 1]; octaves whose period is below
-/// about two footprints fade out (band limiting) towards their mean.
-pub fn fbm(x: f64, y: f64, footprint: f64, octaves: u32, seed: u64) -> f64 {
-    let mut sum = 0.0;
-    let mut norm = 0.0;
-    let mut freq = 1.0;
-    let mut amp = 1.0;
-    for o in 0..octaves.min(16) {
-        // Fraction of this octave that survives the footprint's low-pass.
-        let keep = (1.0 - (freq * footprint - 0.25) * 2.0).clamp(0.0, 1.0);
-        let n = if keep > 0.0 {
-            value_noise(
-                x * freq + f64::from(o) * 17.3,
-                y * freq - f64::from(o) * 9.1,
-                seed.wrapping_add(u64::from(o)),
-            )
+    #[inline]
+    fn lattice(&self, ix: i64, iy: i64) -> f32 {
+        let m = NOISE_PERIOD as i64 - 1;
+        self.values[((iy & m) as usize) * NOISE_PERIOD + (ix & m) as usize]
+    }
+
+    /// Smooth value noise in [0, 1].
+    #[inline]
+    fn value_noise(&self, x: f64, y: f64) -> f32 {
+        let (fx, fy) = (fast_floor(x), fast_floor(y));
+        let (ix, iy) = (fx as i64, fy as i64);
+        let (tx, ty) = ((x - fx) as f32, (y - fy) as f32);
+        let sx = tx * tx * (3.0 - 2.0 * tx);
+        let sy = ty * ty * (3.0 - 2.0 * ty);
+        let a = self.lattice(ix, iy);
+        let b = self.lattice(ix + 1, iy);
+        let c = self.lattice(ix, iy + 1);
+        let d = self.lattice(ix + 1, iy + 1);
+        let top = a + (b - a) * sx;
+        let bottom = c + (d - c) * sx;
+        top + (bottom - top) * sy
+    }
+
+    /// Fractional Brownian motion of value noise in [0, 1]; octaves whose period is
+    /// below about two footprints fade out (band limiting) towards their mean.
+    pub fn fbm(&self, x: f64, y: f64, footprint: f64, octaves: u32) -> f64 {
+        let mut sum = 0.0f32;
+        let mut norm = 0.0f32;
+        let mut freq = 1.0f64;
+        let mut amp = 1.0f32;
+        for o in 0..octaves.min(16) {
+            norm += amp;
+            // Fraction of this octave that survives the footprint's low-pass.
+            let keep = (1.0 - (freq * footprint - 0.25) * 2.0).clamp(0.0, 1.0) as f32;
+            if keep <= 0.0 {
+                // Every finer octave is gone too: they add their mean.
+                sum += 0.5 * amp;
+                let mut a = amp * 0.5;
+                for _ in o + 1..octaves.min(16) {
+                    sum += 0.5 * a;
+                    norm += a;
+                    a *= 0.5;
+                }
+                break;
+            }
+            let shift = f64::from(o) * 37.7;
+            let n = self.value_noise(x * freq + shift, y * freq - shift * 0.61);
+            sum += amp * (0.5 + (n - 0.5) * keep);
+            freq *= 2.0;
+            amp *= 0.5;
+        }
+        if norm > 0.0 {
+            f64::from(sum / norm)
         } else {
             0.5
-        };
-        sum += amp * (0.5 + (n - 0.5) * keep);
-        norm += amp;
-        freq *= 2.0;
-        amp *= 0.5;
+        }
     }
-    if norm > 0.0 { sum / norm } else { 0.5 }
 }
 
 /// An image in linear RGB with its mip pyramid, repeating at its edges.
@@ -250,7 +286,7 @@ impl Level {
         if !(x.is_finite() && y.is_finite()) {
             return self.texels[0];
         }
-        let (fx, fy) = (x.floor(), y.floor());
+        let (fx, fy) = (fast_floor(x), fast_floor(y));
         let (ax, ay) = ((x - fx) as f32, (y - fy) as f32);
         let (ix, iy) = (fx as i64, fy as i64);
         let top = lerp(self.fetch(ix, iy), self.fetch(ix + 1, iy), ax);

@@ -16,6 +16,9 @@ const MIN_FOOTPRINT_COS: f64 = 0.05;
 #[derive(Debug, Clone)]
 pub struct World {
     pub bvh: Bvh,
+    /// The primitives of objects that cast shadows (`casts_shadows`, default true):
+    /// what shadow rays are traced against.
+    pub shadow_bvh: Bvh,
     pub materials: Vec<Material>,
     pub lighting: Lighting,
     pub background: Rgb,
@@ -79,7 +82,19 @@ impl World {
     /// scales the materials' glossy lobe (`None` = Lambertian only).
     #[inline]
     pub fn radiance(&self, ray: &Ray, pixel_rad: f64, specular: Option<f32>) -> Rgb {
-        let Some(h) = self.trace(ray) else {
+        self.shade_hit(ray, self.trace(ray), pixel_rad, specular)
+    }
+
+    /// Radiance towards the eye of the hit `hit` of `ray` (background for none).
+    #[inline]
+    pub fn shade_hit(
+        &self,
+        ray: &Ray,
+        hit: Option<Hit>,
+        pixel_rad: f64,
+        specular: Option<f32>,
+    ) -> Rgb {
+        let Some(h) = hit else {
             return self.background;
         };
         let Some(material) = self.materials.get(h.material as usize) else {
@@ -89,7 +104,7 @@ impl World {
         let normal = if cos > 0.0 { -h.normal } else { h.normal };
         let albedo = material.albedo(h.uv_m, footprint_m(h.distance_m, pixel_rad, cos.abs()));
         self.lighting.shade(
-            &self.bvh,
+            &self.shadow_bvh,
             &ShadePoint {
                 point: ray.at(h.distance_m),
                 normal,

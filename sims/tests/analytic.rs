@@ -162,3 +162,21 @@ fn fused_clean_frames_lie_on_the_true_surfaces_and_project_into_the_eo_image() {
     }
     assert!(checked > 500, "{checked}");
 }
+
+#[test]
+fn tile_culled_rendering_equals_tracing_every_ray_through_the_bvh() {
+    let lab = common::load("lab");
+    let sim = small(lab.clone(), 0, Some(&["lens_distortion"]));
+    let mut camera = sim.sensor_model().eo.clone();
+    camera = sims::rescale_camera(&camera, 160, 120);
+    let tiled = sims::render::CameraRays::new(&camera);
+    assert!(tiled.tiles.iter().filter(|t| t.planes.is_some()).count() > tiled.tiles.len() * 9 / 10);
+    let mut brute = tiled.clone();
+    brute.tiles.clear();
+    for i in [0, 7, 20, 31] {
+        let pose = sim.true_pose(i);
+        let a = lab.render_view_with(&pose, &tiled);
+        let b = lab.render_view_with(&pose, &brute);
+        assert_eq!(a.rgb, b.rgb, "frame {i}");
+    }
+}

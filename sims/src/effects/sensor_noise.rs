@@ -4,7 +4,8 @@
 //! photo-electrons; the measured charge is `N + √N · n₁ + read_noise_e · n₂` with
 //! `n₁, n₂ ~ N(0, 1)` per pixel, channel and frame (the Gaussian limit of Poisson shot
 //! noise, accurate above a few electrons), clipped to `[0, full_well_e]` (saturation),
-//! then divided by `full_well_e` again.
+//! then divided by `full_well_e` again. The two independent Gaussian terms are drawn
+//! as one, `√(N + read_noise_e²) · n`, which has the same distribution.
 
 use serde::{Deserialize, Serialize};
 

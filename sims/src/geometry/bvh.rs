@@ -76,51 +76,134 @@ impl Bvh {
 
     /// The closest hit with distance below `t_max`.
     pub fn closest_hit(&self, ray: &Ray, t_max: f64) -> Option<Hit> {
-        let mut best: Option<Hit> = None;
+        let mut best: Option<&Primitive> = None;
         let mut limit = t_max;
         for p in &self.unbounded {
-            if let Some(h) = p.intersect(ray, limit) {
-                limit = h.distance_m;
-                best = Some(h);
+            if let Some(t) = p.distance(ray, limit) {
+                limit = t;
+                best = Some(p);
+            }
+        }
+        if !self.nodes.is_empty() {
+            let inv = inv_dir(ray);
+            let negative = [inv[0] < 0.0, inv[1] < 0.0, inv[2] < 0.0];
+            let mut stack = [0u32; STACK];
+            let mut top = 1usize;
+            while top > 0 {
+                top -= 1;
+                let node = &self.nodes[stack[top] as usize];
+                if slab(&node.bounds, ray, &inv, limit).is_none() {
+                    continue;
+                }
+                if node.count > 0 {
+                    let first = node.first_or_right as usize;
+                    for p in &self.primitives[first..first + node.count as usize] {
+                        if let Some(t) = p.distance(ray, limit) {
+                            limit = t;
+                            best = Some(p);
+                        }
+                    }
+                } else {
+                    let index = stack[top] + 1;
+                    let (near, far) = if negative[node.axis as usize] {
+                        (node.first_or_right, index)
+                    } else {
+                        (index, node.first_or_right)
+                    };
+                    // Far first on the stack so the near child is popped first.
+                    if top + 2 <= STACK {
+                        stack[top] = far;
+                        stack[top + 1] = near;
+                        top += 2;
+                    }
+                }
+            }
+        }
+        // Details (normal, uv) only for the winner; its own nearest hit is the one
+        // found, since the traversal's limit only ever excluded farther ones.
+        best.and_then(|p| p.intersect(ray, f64::INFINITY))
+    }
+
+    /// Indices (for [`Self::closest_among`]) of every primitive that may meet a ray
+    /// from `origin` inside the convex cone `{x : n·(x - origin) >= 0 for every n in
+    /// planes}`: bounded ones whose boxes are not wholly outside one plane, and all
+    /// unbounded ones. Conservative: it never leaves out a primitive a ray in the cone
+    /// can hit.
+    pub fn cone_candidates(
+        &self,
+        origin: &nalgebra::Point3<f64>,
+        planes: &[nalgebra::Vector3<f64>],
+        edges: &[nalgebra::Vector3<f64>; 4],
+        out: &mut Vec<u32>,
+    ) {
+        out.clear();
+        let bounded = self.primitives.len() as u32;
+        for (i, p) in self.unbounded.iter().enumerate() {
+            if p.may_meet_cone(origin, edges) {
+                out.push(bounded + i as u32);
             }
         }
         if self.nodes.is_empty() {
-            return best;
+            return;
         }
-        let inv = inv_dir(ray);
-        let negative = [inv[0] < 0.0, inv[1] < 0.0, inv[2] < 0.0];
+        let outside = |b: &Aabb| {
+            planes.iter().any(|n| {
+                // The box corner farthest along n (the "p-vertex").
+                let mut d = 0.0;
+                for a in 0..3 {
+                    let c = if n[a] >= 0.0 { b.max[a] } else { b.min[a] };
+                    d += n[a] * (c - origin[a]);
+                }
+                d < 0.0
+            })
+        };
         let mut stack = [0u32; STACK];
         let mut top = 1usize;
         while top > 0 {
             top -= 1;
-            let node = &self.nodes[stack[top] as usize];
-            if slab(&node.bounds, ray, &inv, limit).is_none() {
+            let index = stack[top];
+            let node = &self.nodes[index as usize];
+            if outside(&node.bounds) {
                 continue;
             }
             if node.count > 0 {
-                let first = node.first_or_right as usize;
-                for p in &self.primitives[first..first + node.count as usize] {
-                    if let Some(h) = p.intersect(ray, limit) {
-                        limit = h.distance_m;
-                        best = Some(h);
+                let first = node.first_or_right;
+                for i in first..first + node.count {
+                    if self.primitives[i as usize].may_meet_cone(origin, edges) {
+                        out.push(i);
                     }
                 }
-            } else {
-                let index = stack[top] + 1;
-                let (near, far) = if negative[node.axis as usize] {
-                    (node.first_or_right, index)
-                } else {
-                    (index, node.first_or_right)
-                };
-                // Far first on the stack so the near child is popped first.
-                if top + 2 <= STACK {
-                    stack[top] = far;
-                    stack[top + 1] = near;
-                    top += 2;
-                }
+            } else if top + 2 <= STACK {
+                stack[top] = node.first_or_right;
+                stack[top + 1] = index + 1;
+                top += 2;
             }
         }
-        best
+    }
+
+    /// The closest hit among the primitives `candidates` (from
+    /// [`Self::cone_candidates`]).
+    #[inline]
+    pub fn closest_among(&self, ray: &Ray, candidates: &[u32]) -> Option<Hit> {
+        let bounded = self.primitives.len();
+        let mut best: Option<&Primitive> = None;
+        let mut limit = f64::INFINITY;
+        for &i in candidates {
+            let i = i as usize;
+            let p = if i < bounded {
+                &self.primitives[i]
+            } else {
+                match self.unbounded.get(i - bounded) {
+                    Some(p) => p,
+                    None => continue,
+                }
+            };
+            if let Some(t) = p.distance(ray, limit) {
+                limit = t;
+                best = Some(p);
+            }
+        }
+        best.and_then(|p| p.intersect(ray, f64::INFINITY))
     }
 
     /// True when anything lies on the ray closer than `t_max` (shadow rays).
@@ -128,7 +211,7 @@ impl Bvh {
         if self
             .unbounded
             .iter()
-            .any(|p| p.intersect(ray, t_max).is_some())
+            .any(|p| p.distance(ray, t_max).is_some())
         {
             return true;
         }
@@ -149,7 +232,7 @@ impl Bvh {
                 let first = node.first_or_right as usize;
                 if self.primitives[first..first + node.count as usize]
                     .iter()
-                    .any(|p| p.intersect(ray, t_max).is_some())
+                    .any(|p| p.distance(ray, t_max).is_some())
                 {
                     return true;
                 }

@@ -209,10 +209,98 @@ impl Primitive {
         Some(b)
     }
 
+    /// False only when no ray from `origin` inside the convex cone spanned by the four
+    /// `edges` (in order around it) can meet this primitive. Exact culling for planar
+    /// shapes (the cone's cross-section in the plane against the shape), no culling
+    /// for the others.
+    pub fn may_meet_cone(&self, origin: &Point3<f64>, edges: &[Vector3<f64>; 4]) -> bool {
+        let (point, normal) = match &self.shape {
+            Shape::Parallelogram { corner, normal, .. } => (corner, normal),
+            Shape::InfinitePlane {
+                origin: o, normal, ..
+            } => (o, normal),
+            _ => return true,
+        };
+        let height = normal.dot(&(point - origin));
+        // Distance along each edge to the plane; the cone meets the plane in front
+        // only where some edge does (convex combinations of the edges keep the sign).
+        let mut ts = [0.0; 4];
+        let mut ahead = 0;
+        for (t, e) in ts.iter_mut().zip(edges) {
+            let denom = normal.dot(e);
+            *t = if denom != 0.0 {
+                height / denom
+            } else {
+                f64::INFINITY
+            };
+            if *t > 0.0 && t.is_finite() {
+                ahead += 1;
+            }
+        }
+        if ahead == 0 {
+            return !ts.iter().any(|t| t.is_infinite());
+        }
+        if ahead < 4 {
+            return true;
+        }
+        let Shape::Parallelogram {
+            corner,
+            dual_u,
+            dual_v,
+            ..
+        } = &self.shape
+        else {
+            return true;
+        };
+        // The cone's cross-section: a convex quad; in the parallelogram's (a, b)
+        // coordinates the parallelogram is the unit square. Separating axes: the
+        // square's two, then the quad's four edge normals.
+        let quad: Vec<[f64; 2]> = ts
+            .iter()
+            .zip(edges)
+            .map(|(t, e)| {
+                let q = origin + e * *t - corner;
+                [q.dot(dual_u), q.dot(dual_v)]
+            })
+            .collect();
+        for axis in 0..2 {
+            let (lo, hi) = quad
+                .iter()
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), q| {
+                    (l.min(q[axis]), h.max(q[axis]))
+                });
+            if hi < 0.0 || lo > 1.0 {
+                return false;
+            }
+        }
+        let square = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]];
+        for k in 0..4 {
+            let (a, b) = (quad[k], quad[(k + 1) % 4]);
+            let n = [-(b[1] - a[1]), b[0] - a[0]];
+            let proj = |p: &[f64; 2]| n[0] * p[0] + n[1] * p[1];
+            let (ql, qh) = quad
+                .iter()
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), q| {
+                    (l.min(proj(q)), h.max(proj(q)))
+                });
+            let (sl, sh) = square
+                .iter()
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), q| {
+                    (l.min(proj(q)), h.max(proj(q)))
+                });
+            // A small tolerance keeps grazing contacts (never cull on rounding).
+            let tol = 1.0e-9 * (1.0 + ql.abs().max(qh.abs()));
+            if sh < ql - tol || sl > qh + tol {
+                return false;
+            }
+        }
+        true
+    }
+
     /// The closest intersection with `t` in (`MIN_HIT_DISTANCE`, `t_max`).
     #[inline]
     pub fn intersect(&self, ray: &Ray, t_max: f64) -> Option<Hit> {
-        let local = self.intersect_local(ray, t_max)?;
+        let local = self.intersect_local::<true>(ray, t_max)?;
         Some(Hit {
             distance_m: local.t,
             normal: local.normal,
@@ -222,8 +310,15 @@ impl Primitive {
         })
     }
 
+    /// Only the distance of [`Self::intersect`]: the traversal's inner loop, which
+    /// skips the normal and texture coordinates of hits that may not be the closest.
     #[inline]
-    fn intersect_local(&self, ray: &Ray, t_max: f64) -> Option<LocalHit> {
+    pub fn distance(&self, ray: &Ray, t_max: f64) -> Option<f64> {
+        self.intersect_local::<false>(ray, t_max).map(|l| l.t)
+    }
+
+    #[inline]
+    fn intersect_local<const DETAILS: bool>(&self, ray: &Ray, t_max: f64) -> Option<LocalHit> {
         match &self.shape {
             Shape::Parallelogram {
                 corner,
@@ -250,7 +345,11 @@ impl Primitive {
                 Some(LocalHit {
                     t,
                     normal: *normal,
-                    uv: [(a - 0.5) * edge_u.norm(), (b - 0.5) * edge_v.norm()],
+                    uv: if DETAILS {
+                        [(a - 0.5) * edge_u.norm(), (b - 0.5) * edge_v.norm()]
+                    } else {
+                        [0.0; 2]
+                    },
                 })
             }
             Shape::InfinitePlane {
@@ -312,6 +411,13 @@ impl Primitive {
                 } else {
                     return None;
                 };
+                if !DETAILS {
+                    return Some(LocalHit {
+                        t,
+                        normal: Vector3::zeros(),
+                        uv: [0.0; 2],
+                    });
+                }
                 // radius > 0 by construction.
                 let n = (ray.at(t) - center) / *radius;
                 let (x, y, z) = (n.dot(axis_x), n.dot(axis_y), n.dot(axis_z));
@@ -330,7 +436,7 @@ impl Primitive {
                 axis_x,
                 axis_y,
                 axis_z,
-            } => intersect_cylinder(
+            } => intersect_cylinder::<DETAILS>(
                 ray,
                 t_max,
                 center,
@@ -366,6 +472,13 @@ impl Primitive {
                 if !in_range(t, t_max) {
                     return None;
                 }
+                if !DETAILS {
+                    return Some(LocalHit {
+                        t,
+                        normal: Vector3::zeros(),
+                        uv: [0.0; 2],
+                    });
+                }
                 let b0 = 1.0 - b1 - b2;
                 Some(LocalHit {
                     t,
@@ -380,7 +493,7 @@ impl Primitive {
     }
 }
 
-fn intersect_cylinder(
+fn intersect_cylinder<const DETAILS: bool>(
     ray: &Ray,
     t_max: f64,
     center: &Point3<f64>,
@@ -412,11 +525,18 @@ fn intersect_cylinder(
                     let z = oz + t * dz;
                     if z.abs() <= half_height {
                         let (x, y) = (ox + t * dx, oy + t * dy);
-                        let normal = (ax * x + ay * y) / radius;
-                        best = Some(LocalHit {
-                            t,
-                            normal,
-                            uv: [radius * y.atan2(x), z],
+                        best = Some(if DETAILS {
+                            LocalHit {
+                                t,
+                                normal: (ax * x + ay * y) / radius,
+                                uv: [radius * y.atan2(x), z],
+                            }
+                        } else {
+                            LocalHit {
+                                t,
+                                normal: Vector3::zeros(),
+                                uv: [0.0; 2],
+                            }
                         });
                         limit = t;
                         break;

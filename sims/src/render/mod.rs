@@ -39,6 +39,78 @@ pub struct CameraRays {
     pub per_pixel: usize,
     /// Angular width of one pixel at the image centre, radians (texture footprint).
     pub pixel_rad: f64,
+    /// Square tiles of [`TILE`] pixels (one ray per pixel only), row of tiles by row.
+    pub tiles: Vec<Tile>,
+}
+
+/// Four vectors around a cone: its plane normals or its edge directions.
+type Quad = [Vector3<f64>; 4];
+
+/// Side of a tile of pixels whose rays share one bounding cone.
+pub const TILE: u32 = 16;
+
+/// A tile of pixels and the cone bounding all of its rays.
+#[derive(Debug, Clone)]
+pub struct Tile {
+    pub x0: u32,
+    pub y0: u32,
+    pub x1: u32,
+    pub y1: u32,
+    /// Inward normals (camera frame) of four planes through the centre of projection
+    /// that contain every ray of the tile; `None` when no such cone was found (the
+    /// tile's pixels are then traced through the whole BVH).
+    pub planes: Option<[Vector3<f64>; 4]>,
+    /// Directions (camera frame) of the cone's four edges, in order around it.
+    pub edges: [Vector3<f64>; 4],
+}
+
+/// Bounding cone of the rays of pixels `[x0, x1) x [y0, y1)`: the pyramid of the rays
+/// through the tile's corners pushed out by one pixel, checked against every ray.
+fn tile_cone(
+    camera: &PinholeCamera,
+    rays: &[[f32; 3]],
+    x0: u32,
+    y0: u32,
+    x1: u32,
+    y1: u32,
+) -> Option<(Quad, Quad)> {
+    let max_r2 = camera.max_radius_squared();
+    let corner = |u: f64, v: f64| -> Option<Vector3<f64>> {
+        let n = camera
+            .unproject_with_domain(Vector2::new(u, v), max_r2)
+            .ok()?;
+        Some(Vector3::new(n.x, n.y, 1.0))
+    };
+    let (l, t) = (f64::from(x0) - 1.5, f64::from(y0) - 1.5);
+    let (r, b) = (f64::from(x1) + 0.5, f64::from(y1) + 0.5);
+    let c = [corner(l, t)?, corner(r, t)?, corner(r, b)?, corner(l, b)?];
+    let centre = c.iter().fold(Vector3::zeros(), |a, v| a + v);
+    let mut planes = [Vector3::zeros(); 4];
+    for k in 0..4 {
+        let mut n = c[k].cross(&c[(k + 1) % 4]);
+        if n.dot(&centre) < 0.0 {
+            n = -n;
+        }
+        let len = n.norm();
+        if !(len > 0.0 && len.is_finite()) {
+            return None;
+        }
+        planes[k] = n / len;
+    }
+    let w = camera.width as usize;
+    for y in y0..y1 {
+        for x in x0..x1 {
+            let r = rays[y as usize * w + x as usize];
+            if r == [0.0; 3] {
+                return None;
+            }
+            let r = Vector3::new(f64::from(r[0]), f64::from(r[1]), f64::from(r[2]));
+            if planes.iter().any(|n| n.dot(&r) < 0.0) {
+                return None;
+            }
+        }
+    }
+    Some((planes, c))
 }
 
 impl CameraRays {
@@ -73,11 +145,36 @@ impl CameraRays {
             })
             .collect();
         let pixel_rad = 1.0 / camera.fx.max(camera.fy);
+        let tiles = if offsets.len() == 1 {
+            let (tw, th) = (camera.width.div_ceil(TILE), camera.height.div_ceil(TILE));
+            (0..tw * th)
+                .into_par_iter()
+                .map(|i| {
+                    let (x0, y0) = ((i % tw) * TILE, (i / tw) * TILE);
+                    let (x1, y1) = (
+                        (x0 + TILE).min(camera.width),
+                        (y0 + TILE).min(camera.height),
+                    );
+                    let cone = tile_cone(camera, &rays, x0, y0, x1, y1);
+                    Tile {
+                        x0,
+                        y0,
+                        x1,
+                        y1,
+                        planes: cone.map(|c| c.0),
+                        edges: cone.map_or([Vector3::zeros(); 4], |c| c.1),
+                    }
+                })
+                .collect()
+        } else {
+            Vec::new()
+        };
         Self {
             camera: camera.clone(),
             rays,
             per_pixel: offsets.len(),
             pixel_rad,
+            tiles,
         }
     }
 
@@ -192,14 +289,55 @@ impl RenderBackend for BuiltinBackend {
     ) -> Vec<Rgb> {
         let mut out = vec![[0.0f32; 3]; rays.rays.len()];
         let pixel_rad = rays.pixel_rad;
-        out.par_chunks_mut(CHUNK)
-            .zip(rays.rays.par_chunks(CHUNK))
-            .for_each(|(out, rays)| {
-                for (o, r) in out.iter_mut().zip(rays) {
-                    *o = match world_ray(world_from_camera, r) {
-                        Some(ray) => self.world.radiance(&ray, pixel_rad, specular),
-                        None => [0.0; 3],
-                    };
+        let width = rays.camera.width as usize;
+        if rays.per_pixel != 1 || rays.tiles.is_empty() || width == 0 {
+            out.par_chunks_mut(CHUNK)
+                .zip(rays.rays.par_chunks(CHUNK))
+                .for_each(|(out, rays)| {
+                    for (o, r) in out.iter_mut().zip(rays) {
+                        *o = match world_ray(world_from_camera, r) {
+                            Some(ray) => self.world.radiance(&ray, pixel_rad, specular),
+                            None => [0.0; 3],
+                        };
+                    }
+                });
+            return out;
+        }
+        // Strips of one row of tiles: each tile gathers the primitives its cone of
+        // rays can meet once, then its pixels test only those.
+        let tiles_per_row = rays.camera.width.div_ceil(TILE) as usize;
+        let origin: nalgebra::Point3<f64> = world_from_camera.translation.vector.into();
+        out.par_chunks_mut(TILE as usize * width)
+            .zip(rays.tiles.par_chunks(tiles_per_row))
+            .for_each(|(strip, tiles)| {
+                let mut candidates = Vec::new();
+                for tile in tiles {
+                    let planes = tile
+                        .planes
+                        .map(|p| p.map(|n| world_from_camera.rotation * n));
+                    if let Some(planes) = &planes {
+                        let edges = tile.edges.map(|e| world_from_camera.rotation * e);
+                        self.world
+                            .bvh
+                            .cone_candidates(&origin, planes, &edges, &mut candidates);
+                    }
+                    for y in tile.y0..tile.y1 {
+                        for x in tile.x0..tile.x1 {
+                            let index = y as usize * width + x as usize;
+                            let local = (y - tile.y0) as usize * width + x as usize;
+                            let Some(ray) = world_ray(world_from_camera, &rays.rays[index]) else {
+                                continue;
+                            };
+                            let hit = if planes.is_some() {
+                                self.world.bvh.closest_among(&ray, &candidates)
+                            } else {
+                                self.world.trace(&ray)
+                            };
+                            if let Some(o) = strip.get_mut(local) {
+                                *o = self.world.shade_hit(&ray, hit, pixel_rad, specular);
+                            }
+                        }
+                    }
                 }
             });
         out

@@ -19,7 +19,7 @@ use crate::effects::{Effect, EffectSet};
 use crate::geometry::mesh::TriMesh;
 use crate::geometry::{Bvh, Primitive, Shape, parallelogram, triangle};
 use crate::light::{Light, Lighting};
-use crate::material::{Material, MipImage, Texture};
+use crate::material::{Material, MipImage, NoiseTable, Texture};
 use crate::trajectory::{Path as TrajectoryPath, Trajectory, look_at, path_length};
 use crate::world::World;
 
@@ -93,7 +93,7 @@ pub(super) fn build(text: &str, origin: &str, base: &Path) -> Result<Scene, Scen
     let sensor = load_sensor(&ctx, &file.sensor)?;
     let effects = parse_effects(&ctx, &file.effects)?;
     let (materials, material_index) = build_materials(&ctx, &file)?;
-    let (primitives, objects) = build_objects(&ctx, &file, &material_index)?;
+    let (primitives, shadow_primitives, objects) = build_objects(&ctx, &file, &material_index)?;
     let lighting = build_lights(&ctx, &file)?;
     if !check_color(&file.background, 1.0e6) {
         return Err(ctx.err(
@@ -117,6 +117,7 @@ pub(super) fn build(text: &str, origin: &str, base: &Path) -> Result<Scene, Scen
         objects,
         world: Arc::new(World {
             bvh: Bvh::new(primitives),
+            shadow_bvh: Bvh::new(shadow_primitives),
             materials,
             lighting,
             background: file.background,
@@ -252,7 +253,7 @@ fn build_material(
             palette: n.palette.clone(),
             scale_m: n.scale_m,
             octaves: n.octaves,
-            seed: n.seed,
+            table: Arc::new(NoiseTable::new(n.seed)),
         }
     } else {
         Texture::Constant([0.5; 3])
@@ -358,7 +359,7 @@ impl ObjectCtx<'_> {
     }
 }
 
-type ObjectsOut = (Vec<Primitive>, Vec<ObjectInfo>);
+type ObjectsOut = (Vec<Primitive>, Vec<Primitive>, Vec<ObjectInfo>);
 
 fn build_objects(
     ctx: &Ctx,
@@ -404,23 +405,43 @@ fn build_objects(
     order.sort_by_key(|(start, _, _)| *start);
     let oc = ObjectCtx { ctx, materials };
     let mut prims = Vec::new();
+    let mut shadow_prims = Vec::new();
     let mut infos = Vec::new();
     for (id, (_, kind, i)) in order.into_iter().enumerate() {
         let id = id as u32;
         let key = format!("objects.{kind}[{i}]");
-        let name = match kind {
-            "plane" => plane(&oc, &key, &o.plane[i], id, &mut prims)?,
-            "box" => cuboid(&oc, &key, &o.boxes[i], id, &mut prims)?,
-            "sphere" => sphere(&oc, &key, &o.sphere[i], id, &mut prims)?,
-            "cylinder" => cylinder(&oc, &key, &o.cylinder[i], id, &mut prims)?,
-            _ => mesh(&oc, &key, &o.mesh[i], id, &mut prims)?,
+        let first = prims.len();
+        let (name, casts) = match kind {
+            "plane" => (
+                plane(&oc, &key, &o.plane[i], id, &mut prims)?,
+                o.plane[i].get_ref().casts_shadows,
+            ),
+            "box" => (
+                cuboid(&oc, &key, &o.boxes[i], id, &mut prims)?,
+                o.boxes[i].get_ref().casts_shadows,
+            ),
+            "sphere" => (
+                sphere(&oc, &key, &o.sphere[i], id, &mut prims)?,
+                o.sphere[i].get_ref().casts_shadows,
+            ),
+            "cylinder" => (
+                cylinder(&oc, &key, &o.cylinder[i], id, &mut prims)?,
+                o.cylinder[i].get_ref().casts_shadows,
+            ),
+            _ => (
+                mesh(&oc, &key, &o.mesh[i], id, &mut prims)?,
+                o.mesh[i].get_ref().casts_shadows,
+            ),
         };
+        if casts {
+            shadow_prims.extend_from_slice(&prims[first..]);
+        }
         infos.push(ObjectInfo {
             kind,
             name: name.unwrap_or(key),
         });
     }
-    Ok((prims, infos))
+    Ok((prims, shadow_prims, infos))
 }
 
 fn check_pose(
@@ -839,10 +860,14 @@ fn explicit_poses(
             (Some(q), None) => texel::pose::pose_from_parts(v.position, q)
                 .map_err(|e| ctx.err(Some(p.span()), &key, e.to_string()))?,
             (None, Some(target)) => {
-                if !finite(&v.position) || !finite(&target) {
+                if !finite(&v.position) || !finite(&target) || !v.roll_deg.is_finite() {
                     return Err(ctx.err(Some(p.span()), &key, "values must be finite"));
                 }
                 look_at(Point3::from(v.position), Point3::from(target), Vector3::z())
+                    * nalgebra::UnitQuaternion::from_axis_angle(
+                        &Vector3::z_axis(),
+                        v.roll_deg.to_radians(),
+                    )
             }
             _ => {
                 return Err(ctx.err(

@@ -107,6 +107,9 @@ pub(crate) struct PoseFile {
     pub rotation_xyzw: Option<[f64; 4]>,
     #[serde(default)]
     pub look_at: Option<[f64; 3]>,
+    /// With `look_at`: rotation about the optical axis, degrees (clockwise in the image).
+    #[serde(default)]
+    pub roll_deg: f64,
 }
 
 fn default_shininess() -> f32 {
@@ -191,6 +194,10 @@ pub(crate) struct PlaneFile {
     #[serde(default)]
     pub name: Option<String>,
     pub material: Spanned<String>,
+    /// False for objects that can never shadow anything (the walls of a convex room
+    /// lit from inside): shadow rays then skip them.
+    #[serde(default = "yes")]
+    pub casts_shadows: bool,
     #[serde(default)]
     pub position: [f64; 3],
     #[serde(default)]
@@ -206,6 +213,10 @@ pub(crate) struct BoxFile {
     #[serde(default)]
     pub name: Option<String>,
     pub material: Spanned<String>,
+    /// False for objects that can never shadow anything (the walls of a convex room
+    /// lit from inside): shadow rays then skip them.
+    #[serde(default = "yes")]
+    pub casts_shadows: bool,
     #[serde(default)]
     pub position: [f64; 3],
     #[serde(default)]
@@ -219,6 +230,10 @@ pub(crate) struct SphereFile {
     #[serde(default)]
     pub name: Option<String>,
     pub material: Spanned<String>,
+    /// False for objects that can never shadow anything (the walls of a convex room
+    /// lit from inside): shadow rays then skip them.
+    #[serde(default = "yes")]
+    pub casts_shadows: bool,
     #[serde(default)]
     pub position: [f64; 3],
     #[serde(default)]
@@ -232,6 +247,10 @@ pub(crate) struct CylinderFile {
     #[serde(default)]
     pub name: Option<String>,
     pub material: Spanned<String>,
+    /// False for objects that can never shadow anything (the walls of a convex room
+    /// lit from inside): shadow rays then skip them.
+    #[serde(default = "yes")]
+    pub casts_shadows: bool,
     #[serde(default)]
     pub position: [f64; 3],
     #[serde(default)]
@@ -250,6 +269,10 @@ pub(crate) struct MeshFile {
     #[serde(default)]
     pub name: Option<String>,
     pub material: Spanned<String>,
+    /// False for objects that can never shadow anything (the walls of a convex room
+    /// lit from inside): shadow rays then skip them.
+    #[serde(default = "yes")]
+    pub casts_shadows: bool,
     #[serde(default)]
     pub position: [f64; 3],
     #[serde(default)]

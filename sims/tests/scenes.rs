@@ -1,0 +1,79 @@
+//! Every shipped scene loads, and renders frames that see it.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)] // tests panic on failure by design
+
+mod common;
+
+use common::{configs, small};
+
+#[test]
+fn every_shipped_scene_loads_and_renders() {
+    let mut names = Vec::new();
+    for entry in std::fs::read_dir(configs().join("scenes")).unwrap() {
+        let path = entry.unwrap().path();
+        let scene = sims::Scene::load(&path).unwrap();
+        names.push(scene.name.clone());
+        let sim = small(scene, 1, None);
+        let last = sim.frame_count() - 1;
+        for i in [0, last] {
+            let f = sim.frame(i).unwrap();
+            let returns = f.pair.range.return_count();
+            assert!(
+                returns > 32 * 32 / 4,
+                "{}: frame {i} has {returns} returns",
+                path.display()
+            );
+            let mean = f.pair.eo.rgb.iter().map(|&v| f64::from(v)).sum::<f64>()
+                / f.pair.eo.rgb.len() as f64;
+            assert!(
+                mean > 30.0 && mean < 230.0,
+                "{}: frame {i} mean {mean}",
+                path.display()
+            );
+        }
+    }
+    names.sort();
+    assert_eq!(
+        names,
+        ["calib-target", "corridor", "courtyard", "lab", "plane"]
+    );
+}
+
+#[test]
+fn the_calibration_board_is_seen_whole_from_every_pose() {
+    let scene = common::load("calib-target");
+    let sim = small(scene, 0, Some(&[]));
+    let eo = sim.sensor_model().eo.clone();
+    // The board's outer corners (border included) project inside the image.
+    for i in 0..sim.frame_count() {
+        let pose = sim.true_pose(i);
+        for (x, z) in [(-0.42, 0.9), (0.42, 0.9), (-0.42, 1.5), (0.42, 1.5)] {
+            let p = pose.inverse_transform_point(&nalgebra::Point3::new(x, 0.0, z));
+            let px = eo.project(&p.coords).unwrap();
+            assert!(
+                eo.contains_pixel(px),
+                "pose {i}: corner ({x}, {z}) at {px:?}"
+            );
+        }
+    }
+}
+
+#[test]
+fn the_corridor_looks_the_same_along_its_axis() {
+    // Two clean range frames 1 m apart along the axis, same orientation: equal away
+    // from the open ends (the degenerate direction for registration).
+    let sim = small(common::load("corridor"), 0, Some(&[]));
+    let pose = texel::pose::pose_from_parts([10.0, 0.0, 1.5], [-0.5, 0.5, -0.5, 0.5]).unwrap();
+    let mut moved = pose;
+    moved.translation.vector.x += 1.0;
+    let a = sim.clean_range_at(&pose, 0);
+    let b = sim.clean_range_at(&moved, 0);
+    let mut compared = 0;
+    for (x, y) in a.ranges_m.iter().zip(&b.ranges_m) {
+        if x.is_finite() && *x < 10.0 {
+            assert!((x - y).abs() < 1e-4, "{x} vs {y}");
+            compared += 1;
+        }
+    }
+    assert!(compared > 500);
+}
