@@ -174,7 +174,10 @@ fn main() {
     benches();
     Criterion::default().configure_from_args().final_summary();
     let times = TIMES.lock().unwrap();
-    let Some(baseline) = times.get("baseline: pyramid build 128x128").map(|v| median(v)) else {
+    let Some(baseline) = times
+        .get("baseline: pyramid build 128x128")
+        .map(|v| median(v))
+    else {
         return;
     };
     println!("\nmedians on one core, and their ratio to the baseline (pyramid build):");

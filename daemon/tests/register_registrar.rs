@@ -130,3 +130,62 @@ fn a_failed_scan_stays_out_of_the_model_and_identical_frames_do_not_move() {
     assert!(r.covariance.iter().all(|c| c.is_finite()));
     assert_eq!(reg.stats().failed, 1);
 }
+
+#[test]
+fn a_scan_that_failed_is_recovered_by_a_retry_once_the_walk_reaches_it() {
+    let s = sensor(48, 48, 0.005);
+    let scene = Scene::room();
+    // A walk towards the x = 4 wall, 15 cm a frame.
+    let truth: Vec<Pose> = (0..16)
+        .map(|k| look_at([0.15 * k as f64, 0.1, 1.5], [4.0, 0.0, 1.0]))
+        .collect();
+    let mut config = RegistrationConfig::default();
+    config.retry.max_retries = 30;
+    let mut reg = Registrar::with_anchor(config, truth[0]);
+    for (k, pose) in truth.iter().enumerate().take(5) {
+        let r = reg.register(frame(&scene, &s, pose, k), &s.model.lidar);
+        assert!(r.status.is_registered(), "{k}: {:?}", r.status);
+    }
+    reg.take_events();
+    // The view of frame 15 (1.75 m further on) arrives at frame 5's time, as after a
+    // stretch of dropped frames: nothing lies within the gates at the guess, so it
+    // fails...
+    let mut early = (*frame(&scene, &s, &truth[15], 15)).clone();
+    early.timestamp_ns = 5 * 100_000_000;
+    let r = reg.register(Arc::new(early), &s.model.lidar);
+    assert!(
+        matches!(r.status, RegistrationStatus::Failed { .. }),
+        "{:?} {:?}",
+        r.status,
+        texel::pose::pose_difference(&r.world_from_scan, &truth[15])
+    );
+    assert_eq!(r.scan_id, None);
+    assert!(reg.take_recovered().is_empty());
+    // ... and as the walk comes near that view, a retry registers it.
+    let mut recovered = Vec::new();
+    let mut events = Vec::new();
+    for (k, pose) in truth.iter().enumerate().take(15).skip(6) {
+        let r = reg.register(frame(&scene, &s, pose, k), &s.model.lidar);
+        assert!(r.status.is_registered(), "{k}: {:?}", r.status);
+        recovered.extend(reg.take_recovered());
+        events.extend(reg.take_events());
+    }
+    assert_eq!(recovered.len(), 1, "{:?}", reg.stats());
+    let result = &recovered[0];
+    assert!(result.status.is_registered());
+    assert_eq!(result.timestamp_ns, 5 * 100_000_000);
+    let id = result.scan_id.unwrap();
+    let (angle, dist) = texel::pose::pose_difference(&reg.pose(id).unwrap(), &truth[15]);
+    assert!(
+        angle.to_degrees() < 0.2 && dist < 0.01,
+        "{angle} rad {dist} m"
+    );
+    // It entered the model like any other scan, with its own id.
+    assert!(
+        events
+            .iter()
+            .any(|e| matches!(e, ModelEvent::ScanAdded { id: added, .. } if *added == id))
+    );
+    assert_eq!(reg.stats().recovered, 1);
+    assert_eq!(reg.stats().failed, 1);
+}

@@ -116,12 +116,11 @@ pub fn align(
     let mut iterations = 0u32;
     let mut last: Option<(Problem<'_>, Evaluation)> = None;
     for level in (0..levels).rev() {
-        // The same stride at every level: a coarse level has a quarter of the samples
-        // of the one below, so the coarse iterations that do the large moves are cheap.
         let samples = if level == 0 {
             finest_samples.clone()
         } else {
-            source.levels[level].samples(config.point_stride as usize)
+            let l = &source.levels[level];
+            l.samples(coarse_stride(l.width, l.height, config.point_stride))
         };
         let problem = Problem::new(source, targets, level, &samples, config);
         let outcome = problem.iterate(&mut pose, config);
@@ -143,6 +142,21 @@ pub fn align(
         }
     };
     finish(initial, pose, iterations, &problem, &evaluation, config)
+}
+
+/// Fewest sample positions a coarse level keeps (while its grid has them).
+const MIN_COARSE_SAMPLES: usize = 1024;
+
+/// The stride at a coarse level: the configured one while it leaves at least
+/// [`MIN_COARSE_SAMPLES`] positions, else the largest smaller one that does (or 1).
+/// Coarse levels then cost a fraction of the finest, yet keep enough points for the
+/// large early moves to be well constrained.
+fn coarse_stride(width: usize, height: usize, point_stride: u32) -> usize {
+    let mut stride = point_stride.max(1) as usize;
+    while stride > 1 && width.div_ceil(stride) * height.div_ceil(stride) < MIN_COARSE_SAMPLES {
+        stride -= 1;
+    }
+    stride
 }
 
 fn failed(initial: &Pose, targets: usize, reason: FailureReason) -> Alignment {
@@ -331,8 +345,13 @@ impl<'a> Problem<'a> {
                     photometric: false,
                 });
                 if photometric_weight > 0.0
-                    && let Some((r, j)) =
-                        photometric(&pair, view.level, sample.intensity, &sample.p, &view.rotation)
+                    && let Some((r, j)) = photometric(
+                        &pair,
+                        view.level,
+                        sample.intensity,
+                        &sample.p,
+                        &view.rotation,
+                    )
                 {
                     out.residuals.push(Residual {
                         j: j.map(|x| x * photometric_scale),

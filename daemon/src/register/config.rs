@@ -49,7 +49,8 @@ pub struct AlignConfig {
     pub pyramid_levels: u32,
     /// Iterations at most per pyramid level.
     pub max_iterations: u32,
-    /// Use every n-th source pixel in each direction, at every level.
+    /// Use every n-th source pixel in each direction; coarser levels too, as long as
+    /// that leaves them 1024 sample positions (else a smaller stride).
     pub point_stride: u32,
     pub kernel: RobustKernel,
     /// Kernel threshold in units of the residual scale; the kernel's usual constant
@@ -172,6 +173,12 @@ pub struct GlobalConfig {
     pub loop_min_gap_keyframes: u32,
     /// Candidates verified by registration per new keyframe, nearest first.
     pub loop_max_candidates: u32,
+    /// After an accepted loop closure, this many keyframes pass before candidates
+    /// are verified again (1: at every keyframe). A larger interval closes a loop
+    /// every few keyframes along mapped ground instead of at each one (each closure
+    /// costs registrations and a graph optimisation), at some cost in drift; a first
+    /// revisit is always verified at once.
+    pub loop_interval_keyframes: u32,
     /// A loop-closure registration must reach this inlier ratio (of overlapping
     /// samples) to be accepted.
     pub loop_min_inlier_ratio: f64,
@@ -189,6 +196,7 @@ impl Default for GlobalConfig {
             loop_max_angle_deg: 45.0,
             loop_min_gap_keyframes: 8,
             loop_max_candidates: 2,
+            loop_interval_keyframes: 1,
             loop_min_inlier_ratio: 0.7,
             max_iterations: 10,
             revision_epsilon: 1.0e-6,
@@ -413,7 +421,13 @@ impl RegistrationConfig {
                 });
             }
         }
-        let more: [(&'static str, f64, bool, &'static str); 3] = [
+        let more: [(&'static str, f64, bool, &'static str); 4] = [
+            (
+                "global.loop_interval_keyframes",
+                f64::from(g.loop_interval_keyframes),
+                (1..=10_000).contains(&g.loop_interval_keyframes),
+                "must be 1..=10000",
+            ),
             (
                 "keyframes.translation_m",
                 k.translation_m,

@@ -206,7 +206,11 @@ impl ScanPyramid {
     }
 
     /// Builds the pyramid as `options` say.
-    pub fn build_with(scan: Arc<TexelScan>, lidar: &PinholeCamera, options: PyramidOptions) -> Self {
+    pub fn build_with(
+        scan: Arc<TexelScan>,
+        lidar: &PinholeCamera,
+        options: PyramidOptions,
+    ) -> Self {
         let projector = GridProjector::new(lidar, &scan.scan_from_lidar);
         let pitch = projector.pixel_pitch_rad();
         let levels = options.levels.max(1) as usize;
@@ -256,6 +260,24 @@ fn luminance(rgb: [u8; 3]) -> f32 {
     (0.2126 * f32::from(rgb[0]) + 0.7152 * f32::from(rgb[1]) + 0.0722 * f32::from(rgb[2])) / 255.0
 }
 
+/// The luminance of a vertex's texel: `TexelScan::vertex_colour` (nearest EO pixel
+/// to the texture coordinate) written for this loop. Its `round(x - 0.5)` clamped at
+/// 0 is `floor(x)` for the coordinates that occur, and a float-to-integer cast
+/// floors non-negative values (and saturates negative and NaN ones to 0).
+#[inline]
+fn vertex_luminance(scan: &TexelScan, vertex: usize) -> Option<f32> {
+    if !*scan.vertex_textured.get(vertex)? {
+        return None;
+    }
+    let [u, v] = *scan.tex_coords.get(vertex)?;
+    let texture = &scan.texture;
+    let x = ((u * texture.width as f32) as u32).min(texture.width.saturating_sub(1));
+    let y = ((v * texture.height as f32) as u32).min(texture.height.saturating_sub(1));
+    let i = 3 * (y as usize * texture.width as usize + x as usize);
+    let rgb = texture.rgb.get(i..i + 3)?;
+    Some(luminance([rgb[0], rgb[1], rgb[2]]))
+}
+
 fn finest_level(scan: &TexelScan, projector: &GridProjector) -> Level {
     let (w, h) = (scan.grid_width as usize, scan.grid_height as usize);
     let mut level = Level::empty(w, h, 1.0);
@@ -274,8 +296,8 @@ fn finest_level(scan: &TexelScan, projector: &GridProjector) -> Level {
         let surfel = &mut level.surfels[pixel];
         surfel.point = *p;
         surfel.sigma_m = scan.range_noise.sigma_at(range) as f32;
-        if let Some(rgb) = scan.vertex_colour(vertex as usize) {
-            surfel.intensity = luminance(rgb);
+        if let Some(intensity) = vertex_luminance(scan, vertex as usize) {
+            surfel.intensity = intensity;
             level.flags[pixel] |= HAS_INTENSITY;
         }
     }
@@ -594,6 +616,62 @@ fn tangent_gradient(
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
+
+    #[test]
+    fn plane_fits_recover_the_normal_and_refuse_edges() {
+        // A 7x7 window on the plane z = 2 + 0.3 x seen from the origin.
+        let mut sum = [0.0f64; 10];
+        let mut add = |p: Vector3<f64>| {
+            let m = [
+                1.0,
+                p.x,
+                p.y,
+                p.z,
+                p.x * p.x,
+                p.x * p.y,
+                p.x * p.z,
+                p.y * p.y,
+                p.y * p.z,
+                p.z * p.z,
+            ];
+            for (s, x) in sum.iter_mut().zip(m) {
+                *s += x;
+            }
+        };
+        for i in -3..=3 {
+            for j in -3..=3 {
+                let (x, y) = (0.02 * f64::from(i), 0.02 * f64::from(j));
+                add(Vector3::new(x, y, 2.0 + 0.3 * x));
+            }
+        }
+        let centre = Vector3::new(0.0, 0.0, 2.0);
+        let n = fit_plane_normal(&sum, &centre, &Vector3::zeros(), 0.005).unwrap();
+        let truth = Vector3::new(0.3, 0.0, -1.0).normalize();
+        assert!((n - truth).norm() < 1e-9, "{n:?}");
+        // A depth edge in the window: half the points 20 cm behind.
+        let mut edge = [0.0f64; 10];
+        for i in -3..=3 {
+            for j in -3..=3 {
+                let (x, y) = (0.02 * f64::from(i), 0.02 * f64::from(j));
+                let z = if i > 0 { 2.2 } else { 2.0 };
+                let m = [1.0, x, y, z, x * x, x * y, x * z, y * y, y * z, z * z];
+                for (s, v) in edge.iter_mut().zip(m) {
+                    *s += v;
+                }
+            }
+        }
+        assert!(fit_plane_normal(&edge, &centre, &Vector3::zeros(), 0.005).is_none());
+        // Collinear points: no plane.
+        let mut line = [0.0f64; 10];
+        for i in -3..=3 {
+            let x = 0.02 * f64::from(i);
+            let m = [1.0, x, 0.0, 2.0, x * x, 0.0, 2.0 * x, 0.0, 0.0, 4.0];
+            for (s, v) in line.iter_mut().zip(m) {
+                *s += v;
+            }
+        }
+        assert!(fit_plane_normal(&line, &centre, &Vector3::zeros(), 0.005).is_none());
+    }
 
     #[test]
     fn tangent_gradient_recovers_a_linear_ramp() {

@@ -71,6 +71,8 @@ pub struct Registrar {
     events: Vec<ModelEvent>,
     recovered: Vec<RegistrationResult>,
     stats: RegistrarStats,
+    /// Keyframe ordinal of the last accepted loop closure.
+    last_loop_keyframe: Option<usize>,
 }
 
 impl Registrar {
@@ -93,6 +95,7 @@ impl Registrar {
             events: Vec::new(),
             recovered: Vec::new(),
             stats: RegistrarStats::default(),
+            last_loop_keyframe: None,
         }
     }
 
@@ -347,6 +350,13 @@ impl Registrar {
         let Some(ordinal) = self.nodes[node].keyframe else {
             return 0;
         };
+        // Rate limit: a closure was just made, the graph is consistent here.
+        if self
+            .last_loop_keyframe
+            .is_some_and(|last| ordinal < last + g.loop_interval_keyframes as usize)
+        {
+            return 0;
+        }
         let in_window: Vec<usize> = self.window.iter().map(|w| w.node).collect();
         let mut candidates: Vec<(f64, usize)> = self
             .keyframes
@@ -394,6 +404,7 @@ impl Registrar {
             accepted += 1;
         }
         if accepted > 0 {
+            self.last_loop_keyframe = Some(ordinal);
             self.stats.loop_closures += u64::from(accepted);
             self.refine();
         }

@@ -70,7 +70,11 @@ pub fn run(section: Section, paths: &Paths, options: &RunOptions) -> Result<()> 
     let updated = replace_section(&text, section.marker(), &body)
         .with_context(|| format!("in {}", doc.display()))?;
     std::fs::write(&doc, updated).with_context(|| format!("cannot write {}", doc.display()))?;
-    println!("updated the {} section of {}", section.marker(), doc.display());
+    println!(
+        "updated the {} section of {}",
+        section.marker(),
+        doc.display()
+    );
     Ok(())
 }
 
@@ -87,11 +91,7 @@ pub fn replace_section(text: &str, name: &str, body: &str) -> Result<String> {
         bail!("no `{end}` marker after `{begin}`");
     };
     let body = body.trim_matches('\n');
-    Ok(format!(
-        "{}\n{body}\n{}",
-        &text[..after_begin],
-        &text[e..]
-    ))
+    Ok(format!("{}\n{body}\n{}", &text[..after_begin], &text[e..]))
 }
 
 /// The venv's Python as `scripts/setup.sh` makes it: `$TEXEL_VENV`, else
@@ -117,7 +117,8 @@ mod tests {
 
     #[test]
     fn a_section_is_replaced_between_its_markers_only() {
-        let text = "# T\n<!-- BEGIN a -->\nold\n<!-- END a -->\n<!-- BEGIN b -->\nkeep\n<!-- END b -->\n";
+        let text =
+            "# T\n<!-- BEGIN a -->\nold\n<!-- END a -->\n<!-- BEGIN b -->\nkeep\n<!-- END b -->\n";
         let out = replace_section(text, "a", "\nnew 1\nnew 2\n").unwrap();
         assert_eq!(
             out,

@@ -210,7 +210,13 @@ mod tests {
     #[test]
     fn the_front_keeps_only_unbeaten_points() {
         let p = |x: f64, y: f64| (x, y, String::new());
-        let points = vec![p(1.0, 5.0), p(2.0, 3.0), p(3.0, 4.0), p(4.0, 1.0), p(f64::NAN, 0.1)];
+        let points = vec![
+            p(1.0, 5.0),
+            p(2.0, 3.0),
+            p(3.0, 4.0),
+            p(4.0, 1.0),
+            p(f64::NAN, 0.1),
+        ];
         assert_eq!(pareto_front(&points), vec![0, 1, 3]);
     }
 }

@@ -22,7 +22,13 @@ pub struct Sequence {
 }
 
 /// A scene of `configs/scenes/` rendered (or found in the cache) and fused.
-pub fn sequence(scenes_dir: &Path, cache_dir: &Path, scene: &str, frames: usize, seed: u64) -> Result<Sequence> {
+pub fn sequence(
+    scenes_dir: &Path,
+    cache_dir: &Path,
+    scene: &str,
+    frames: usize,
+    seed: u64,
+) -> Result<Sequence> {
     let capture = cached_capture(scenes_dir, cache_dir, scene, frames, seed)?;
     read_sequence(&capture, scene)
 }
