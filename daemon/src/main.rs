@@ -80,6 +80,37 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
     },
+    /// Register a capture offline: write a copy with /texel/pose for every registered
+    /// frame, and optionally a JSON report (status, time, fitness, errors vs truth).
+    Register {
+        /// The capture (MCAP) file.
+        capture: PathBuf,
+        #[arg(long)]
+        out: PathBuf,
+        /// TOML overrides of the registration defaults.
+        #[arg(long)]
+        config: Option<PathBuf>,
+        #[arg(long)]
+        report: Option<PathBuf>,
+    },
+    /// Regenerate a section of docs/tradeoffs.md (what accuracy costs in time) from
+    /// measurements on simulator captures.
+    Tradeoffs {
+        #[arg(value_enum)]
+        section: texel_daemon::tradeoffs::Section,
+        /// Fewer frames and settings, for a quick look.
+        #[arg(long)]
+        quick: bool,
+        /// The repository root (default: the current directory).
+        #[arg(long, default_value = ".")]
+        repo: PathBuf,
+        /// Where rendered captures are kept between runs.
+        #[arg(long, default_value = "target/tradeoffs-cache")]
+        cache: PathBuf,
+        /// The Python with Open3D (default: the venv of scripts/setup.sh).
+        #[arg(long)]
+        python: Option<PathBuf>,
+    },
 }
 
 fn main() -> ExitCode {
@@ -148,5 +179,28 @@ fn main() -> ExitCode {
                 ExitCode::FAILURE
             }
         },
+        Command::Register {
+            capture,
+            out,
+            config,
+            report,
+        } => texel_daemon::register_cli::run(&capture, &out, config.as_deref(), report.as_deref()),
+        Command::Tradeoffs {
+            section,
+            quick,
+            repo,
+            cache,
+            python,
+        } => {
+            let paths = texel_daemon::tradeoffs::Paths { repo, cache };
+            let options = texel_daemon::tradeoffs::RunOptions { quick, python };
+            match texel_daemon::tradeoffs::run(section, &paths, &options) {
+                Ok(()) => ExitCode::SUCCESS,
+                Err(e) => {
+                    eprintln!("texeld tradeoffs: {e:#}");
+                    ExitCode::FAILURE
+                }
+            }
+        }
     }
 }
