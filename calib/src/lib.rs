@@ -1,1 +1,10 @@
 //! Estimating the texel camera's sensor model from captures of a calibration target.
+
+pub mod config;
+pub mod detect;
+pub mod eo;
+pub mod error;
+pub mod geometry;
+pub mod gray;
+pub mod lm;
+pub mod zhang;
