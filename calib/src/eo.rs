@@ -59,6 +59,9 @@ pub struct EoSolution {
     pub iterations: usize,
     pub converged: bool,
     pub outliers_dropped: usize,
+    /// Correspondences of each observation and which of them were kept.
+    pub(crate) data: Vec<ViewData>,
+    pub(crate) masks: Vec<Vec<bool>>,
 }
 
 /// Board-plane points and pixels of an observation.
@@ -249,6 +252,8 @@ pub fn calibrate_eo(
         iterations: result.iterations,
         converged: result.converged,
         outliers_dropped: dropped,
+        data,
+        masks,
     })
 }
 
@@ -263,7 +268,7 @@ fn median(v: &[f64]) -> f64 {
 }
 
 /// Parameters held fixed by the solver settings.
-fn fixed_intrinsics(solver: &SolverConfig) -> [bool; 9] {
+pub(crate) fn fixed_intrinsics(solver: &SolverConfig) -> [bool; 9] {
     [
         false,
         false,
@@ -277,28 +282,31 @@ fn fixed_intrinsics(solver: &SolverConfig) -> [bool; 9] {
     ]
 }
 
-type ViewData = (Vec<(usize, usize)>, Vec<Vector2<f64>>, Vec<Vector2<f64>>);
+pub(crate) type ViewData = (Vec<(usize, usize)>, Vec<Vector2<f64>>, Vec<Vector2<f64>>);
 
-fn build_problem(
-    data: &[ViewData],
-    masks: &[Vec<bool>],
-    solver: &SolverConfig,
-) -> Problem<'static> {
+fn build_problem(data: &[ViewData], masks: &[Vec<bool>], solver: &SolverConfig) -> Problem<'static> {
     let n = 9 + 6 * data.len();
     let mut fixed = vec![false; n];
     fixed[..9].copy_from_slice(&fixed_intrinsics(solver));
-    let mut scale = vec![1.0; n];
+    let mut scale = vec![0.1; n];
     for s in scale.iter_mut().take(4) {
         *s = 100.0;
     }
-    for v in 0..data.len() {
-        for k in 0..3 {
-            scale[9 + 6 * v + k] = 0.1;
-            scale[9 + 6 * v + 3 + k] = 0.1;
-        }
+    for s in scale.iter_mut().take(9).skip(4) {
+        *s = 1.0;
     }
-    let blocks = data
-        .iter()
+    Problem {
+        blocks: eo_blocks(data, masks, 1.0),
+        scale,
+        fixed,
+    }
+}
+
+/// One residual block per view: reprojection errors of its kept corners divided by
+/// `sigma_px`, over parameters `0..9` (intrinsics) and `9 + 6v..15 + 6v` (the pose).
+pub(crate) fn eo_blocks(data: &[ViewData], masks: &[Vec<bool>], sigma_px: f64) -> Vec<Block<'static>> {
+    let inv = 1.0 / sigma_px.max(1.0e-6);
+    data.iter()
         .zip(masks)
         .enumerate()
         .map(|(v, ((_, plane, image), mask))| {
@@ -322,8 +330,8 @@ fn build_problem(
                         let c = pose * Point3::new(board.x, board.y, 0.0);
                         match project(&p[..9], &c.coords) {
                             Some(q) => {
-                                r[2 * n] = q.x - pixel.x;
-                                r[2 * n + 1] = q.y - pixel.y;
+                                r[2 * n] = (q.x - pixel.x) * inv;
+                                r[2 * n + 1] = (q.y - pixel.y) * inv;
                             }
                             None => {
                                 r[2 * n] = UNPROJECTABLE_PX;
@@ -334,15 +342,10 @@ fn build_problem(
                 }),
             }
         })
-        .collect();
-    Problem {
-        blocks,
-        scale,
-        fixed,
-    }
+        .collect()
 }
 
-fn view_residual(
+pub(crate) fn view_residual(
     view: usize,
     k: &Intrinsics,
     pose: &Pose,

@@ -8,3 +8,8 @@ pub mod geometry;
 pub mod gray;
 pub mod lm;
 pub mod zhang;
+pub mod extrinsic;
+pub mod lidar;
+pub mod capture;
+pub mod pipeline;
+pub mod simulate;
