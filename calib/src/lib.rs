@@ -13,3 +13,4 @@ pub mod lidar;
 pub mod capture;
 pub mod pipeline;
 pub mod simulate;
+pub mod report;

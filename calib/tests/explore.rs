@@ -49,3 +49,15 @@ fn explore_model() {
     let d: Vec<u8> = r.ranges_m.iter().map(|v| if v.is_finite() { ((v - 0.5) / 3.0 * 255.0).clamp(0.0, 255.0) as u8 } else { 0 }).collect();
     image::GrayImage::from_raw(128, 128, d).unwrap().save("/tmp/r1.png").unwrap();
 }
+
+#[test]
+fn print_poses() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let scene = sims::Scene::load(&root.join("configs/scenes/calib-target.toml")).unwrap();
+    let sim = simulator(scene, 1, None).unwrap();
+    let poses = sample_poses(&sim, &CalibConfig::default().target, 20, PoseStyle::Varied, 2024);
+    for p in poses {
+        let (t, q) = texel::pose::pose_to_parts(&p);
+        println!("POSE    {{ position = [{:.4}, {:.4}, {:.4}], rotation_xyzw = [{:.6}, {:.6}, {:.6}, {:.6}] }},", t[0], t[1], t[2], q[0], q[1], q[2], q[3]);
+    }
+}
