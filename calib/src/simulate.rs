@@ -107,8 +107,8 @@ pub fn sample_poses(
         // distortion shows), the others keep it inside the lidar's view.
         let edge_view = style == PoseStyle::Varied && out.len() % 2 == 1;
         let (tilt_lo, tilt_hi, dist_lo, dist_hi, look) = match style {
-            PoseStyle::Varied if edge_view => (20.0, 45.0, 0.9, 1.2, 0.35),
-            PoseStyle::Varied => (20.0, 45.0, 1.0, 1.35, 0.06),
+            PoseStyle::Varied if edge_view => (25.0, 55.0, 0.85, 1.2, 0.35),
+            PoseStyle::Varied => (25.0, 55.0, 1.0, 1.35, 0.06),
             PoseStyle::NearBorder => (10.0, 35.0, 0.8, 1.0, 0.3),
             PoseStyle::FrontoParallel => (0.0, 2.0, 1.0, 1.3, 0.0),
             PoseStyle::Tilt(d) => (d * 0.8, d, 1.0, 1.3, 0.05),

@@ -55,9 +55,21 @@ fn print_poses() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
     let scene = sims::Scene::load(&root.join("configs/scenes/calib-target.toml")).unwrap();
     let sim = simulator(scene, 1, None).unwrap();
-    let poses = sample_poses(&sim, &CalibConfig::default().target, 20, PoseStyle::Varied, 2024);
+    let poses = sample_poses(&sim, &CalibConfig::default().target, 40, PoseStyle::Varied, 2024);
     for p in poses {
         let (t, q) = texel::pose::pose_to_parts(&p);
         println!("POSE    {{ position = [{:.4}, {:.4}, {:.4}], rotation_xyzw = [{:.6}, {:.6}, {:.6}, {:.6}] }},", t[0], t[1], t[2], q[0], q[1], q[2], q[3]);
+    }
+}
+
+#[test]
+fn cmp_truth() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let scene = sims::Scene::load(&root.join("configs/scenes/calib-target.toml")).unwrap();
+    let sim = simulator(scene, 0, None).unwrap();
+    for f in ["/tmp/ct/calibrated.toml", "/tmp/ct2/calibrated.toml"] {
+        let m = texel::SensorModel::load(Path::new(f)).unwrap();
+        let (a, d) = texel::pose::pose_difference(&sim.sensor_model().eo_from_lidar, &m.eo_from_lidar);
+        println!("{f}: rot err {:.4} deg, trans {:.3} mm, cx {:.3} cy {:.3} fx {:.3}", a.to_degrees(), d*1e3, m.eo.cx, m.eo.cy, m.eo.fx);
     }
 }
