@@ -24,9 +24,7 @@ pub fn read_capture(path: &Path) -> Result<CalibInput, CalibError> {
         match item {
             Ok(TexelItem::Pair { pair, sensor }) => {
                 if views.len() >= MAX_VIEWS {
-                    warnings.push(format!(
-                        "only the first {MAX_VIEWS} texel frames were read"
-                    ));
+                    warnings.push(format!("only the first {MAX_VIEWS} texel frames were read"));
                     break;
                 }
                 if model.is_none() {

@@ -90,13 +90,11 @@ impl TargetConfig {
             f64::from(nx + 1) * self.square_m,
             f64::from(ny + 1) * self.square_m,
         ];
-        for k in 0..2 {
-            let p = self.plate_m[k];
-            if !(p.is_finite() && p >= checker[k] && p < 100.0) {
+        for (k, (&p, &c)) in self.plate_m.iter().zip(&checker).enumerate() {
+            if !(p.is_finite() && p >= c && p < 100.0) {
                 return Err(ConfigError::Invalid(format!(
                     "target.plate_m[{k}] = {p} must be finite and at least the \
-                     checkerboard's {} m",
-                    checker[k]
+                     checkerboard's {c} m"
                 )));
             }
         }
@@ -224,11 +222,11 @@ mod tests {
     fn unknown_keys_and_symmetric_boards_are_refused() {
         let e = CalibConfig::from_toml_str("[target]\nsquares = 3\n", "u.toml").unwrap_err();
         assert!(e.to_string().contains("squares"), "{e}");
-        let e = CalibConfig::from_toml_str("[target]\ninner_corners = [8, 6]\n", "s.toml")
-            .unwrap_err();
+        let e =
+            CalibConfig::from_toml_str("[target]\ninner_corners = [8, 6]\n", "s.toml").unwrap_err();
         assert!(e.to_string().contains("odd"), "{e}");
-        let e = CalibConfig::from_toml_str("[target]\nplate_m = [0.1, 0.1]\n", "p.toml")
-            .unwrap_err();
+        let e =
+            CalibConfig::from_toml_str("[target]\nplate_m = [0.1, 0.1]\n", "p.toml").unwrap_err();
         assert!(e.to_string().contains("plate_m"), "{e}");
     }
 }

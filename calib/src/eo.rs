@@ -68,7 +68,7 @@ pub struct EoSolution {
 fn correspondences(
     corners: &BoardCorners,
     target: &TargetConfig,
-) -> (Vec<(usize, usize)>, Vec<Vector2<f64>>, Vec<Vector2<f64>>) {
+) -> ViewData {
     let mut ids = Vec::new();
     let mut plane = Vec::new();
     let mut image = Vec::new();
@@ -151,7 +151,10 @@ pub fn calibrate_eo(
     for p in &poses {
         x.extend_from_slice(&params_from_pose(p));
     }
-    let mut masks: Vec<Vec<bool>> = data.iter().map(|(ids, _, _)| vec![true; ids.len()]).collect();
+    let mut masks: Vec<Vec<bool>> = data
+        .iter()
+        .map(|(ids, _, _)| vec![true; ids.len()])
+        .collect();
     let options = LmOptions {
         max_iterations: solver.max_iterations,
         ..LmOptions::default()
@@ -213,7 +216,10 @@ pub fn calibrate_eo(
     if camera.validate().is_err() || !(intrinsics[0] > 0.0 && intrinsics[1] > 0.0) {
         return Err(CalibError::Diverged {
             stage: "EO bundle adjustment",
-            detail: format!("the solution is not a camera (fx {}, fy {})", intrinsics[0], intrinsics[1]),
+            detail: format!(
+                "the solution is not a camera (fx {}, fy {})",
+                intrinsics[0], intrinsics[1]
+            ),
         });
     }
     let focal_rel = (intrinsics_std[0] / intrinsics[0]).max(intrinsics_std[1] / intrinsics[1]);
@@ -284,7 +290,11 @@ pub(crate) fn fixed_intrinsics(solver: &SolverConfig) -> [bool; 9] {
 
 pub(crate) type ViewData = (Vec<(usize, usize)>, Vec<Vector2<f64>>, Vec<Vector2<f64>>);
 
-fn build_problem(data: &[ViewData], masks: &[Vec<bool>], solver: &SolverConfig) -> Problem<'static> {
+fn build_problem(
+    data: &[ViewData],
+    masks: &[Vec<bool>],
+    solver: &SolverConfig,
+) -> Problem<'static> {
     let n = 9 + 6 * data.len();
     let mut fixed = vec![false; n];
     fixed[..9].copy_from_slice(&fixed_intrinsics(solver));
@@ -304,7 +314,11 @@ fn build_problem(data: &[ViewData], masks: &[Vec<bool>], solver: &SolverConfig) 
 
 /// One residual block per view: reprojection errors of its kept corners divided by
 /// `sigma_px`, over parameters `0..9` (intrinsics) and `9 + 6v..15 + 6v` (the pose).
-pub(crate) fn eo_blocks(data: &[ViewData], masks: &[Vec<bool>], sigma_px: f64) -> Vec<Block<'static>> {
+pub(crate) fn eo_blocks(
+    data: &[ViewData],
+    masks: &[Vec<bool>],
+    sigma_px: f64,
+) -> Vec<Block<'static>> {
     let inv = 1.0 / sigma_px.max(1.0e-6);
     data.iter()
         .zip(masks)
@@ -358,8 +372,8 @@ pub(crate) fn view_residual(
         .zip(plane.iter().zip(image))
         .map(|(&(i, j), (b, px))| {
             let c = pose * Point3::new(b.x, b.y, 0.0);
-            let q = project(k, &c.coords)
-                .unwrap_or(Vector2::new(UNPROJECTABLE_PX, UNPROJECTABLE_PX));
+            let q =
+                project(k, &c.coords).unwrap_or(Vector2::new(UNPROJECTABLE_PX, UNPROJECTABLE_PX));
             (i, j, q - px)
         })
         .collect();
@@ -417,6 +431,13 @@ pub fn fit_board_pose(
     let pose = pose_from_params(&result.x);
     Some((
         pose,
-        view_residual(view, &crate::geometry::intrinsics_of(camera), &pose, &ids, &plane, &image),
+        view_residual(
+            view,
+            &crate::geometry::intrinsics_of(camera),
+            &pose,
+            &ids,
+            &plane,
+            &image,
+        ),
     ))
 }

@@ -198,7 +198,11 @@ pub fn calibrate_joint(
     // Step 4: the covariance; an extrinsic the data do not fix is refused.
     let cov = covariance(&result, &fixed);
     let std = |i: usize| cov[(i, i)].max(0.0).sqrt();
-    let rotation_std_deg = [std(e).to_degrees(), std(e + 1).to_degrees(), std(e + 2).to_degrees()];
+    let rotation_std_deg = [
+        std(e).to_degrees(),
+        std(e + 1).to_degrees(),
+        std(e + 2).to_degrees(),
+    ];
     let translation_std_m = [std(e + 3), std(e + 4), std(e + 5)];
     let worst_rot = rotation_std_deg.iter().copied().fold(0.0, f64::max);
     let worst_t = translation_std_m.iter().copied().fold(0.0, f64::max);
@@ -275,7 +279,8 @@ pub fn calibrate_joint(
                     .iter()
                     .map(|(i, j, px)| {
                         let q = lidar_from_board * Point3::from(target.corner_point(i, j));
-                        project(&lk, &q.coords).map_or(UNPROJECTABLE_PX, |q| (q - px).norm_squared())
+                        project(&lk, &q.coords)
+                            .map_or(UNPROJECTABLE_PX, |q| (q - px).norm_squared())
                     })
                     .collect();
                 (errs.iter().sum::<f64>() / errs.len().max(1) as f64).sqrt()

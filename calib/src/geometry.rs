@@ -243,7 +243,9 @@ mod tests {
             .collect();
         let p = fit_plane(&pts).unwrap();
         assert!((p.normal.z - 1.0).abs() < 1e-12 && (p.d - 2.0).abs() < 1e-12);
-        let line: Vec<Point3<f64>> = (0..5).map(|k| Point3::new(f64::from(k), 0.0, 1.0)).collect();
+        let line: Vec<Point3<f64>> = (0..5)
+            .map(|k| Point3::new(f64::from(k), 0.0, 1.0))
+            .collect();
         assert!(fit_plane(&line).is_none());
     }
 }

@@ -99,7 +99,9 @@ pub fn detect_lidar_board(
             .abs()
             .max(((extent[1] - plate[1]) / plate[1]).abs());
         if mismatch <= EXTENT_TOLERANCE && rms < 0.02 + 0.01 * plane.d {
-            let better = best.as_ref().is_none_or(|b| pixels.len() > segments[b.0].len());
+            let better = best
+                .as_ref()
+                .is_none_or(|b| pixels.len() > segments[b.0].len());
             if better {
                 best = Some((s, plane, rms, extent));
             }

@@ -70,6 +70,9 @@ pub struct LmResult {
     pub jtj: DMatrix<f64>,
 }
 
+/// One block's contribution: its free parameter indices, `JᵀJ`, `Jᵀr` and cost.
+type BlockNormal = (Vec<usize>, DMatrix<f64>, DVector<f64>, f64);
+
 /// Relative finite-difference step (cube root of machine epsilon, for central
 /// differences).
 const FD_STEP: f64 = 6.0e-6;
@@ -127,7 +130,7 @@ impl Problem<'_> {
     /// `(JᵀJ, Jᵀr, cost)` at `x`.
     pub fn normal_equations(&self, x: &[f64]) -> (DMatrix<f64>, DVector<f64>, f64) {
         let n = self.parameter_count();
-        let partials: Vec<(Vec<usize>, DMatrix<f64>, DVector<f64>, f64)> = self
+        let partials: Vec<BlockNormal> = self
             .blocks
             .par_iter()
             .map(|b| {
@@ -238,7 +241,8 @@ impl Problem<'_> {
                     };
                     lambda = lambda.max(1.0e-15);
                     let step_small = delta.norm()
-                        <= options.step_tolerance * (x.iter().map(|v| v * v).sum::<f64>().sqrt() + 1e-12);
+                        <= options.step_tolerance
+                            * (x.iter().map(|v| v * v).sum::<f64>().sqrt() + 1e-12);
                     let cost_small = cost - new_cost <= options.cost_tolerance * cost;
                     x = candidate;
                     let (j2, r2, c2) = self.normal_equations(&x);
@@ -299,7 +303,11 @@ pub fn covariance(result: &LmResult, fixed: &[bool]) -> DMatrix<f64> {
     let d: Vec<f64> = (0..k)
         .map(|i| {
             let v = a[(i, i)];
-            if v > 0.0 && v.is_finite() { 1.0 / v.sqrt() } else { 0.0 }
+            if v > 0.0 && v.is_finite() {
+                1.0 / v.sqrt()
+            } else {
+                0.0
+            }
         })
         .collect();
     for r in 0..k {
@@ -307,7 +315,10 @@ pub fn covariance(result: &LmResult, fixed: &[bool]) -> DMatrix<f64> {
             a[(r, c)] *= d[r] * d[c];
         }
     }
-    let dof = result.residual_count.saturating_sub(result.free_count).max(1) as f64;
+    let dof = result
+        .residual_count
+        .saturating_sub(result.free_count)
+        .max(1) as f64;
     let s2 = 2.0 * result.cost / dof;
     let eig = a.symmetric_eigen();
     let max_eig = eig.eigenvalues.iter().copied().fold(0.0f64, f64::max);

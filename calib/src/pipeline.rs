@@ -162,7 +162,11 @@ pub fn calibrate_detected(
     if observations.len() < MIN_VIEWS {
         let reasons: String = detections
             .iter()
-            .filter_map(|d| d.eo.as_ref().err().map(|e| format!("; frame {}: {e}", d.index)))
+            .filter_map(|d| {
+                d.eo.as_ref()
+                    .err()
+                    .map(|e| format!("; frame {}: {e}", d.index))
+            })
             .take(5)
             .collect();
         return Err(CalibError::TooFewViews {
@@ -195,7 +199,12 @@ pub fn calibrate_detected(
     if paired.is_empty() {
         let mut reasons: Vec<String> = detections
             .iter()
-            .filter_map(|d| d.lidar.as_ref().err().map(|e| format!("frame {}: {e}", d.index)))
+            .filter_map(|d| {
+                d.lidar
+                    .as_ref()
+                    .err()
+                    .map(|e| format!("frame {}: {e}", d.index))
+            })
             .take(4)
             .collect();
         if reasons.is_empty() {

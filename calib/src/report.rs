@@ -42,9 +42,10 @@ pub fn write_report(
 ) -> Result<ReportFiles, ReportError> {
     let dir = path.parent().unwrap_or(Path::new("."));
     std::fs::create_dir_all(dir).map_err(|e| write_error(dir, e))?;
-    let stem = path
-        .file_stem()
-        .map_or_else(|| "report".to_string(), |s| s.to_string_lossy().into_owned());
+    let stem = path.file_stem().map_or_else(
+        || "report".to_string(),
+        |s| s.to_string_lossy().into_owned(),
+    );
     let plot = dir.join(format!("{stem}-residuals.svg"));
     residual_plot(calibration, &plot)?;
     let mut images = Vec::new();
@@ -73,12 +74,11 @@ fn chosen_views(c: &Calibration) -> Vec<usize> {
     if let Some(&first) = views.first() {
         out.push(first);
     }
-    if let Some(worst) = c
-        .eo
-        .per_view
-        .iter()
-        .max_by(|a, b| a.rms_px.total_cmp(&b.rms_px))
-        .map(|v| v.view)
+    if let Some(worst) =
+        c.eo.per_view
+            .iter()
+            .max_by(|a, b| a.rms_px.total_cmp(&b.rms_px))
+            .map(|v| v.view)
         && !out.contains(&worst)
     {
         out.push(worst);
@@ -106,7 +106,9 @@ fn markdown(
     let mut s = String::new();
     let k = &c.eo.intrinsics;
     let sd = &c.eo.intrinsics_std;
-    let names = ["fx (px)", "fy (px)", "cx (px)", "cy (px)", "k1", "k2", "p1", "p2", "k3"];
+    let names = [
+        "fx (px)", "fy (px)", "cx (px)", "cy (px)", "k1", "k2", "p1", "p2", "k3",
+    ];
     let _ = writeln!(s, "# Texel camera calibration\n");
     let _ = writeln!(
         s,
@@ -121,8 +123,15 @@ fn markdown(
     for w in &input.warnings {
         let _ = writeln!(s, "- warning: {w}");
     }
-    let _ = writeln!(s, "## EO camera ({}x{})\n", c.eo.camera.width, c.eo.camera.height);
-    let _ = writeln!(s, "| parameter | estimate | standard deviation |\n|---|---|---|");
+    let _ = writeln!(
+        s,
+        "## EO camera ({}x{})\n",
+        c.eo.camera.width, c.eo.camera.height
+    );
+    let _ = writeln!(
+        s,
+        "| parameter | estimate | standard deviation |\n|---|---|---|"
+    );
     for i in 0..9 {
         let _ = writeln!(s, "| {} | {:.6} | {:.6} |", names[i], k[i], sd[i]);
     }
@@ -144,7 +153,10 @@ fn markdown(
     let (t, q) = texel::pose::pose_to_parts(&l.eo_from_lidar);
     let angles = l.eo_from_lidar.rotation.euler_angles();
     let _ = writeln!(s, "## Lidar and `eo_from_lidar`\n");
-    let _ = writeln!(s, "| quantity | estimate | standard deviation |\n|---|---|---|");
+    let _ = writeln!(
+        s,
+        "| quantity | estimate | standard deviation |\n|---|---|---|"
+    );
     for (a, name) in ["x", "y", "z"].iter().enumerate() {
         let _ = writeln!(
             s,
@@ -266,12 +278,11 @@ fn residual_plot(c: &Calibration, path: &Path) -> Result<(), ReportError> {
     let root = SVGBackend::new(path, (1000, 420)).into_drawing_area();
     root.fill(&WHITE).map_err(|e| err(&e))?;
     let (left, right) = root.split_horizontally(430);
-    let points: Vec<(f64, f64)> = c
-        .eo
-        .per_view
-        .iter()
-        .flat_map(|v| v.residuals.iter().map(|r| (r.2.x, r.2.y)))
-        .collect();
+    let points: Vec<(f64, f64)> =
+        c.eo.per_view
+            .iter()
+            .flat_map(|v| v.residuals.iter().map(|r| (r.2.x, r.2.y)))
+            .collect();
     let extent = points
         .iter()
         .map(|p| p.0.abs().max(p.1.abs()))
@@ -292,17 +303,20 @@ fn residual_plot(c: &Calibration, path: &Path) -> Result<(), ReportError> {
         .draw()
         .map_err(|e| err(&e))?;
     chart
-        .draw_series(points.iter().map(|p| Circle::new(*p, 2, BLUE.mix(0.5).filled())))
+        .draw_series(
+            points
+                .iter()
+                .map(|p| Circle::new(*p, 2, BLUE.mix(0.5).filled())),
+        )
         .map_err(|e| err(&e))?;
     let n = c.eo.per_view.len().max(1);
-    let max_rms = c
-        .eo
-        .per_view
-        .iter()
-        .map(|v| v.rms_px)
-        .chain(c.lidar.per_view.iter().map(|v| v.plane_rms_m * 10.0))
-        .fold(0.01f64, f64::max)
-        * 1.2;
+    let max_rms =
+        c.eo.per_view
+            .iter()
+            .map(|v| v.rms_px)
+            .chain(c.lidar.per_view.iter().map(|v| v.plane_rms_m * 10.0))
+            .fold(0.01f64, f64::max)
+            * 1.2;
     let mut chart = ChartBuilder::on(&right)
         .caption(
             "Per view: EO RMS (px, blue), lidar plane RMS (cm, red)",
@@ -324,21 +338,24 @@ fn residual_plot(c: &Calibration, path: &Path) -> Result<(), ReportError> {
             &BLUE,
         ))
         .map_err(|e| err(&e))?;
-    let lidar_points: Vec<(usize, f64)> = c
-        .eo
-        .per_view
-        .iter()
-        .enumerate()
-        .filter_map(|(k, v)| {
-            c.lidar
-                .per_view
-                .iter()
-                .find(|l| l.view == v.view)
-                .map(|l| (k, l.plane_rms_m * 100.0))
-        })
-        .collect();
+    let lidar_points: Vec<(usize, f64)> =
+        c.eo.per_view
+            .iter()
+            .enumerate()
+            .filter_map(|(k, v)| {
+                c.lidar
+                    .per_view
+                    .iter()
+                    .find(|l| l.view == v.view)
+                    .map(|l| (k, l.plane_rms_m * 100.0))
+            })
+            .collect();
     chart
-        .draw_series(lidar_points.iter().map(|p| Circle::new(*p, 3, RED.filled())))
+        .draw_series(
+            lidar_points
+                .iter()
+                .map(|p| Circle::new(*p, 3, RED.filled())),
+        )
         .map_err(|e| err(&e))?;
     root.present().map_err(|e| err(&e))?;
     Ok(())
@@ -358,7 +375,12 @@ fn cross(img: &mut RgbImage, x: f64, y: f64, r: i64, colour: Rgb<u8>) {
     }
 }
 
-fn draw_eo(c: &Calibration, input: &CalibInput, view: usize, path: &Path) -> Result<(), ReportError> {
+fn draw_eo(
+    c: &Calibration,
+    input: &CalibInput,
+    view: usize,
+    path: &Path,
+) -> Result<(), ReportError> {
     let Some(v) = input.views.get(view) else {
         return Ok(());
     };
@@ -413,10 +435,12 @@ fn draw_lidar(
     if let Some(Ok(board)) = c.detections.get(view).map(|d| &d.lidar) {
         let on: std::collections::HashSet<(u32, u32)> = board.segment.iter().copied().collect();
         for &(u, vv) in &board.segment {
-            let edge = [(1i64, 0i64), (-1, 0), (0, 1), (0, -1)].iter().any(|(du, dv)| {
-                let (a, b) = (i64::from(u) + du, i64::from(vv) + dv);
-                a < 0 || b < 0 || !on.contains(&(a as u32, b as u32))
-            });
+            let edge = [(1i64, 0i64), (-1, 0), (0, 1), (0, -1)]
+                .iter()
+                .any(|(du, dv)| {
+                    let (a, b) = (i64::from(u) + du, i64::from(vv) + dv);
+                    a < 0 || b < 0 || !on.contains(&(a as u32, b as u32))
+                });
             if edge {
                 for dy in 0..S {
                     for dx in 0..S {
@@ -428,7 +452,13 @@ fn draw_lidar(
         if let Some(corners) = &board.corners {
             for (_, _, p) in corners.iter() {
                 let s = f64::from(S);
-                cross(&mut img, (p.x + 0.5) * s - 0.5, (p.y + 0.5) * s - 0.5, 3, Rgb([0, 220, 0]));
+                cross(
+                    &mut img,
+                    (p.x + 0.5) * s - 0.5,
+                    (p.y + 0.5) * s - 0.5,
+                    3,
+                    Rgb([0, 220, 0]),
+                );
             }
         }
     }

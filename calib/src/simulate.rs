@@ -71,16 +71,20 @@ fn plate_corners(target: &TargetConfig) -> Vec<Point3<f64>> {
 
 /// How far inside `camera`'s image (pixels) the plate's corners are at `world_from_camera`;
 /// negative when a corner is outside.
-fn margin_px(camera: &texel::PinholeCamera, world_from_camera: &Pose, corners: &[Point3<f64>]) -> f64 {
+fn margin_px(
+    camera: &texel::PinholeCamera,
+    world_from_camera: &Pose,
+    corners: &[Point3<f64>],
+) -> f64 {
     let inv = world_from_camera.inverse();
     corners
         .iter()
         .map(|p| match camera.project(&(inv * p).coords) {
-            Ok(px) => px
-                .x
-                .min(px.y)
-                .min(f64::from(camera.width) - 1.0 - px.x)
-                .min(f64::from(camera.height) - 1.0 - px.y),
+            Ok(px) => {
+                px.x.min(px.y)
+                    .min(f64::from(camera.width) - 1.0 - px.x)
+                    .min(f64::from(camera.height) - 1.0 - px.y)
+            }
             Err(_) => -1.0e9,
         })
         .fold(f64::INFINITY, f64::min)
@@ -122,7 +126,11 @@ pub fn sample_poses(
         let dir = (facing * tilt.cos() + tip).normalize();
         let eye = centre + dir * dist;
         let aim = centre
-            + Vector3::new(rng.uniform(-look, look), 0.0, rng.uniform(-look, look) * 0.75);
+            + Vector3::new(
+                rng.uniform(-look, look),
+                0.0,
+                rng.uniform(-look, look) * 0.75,
+            );
         let base = sims::trajectory::look_at(eye, aim, Vector3::z());
         let roll = rng.uniform(-15.0, 15.0).to_radians();
         let pose = base * Pose::rotation(Vector3::z() * roll);
@@ -143,7 +151,11 @@ pub fn sample_poses(
 }
 
 /// A simulator of `scene` at its own resolution with its effects (or `effects`).
-pub fn simulator(scene: Scene, seed: u64, effects: Option<Vec<sims::Effect>>) -> Result<Simulator, sims::SimError> {
+pub fn simulator(
+    scene: Scene,
+    seed: u64,
+    effects: Option<Vec<sims::Effect>>,
+) -> Result<Simulator, sims::SimError> {
     Simulator::with_options(
         scene,
         &SimOptions {
@@ -223,7 +235,11 @@ pub fn accuracy(
             views += 1;
         }
     }
-    let held_out_rms_px = if n > 0 { (sum / n as f64).sqrt() } else { f64::NAN };
+    let held_out_rms_px = if n > 0 {
+        (sum / n as f64).sqrt()
+    } else {
+        f64::NAN
+    };
     // The two cameras projecting the true camera's pixel rays, on a 16 x 12 grid.
     let (mut msum, mut mn) = (0.0, 0usize);
     for gy in 0..12 {
@@ -246,7 +262,11 @@ pub fn accuracy(
         focal_error_percent,
         principal_point_error_px,
         held_out_rms_px,
-        model_rms_px: if mn > 0 { (msum / mn as f64).sqrt() } else { f64::NAN },
+        model_rms_px: if mn > 0 {
+            (msum / mn as f64).sqrt()
+        } else {
+            f64::NAN
+        },
         rotation_error_deg: rot.to_degrees(),
         translation_error_mm: trans * 1e3,
         range_bias_mm: calibration.lidar.range_bias_m * 1e3,
@@ -282,8 +302,12 @@ pub fn fusion_errors(sim: &Simulator, sensor: &SensorModel, frames: &[usize]) ->
         let clean = sim.clean_eo_at(&world_from_eo, frame.timestamp_ns);
         let lidar_truth = sim.lidar_truth_at(&world_from_eo);
         let eo_image = frame.pair.eo.clone();
-        let Ok(scan) = texel::fuse(&frame.pair.range, frame.pair.eo, &fuse_sensor, &FuseConfig::default())
-        else {
+        let Ok(scan) = texel::fuse(
+            &frame.pair.range,
+            frame.pair.eo,
+            &fuse_sensor,
+            &FuseConfig::default(),
+        ) else {
             continue;
         };
         let eo_from_world = world_from_eo.inverse();
@@ -308,7 +332,11 @@ pub fn fusion_errors(sim: &Simulator, sensor: &SensorModel, frames: &[usize]) ->
             let Ok(true_px) = truth.eo.project(&true_eo.coords) else {
                 continue;
             };
-            let px = texel::fuse::pixel_of_tex_coord(scan.tex_coords[v], eo_image.width, eo_image.height);
+            let px = texel::fuse::pixel_of_tex_coord(
+                scan.tex_coords[v],
+                eo_image.width,
+                eo_image.height,
+            );
             t2 += (px - true_px).norm_squared();
             let a = sample_rgb(&eo_image, px);
             let b = sample_rgb(&clean, true_px);
@@ -327,16 +355,31 @@ pub fn fusion_errors(sim: &Simulator, sensor: &SensorModel, frames: &[usize]) ->
 /// Bilinear RGB of an EO frame at a pixel-centre coordinate (clamped).
 fn sample_rgb(frame: &texel::EoFrame, p: Vector2<f64>) -> [f64; 3] {
     let (w, h) = (frame.width as f64, frame.height as f64);
-    let x = if p.x.is_finite() { p.x.clamp(0.0, w - 1.0) } else { 0.0 };
-    let y = if p.y.is_finite() { p.y.clamp(0.0, h - 1.0) } else { 0.0 };
+    let x = if p.x.is_finite() {
+        p.x.clamp(0.0, w - 1.0)
+    } else {
+        0.0
+    };
+    let y = if p.y.is_finite() {
+        p.y.clamp(0.0, h - 1.0)
+    } else {
+        0.0
+    };
     let (x0, y0) = (x.floor() as u32, y.floor() as u32);
     let (ax, ay) = (x - f64::from(x0), y - f64::from(y0));
     let get = |u: u32, v: u32| {
         frame
             .pixel(u.min(frame.width - 1), v.min(frame.height - 1))
-            .map_or([0.0; 3], |c| [f64::from(c[0]), f64::from(c[1]), f64::from(c[2])])
+            .map_or([0.0; 3], |c| {
+                [f64::from(c[0]), f64::from(c[1]), f64::from(c[2])]
+            })
     };
-    let (a, b, c, d) = (get(x0, y0), get(x0 + 1, y0), get(x0, y0 + 1), get(x0 + 1, y0 + 1));
+    let (a, b, c, d) = (
+        get(x0, y0),
+        get(x0 + 1, y0),
+        get(x0, y0 + 1),
+        get(x0 + 1, y0 + 1),
+    );
     let mut out = [0.0; 3];
     for k in 0..3 {
         let top = a[k] + (b[k] - a[k]) * ax;

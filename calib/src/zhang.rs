@@ -98,10 +98,7 @@ fn with_centre(homographies: &[Matrix3<f64>], centre: (f64, f64)) -> Option<[f64
     }
     let ata = a.transpose() * &a;
     let eig = SymmetricEigen::new(ata.clone());
-    let (lo, hi) = (
-        eig.eigenvalues.min(),
-        eig.eigenvalues.max(),
-    );
+    let (lo, hi) = (eig.eigenvalues.min(), eig.eigenvalues.max());
     if !(lo > 1.0e-12 * hi && hi > 0.0) {
         return None;
     }

@@ -37,10 +37,17 @@ fn eo_and_lidar_corners_match_the_truth_with_one_board_frame_for_every_view() {
         let matches = match_corners(&corners, &truth);
         let d: Vec<f64> = matches.iter().map(|m| m.2).collect();
         assert!(rms(&d) < 0.15, "view {k}: EO corner RMS {} px", rms(&d));
-        assert!(d.iter().all(|&x| x < 0.5), "view {k}: worst {:?}", d.iter().fold(0.0f64, |a, b| a.max(*b)));
+        assert!(
+            d.iter().all(|&x| x < 0.5),
+            "view {k}: worst {:?}",
+            d.iter().fold(0.0f64, |a, b| a.max(*b))
+        );
         for (ij, t, _) in matches {
             let prev = *frame_map.entry(ij).or_insert(t);
-            assert_eq!(prev, t, "view {k}: corner {ij:?} is a different board corner");
+            assert_eq!(
+                prev, t,
+                "view {k}: corner {ij:?} is a different board corner"
+            );
         }
         // The lidar: plate, plane and intensity corners where the plate is whole.
         if let Ok(board) = detect_lidar_board(&pair.range, &model.lidar, &target, k) {
@@ -49,7 +56,10 @@ fn eo_and_lidar_corners_match_the_truth_with_one_board_frame_for_every_view() {
             let world_from_lidar = pose * model.eo_from_lidar;
             let true_normal = world_from_lidar.inverse().rotation * nalgebra::Vector3::y();
             let angle = n.dot(&true_normal).abs().min(1.0).acos().to_degrees();
-            assert!(angle < 1.0, "view {k}: lidar plane normal off by {angle} deg");
+            assert!(
+                angle < 1.0,
+                "view {k}: lidar plane normal off by {angle} deg"
+            );
             let corners = board.corners.expect("intensity corners");
             let truth = true_pixels(&model.lidar, &world_from_lidar);
             let matches = match_corners(&corners, &truth);
@@ -60,7 +70,10 @@ fn eo_and_lidar_corners_match_the_truth_with_one_board_frame_for_every_view() {
             }
         }
     }
-    assert!(lidar_views >= 2, "the lidar saw the whole plate in {lidar_views} views");
+    assert!(
+        lidar_views >= 2,
+        "the lidar saw the whole plate in {lidar_views} views"
+    );
 }
 
 #[test]
@@ -127,7 +140,9 @@ fn images_without_a_board_are_refused_without_panicking() {
         Err(DetectFailure::NoCorners)
     );
     let mut rng = calib::simulate::Rng::new(5);
-    let noise: Vec<f32> = (0..160 * 120).map(|_| rng.uniform(0.0, 1.0) as f32).collect();
+    let noise: Vec<f32> = (0..160 * 120)
+        .map(|_| rng.uniform(0.0, 1.0) as f32)
+        .collect();
     let noise = GrayImage::new(160, 120, noise).unwrap();
     assert!(detect_board(&noise, &target, &DetectParams::eo(160, 120)).is_err());
     let non_finite = GrayImage::new(64, 48, vec![f32::NAN; 64 * 48]).unwrap();
@@ -149,7 +164,9 @@ fn images_without_a_board_are_refused_without_panicking() {
         .collect();
     let small = GrayImage::new(w, h, data).unwrap().blurred(0.8);
     match detect_board(&small, &target, &DetectParams::eo(w, h)) {
-        Err(DetectFailure::NoGrid { found_x, found_y, .. }) => {
+        Err(DetectFailure::NoGrid {
+            found_x, found_y, ..
+        }) => {
             assert_eq!((found_x, found_y), (6, 4));
         }
         other => panic!("expected NoGrid, got {other:?}"),

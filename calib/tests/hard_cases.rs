@@ -25,7 +25,11 @@ fn strong_barrel_distortion_converges() {
     let input = render_input(&sim, &poses[..12], 0);
     let held = render_input(&sim, &poses[12..], 500);
     let c = run(&input).unwrap();
-    assert!(c.eo_only.converged && c.eo.per_view.len() >= 11, "{} views", c.eo.per_view.len());
+    assert!(
+        c.eo_only.converged && c.eo.per_view.len() >= 11,
+        "{} views",
+        c.eo.per_view.len()
+    );
     let a = accuracy(&c, sim.sensor_model(), &held, &config.target);
     println!("{a:?}");
     assert!(a.focal_error_percent < 0.3, "{a:?}");
@@ -45,7 +49,10 @@ fn boards_near_the_image_border_are_detected_and_calibrate() {
     let input = render_input(&sim, &poses, 0);
     let c = run(&input).unwrap();
     let border_used = c.eo.per_view.iter().filter(|v| v.view < 8).count();
-    assert!(border_used >= 7, "only {border_used} of 8 border views used");
+    assert!(
+        border_used >= 7,
+        "only {border_used} of 8 border views used"
+    );
     assert!(c.eo.rms_px < 0.15, "{}", c.eo.rms_px);
     let truth = &sim.sensor_model().eo;
     assert!((c.sensor.eo.fx - truth.fx).abs() / truth.fx < 0.003);
@@ -68,8 +75,14 @@ fn degenerate_captures_are_refused_naming_the_missing_constraint() {
     let good = sample_poses(&sim, &config.target, 2, PoseStyle::Varied, 10);
     // Two views.
     let (e, m) = message(run(&render_input(&sim, &good, 0)));
-    assert!(matches!(e, CalibError::TooFewViews { usable: 2, .. }), "{m}");
-    assert!(m.contains("at least 3") && m.contains("Capture more views"), "{m}");
+    assert!(
+        matches!(e, CalibError::TooFewViews { usable: 2, .. }),
+        "{m}"
+    );
+    assert!(
+        m.contains("at least 3") && m.contains("Capture more views"),
+        "{m}"
+    );
     // Square-on views only.
     let fronto = sample_poses(&sim, &config.target, 4, PoseStyle::FrontoParallel, 10);
     let (e, m) = message(run(&render_input(&sim, &fronto, 0)));
@@ -79,7 +92,10 @@ fn degenerate_captures_are_refused_naming_the_missing_constraint() {
     let slight = sample_poses(&sim, &config.target, 4, PoseStyle::Tilt(9.0), 10);
     let (e, m) = message(run(&render_input(&sim, &slight, 0)));
     assert!(matches!(e, CalibError::TooLittleTilt { .. }), "{m}");
-    assert!(m.contains("focal length") && m.contains("tilted by 20-45 degrees"), "{m}");
+    assert!(
+        m.contains("focal length") && m.contains("tilted by 20-45 degrees"),
+        "{m}"
+    );
     // The board always cut by the lidar's narrower field of view.
     let cut = sample_poses(&sim, &config.target, 5, PoseStyle::LidarCut, 10);
     let (e, m) = message(run(&render_input(&sim, &cut, 0)));

@@ -51,7 +51,8 @@ pub fn is_edge(image: &GrayImage, p: Vector2<f64>, q: Vector2<f64>, min_step: f3
     let mut first_sign = 0.0f32;
     for (k, t) in [0.35, 0.5, 0.65].into_iter().enumerate() {
         let m = p + d * t;
-        let diff = image.sample(m.x + perp.x, m.y + perp.y) - image.sample(m.x - perp.x, m.y - perp.y);
+        let diff =
+            image.sample(m.x + perp.x, m.y + perp.y) - image.sample(m.x - perp.x, m.y - perp.y);
         if diff.abs() < min_step {
             return false;
         }

@@ -40,7 +40,9 @@ pub fn effects_with_distortion(scale: f64) -> Vec<Effect> {
     .iter()
     .map(|n| Effect::with_defaults(n).unwrap())
     .collect();
-    v.push(Effect::LensDistortion(sims::effects::LensDistortion { scale }));
+    v.push(Effect::LensDistortion(sims::effects::LensDistortion {
+        scale,
+    }));
     v
 }
 

@@ -14,7 +14,11 @@ use indicatif::{ProgressBar, ProgressStyle};
 use texel::SensorModel;
 
 #[derive(Parser)]
-#[command(name = "texel-calib", version, about = "Calibrates a texel camera from a capture of a checkerboard")]
+#[command(
+    name = "texel-calib",
+    version,
+    about = "Calibrates a texel camera from a capture of a checkerboard"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -203,7 +207,13 @@ fn run(
     Ok(())
 }
 
-fn accuracy(scene: &Path, lab: &Path, views: usize, seed: u64, lab_frames: usize) -> anyhow::Result<()> {
+fn accuracy(
+    scene: &Path,
+    lab: &Path,
+    views: usize,
+    seed: u64,
+    lab_frames: usize,
+) -> anyhow::Result<()> {
     if views < 3 {
         bail!("--views must be at least 3");
     }
@@ -218,16 +228,34 @@ fn accuracy(scene: &Path, lab: &Path, views: usize, seed: u64, lab_frames: usize
     let held = simulate::render_input(&sim, &poses[views..], 10_000);
     let calibration = calibrate(&input, &config, &mut |_, _, _| {})?;
     let a = simulate::accuracy(&calibration, sim.sensor_model(), &held, &config.target);
-    println!("calibration from {views} simulated views (seed {seed}), all effects of {}:", scene.display());
-    println!("  focal length error        {:.4} %   (limit 0.2 %)", a.focal_error_percent);
-    println!("  principal point error     {:.3} px  (limit 1 px)", a.principal_point_error_px);
+    println!(
+        "calibration from {views} simulated views (seed {seed}), all effects of {}:",
+        scene.display()
+    );
+    println!(
+        "  focal length error        {:.4} %   (limit 0.2 %)",
+        a.focal_error_percent
+    );
+    println!(
+        "  principal point error     {:.3} px  (limit 1 px)",
+        a.principal_point_error_px
+    );
     println!(
         "  held-out reprojection RMS {:.4} px  (limit 0.2 px; {} held-out views)",
         a.held_out_rms_px, a.held_out_views
     );
-    println!("  EO model difference RMS   {:.3} px  (same rays, whole image)", a.model_rms_px);
-    println!("  extrinsic rotation error  {:.4} deg (limit 0.05 deg)", a.rotation_error_deg);
-    println!("  extrinsic translation err {:.3} mm  (limit 2 mm)", a.translation_error_mm);
+    println!(
+        "  EO model difference RMS   {:.3} px  (same rays, whole image)",
+        a.model_rms_px
+    );
+    println!(
+        "  extrinsic rotation error  {:.4} deg (limit 0.05 deg)",
+        a.rotation_error_deg
+    );
+    println!(
+        "  extrinsic translation err {:.3} mm  (limit 2 mm)",
+        a.translation_error_mm
+    );
     println!(
         "  range bias                {:+.3} mm ± {:.3} (truth 0)",
         a.range_bias_mm,
@@ -248,7 +276,12 @@ fn fusion_check(sensor: &Path, scene: &Path, frames: usize, seed: u64) -> anyhow
     compare_fusion(&model, scene, frames, seed)
 }
 
-fn compare_fusion(model: &SensorModel, scene: &Path, frames: usize, seed: u64) -> anyhow::Result<()> {
+fn compare_fusion(
+    model: &SensorModel,
+    scene: &Path,
+    frames: usize,
+    seed: u64,
+) -> anyhow::Result<()> {
     let sim = simulate::simulator(sims::Scene::load(scene)?, seed, None)?;
     let n = frames.clamp(1, sim.frame_count());
     let step = (sim.frame_count() / n).max(1);
@@ -256,7 +289,11 @@ fn compare_fusion(model: &SensorModel, scene: &Path, frames: usize, seed: u64) -
     let truth = simulate::fusion_errors(&sim, sim.sensor_model(), &list);
     let calibrated = simulate::fusion_errors(&sim, model, &list);
     let ratio = |a: f64, b: f64| if b > 0.0 { a / b } else { f64::INFINITY };
-    println!("fusion of {} frames of {} (rendered with the true sensor):", list.len(), scene.display());
+    println!(
+        "fusion of {} frames of {} (rendered with the true sensor):",
+        list.len(),
+        scene.display()
+    );
     println!("  sensor     point RMS (mm)  texture RMS (px)  colour RMS (8-bit)  points");
     for (name, e) in [("true", truth), ("calibrated", calibrated)] {
         println!(

@@ -54,7 +54,12 @@ fn subset(input: &CalibInput, n: usize) -> CalibInput {
     }
 }
 
-fn measure(input: &CalibInput, held: &CalibInput, config: &CalibConfig, truth: &texel::SensorModel) -> Result<Measured, String> {
+fn measure(
+    input: &CalibInput,
+    held: &CalibInput,
+    config: &CalibConfig,
+    truth: &texel::SensorModel,
+) -> Result<Measured, String> {
     let c = calibrate(input, config, &mut |_, _, _| {}).map_err(|e| e.to_string())?;
     Ok(Measured {
         accuracy: simulate::accuracy(&c, truth, held, &config.target),
@@ -72,7 +77,13 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let scene = sims::Scene::load(&args.scene)?;
     let sim = simulate::simulator(scene, args.seed, None)?;
     let config = CalibConfig::default();
-    let poses = simulate::sample_poses(&sim, &config.target, max_views + 6, PoseStyle::Varied, args.seed);
+    let poses = simulate::sample_poses(
+        &sim,
+        &config.target,
+        max_views + 6,
+        PoseStyle::Varied,
+        args.seed,
+    );
     if poses.len() < max_views + 6 {
         bail!("could not place {} views of the board", max_views + 6);
     }
@@ -135,13 +146,24 @@ fn table(s: &mut String, first: &str, rows: &[Row]) {
                 );
             }
             Err(e) => {
-                let _ = writeln!(s, "| {} | refused: {} |||||||||", r.label, e.replace('|', "/"));
+                let _ = writeln!(
+                    s,
+                    "| {} | refused: {} |||||||||",
+                    r.label,
+                    e.replace('|', "/")
+                );
             }
         }
     }
 }
 
-fn render_section(args: &Args, max_views: usize, render_s: f64, views: &[Row], iterations: &[Row]) -> String {
+fn render_section(
+    args: &Args,
+    max_views: usize,
+    render_s: f64,
+    views: &[Row],
+    iterations: &[Row],
+) -> String {
     let mut s = String::new();
     let _ = writeln!(s, "{BEGIN}");
     let _ = writeln!(s, "## Calibration\n");
@@ -164,7 +186,10 @@ fn render_section(args: &Args, max_views: usize, render_s: f64, views: &[Row], i
     );
     let _ = writeln!(s, "### Number of views (LM limit 100 iterations)\n");
     table(&mut s, "views", views);
-    let _ = writeln!(s, "\n### LM iteration limit ({max_views} views; every stage)\n");
+    let _ = writeln!(
+        s,
+        "\n### LM iteration limit ({max_views} views; every stage)\n"
+    );
     table(&mut s, "iterations", iterations);
     let _ = writeln!(s, "\n{END}");
     s
@@ -179,7 +204,12 @@ pub fn write_section(path: &Path, section: &str) -> anyhow::Result<()> {
     };
     let new = match (old.find(BEGIN), old.find(END)) {
         (Some(b), Some(e)) if e > b => {
-            format!("{}{}{}", &old[..b], section.trim_end(), &old[e + END.len()..])
+            format!(
+                "{}{}{}",
+                &old[..b],
+                section.trim_end(),
+                &old[e + END.len()..]
+            )
         }
         _ if old.trim().is_empty() => format!(
             "# Tradeoffs: what accuracy costs in time\n\nEach section is written by its \
