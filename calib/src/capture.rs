@@ -10,8 +10,9 @@ use texel::capture::{TexelItem, open_texel_frames};
 use crate::error::CalibError;
 use crate::pipeline::{CalibInput, CalibView};
 
-/// More texel frames than this are not read (a target capture needs tens).
-pub const MAX_VIEWS: usize = 2000;
+/// More texel frames than this are not read (a target capture needs tens; 300
+/// frames of 640 x 480 are 280 MB in memory).
+pub const MAX_VIEWS: usize = 300;
 
 /// Reads a capture of the target. A damaged file yields the frames before the
 /// damage, with a warning naming it.

@@ -90,3 +90,24 @@ fn pose_from_homography_refuses_degenerate_input() {
     assert!(zhang::pose_from_homography(&Matrix3::zeros(), [500.0, 500.0, 320.0, 240.0]).is_none());
     assert!(zhang::intrinsics(&[], (0.0, 0.0)).is_none());
 }
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(24))]
+
+    /// Any image, including non-finite values, gives a detection or an error.
+    #[test]
+    fn detection_never_panics_on_arbitrary_images(
+        values in proptest::collection::vec(prop_oneof![
+            -1.0f32..2.0,
+            Just(f32::NAN),
+            Just(f32::INFINITY),
+            Just(0.0f32),
+            Just(1.0f32),
+        ], 48 * 36),
+    ) {
+        let img = calib::gray::GrayImage::new(48, 36, values).unwrap();
+        let target = calib::config::TargetConfig::default();
+        let _ = calib::detect::detect_board(&img, &target, &calib::detect::DetectParams::eo(48, 36));
+        let _ = calib::detect::detect_board(&img, &target, &calib::detect::DetectParams::lidar());
+    }
+}
