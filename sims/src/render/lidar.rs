@@ -119,3 +119,26 @@ pub fn render_range(
         intensity: Some(intensity),
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn echo(reflectivity: f32, cos_incidence: f64) -> SurfaceSample {
+        SurfaceSample {
+            range_m: 2.0,
+            cos_incidence,
+            reflectivity,
+            object: 0,
+        }
+    }
+
+    #[test]
+    fn intensity_is_reflectivity_times_incidence_in_counts() {
+        assert_eq!(intensity_counts(&echo(1.0, 1.0)), INTENSITY_FULL_SCALE);
+        assert_eq!(intensity_counts(&echo(0.5, 0.5)), 2500.0);
+        assert_eq!(intensity_counts(&echo(0.0, 1.0)), 0.0);
+        assert_eq!(intensity_counts(&echo(f32::NAN, 1.0)), 0.0);
+        assert_eq!(intensity_counts(&echo(2.0, 1.0)), INTENSITY_FULL_SCALE);
+    }
+}
