@@ -134,7 +134,7 @@ impl Default for SolverConfig {
             estimate_lidar_intrinsics: false,
             estimate_range_bias: true,
             max_lidar_points_per_view: 400,
-            max_focal_relative_std: 0.005,
+            max_focal_relative_std: 0.002,
         }
     }
 }

@@ -65,10 +65,7 @@ pub struct EoSolution {
 }
 
 /// Board-plane points and pixels of an observation.
-fn correspondences(
-    corners: &BoardCorners,
-    target: &TargetConfig,
-) -> ViewData {
+fn correspondences(corners: &BoardCorners, target: &TargetConfig) -> ViewData {
     let mut ids = Vec::new();
     let mut plane = Vec::new();
     let mut image = Vec::new();

@@ -147,12 +147,25 @@ fn lidar_intrinsics_are_estimated_when_asked() {
     let l = &c.lidar.lidar;
     let sd = c.lidar.lidar_intrinsics_std.unwrap();
     println!("{l:?} ± {sd:?}");
-    assert!((l.fx - truth.fx).abs() / truth.fx < 0.003, "fx {} vs {}", l.fx, truth.fx);
-    assert!((l.fy - truth.fy).abs() / truth.fy < 0.003, "fy {} vs {}", l.fy, truth.fy);
+    assert!(
+        (l.fx - truth.fx).abs() / truth.fx < 0.003,
+        "fx {} vs {}",
+        l.fx,
+        truth.fx
+    );
+    assert!(
+        (l.fy - truth.fy).abs() / truth.fy < 0.003,
+        "fy {} vs {}",
+        l.fy,
+        truth.fy
+    );
     // The principal point trades against the extrinsic's rotation (a shift of d px is
     // a turn of d / f): it is recovered only to its stated uncertainty.
     for (est, t, s) in [(l.cx, truth.cx, sd[2]), (l.cy, truth.cy, sd[3])] {
-        assert!((est - t).abs() < 1.0 && (est - t).abs() < 4.0 * s, "{est} vs {t} ± {s}");
+        assert!(
+            (est - t).abs() < 1.0 && (est - t).abs() < 4.0 * s,
+            "{est} vs {t} ± {s}"
+        );
     }
     assert!((l.fx - truth.fx).abs() < 4.0 * sd[0] + 0.05);
     assert_eq!(c.sensor.lidar.fx, l.fx);

@@ -11,6 +11,9 @@ use thiserror::Error;
 use crate::config::TargetConfig;
 use crate::gray::GrayImage;
 
+/// Largest move of a corner when it is refined again with the square-sized window.
+const MAX_RESCALED_SHIFT_PX: f64 = 0.25;
+
 /// Scale parameters of the detector.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct DetectParams {
@@ -171,7 +174,20 @@ pub fn detect_board(
                 corners[j as usize * nx + i as usize] = Some(cands[k].p);
             }
         }
-        return Ok(BoardCorners { nx, ny, corners });
+        let mut board = BoardCorners { nx, ny, corners };
+        // Step 4: refine again with a window scaled to the squares (about a third of
+        // a square): more gradient pixels, less noise, still inside the four squares.
+        // A corner whose larger window takes in something else (an occluder's edge)
+        // moves further than noise would move it, and keeps its first position.
+        let window = (0.3 * board.spacing_px()).round().clamp(2.0, 12.0) as usize;
+        if window > params.half_window_px {
+            for c in board.corners.iter_mut().flatten() {
+                if let Some(p) = saddle::refine(&gx, &gy, *c, window, MAX_RESCALED_SHIFT_PX) {
+                    *c = p;
+                }
+            }
+        }
+        return Ok(board);
     }
     Err(DetectFailure::NoGrid {
         nx: nx.max(ny),

@@ -52,7 +52,7 @@ enum Command {
         #[arg(long, default_value = "configs/scenes/lab.toml")]
         lab: PathBuf,
         /// Calibration views (plus 6 held-out views).
-        #[arg(long, default_value_t = 20)]
+        #[arg(long, default_value_t = 40)]
         views: usize,
         #[arg(long, default_value_t = 1)]
         seed: u64,
