@@ -129,6 +129,7 @@ pub fn calibrate_eo(
         });
     }
     let k = init.ok_or(CalibError::TooLittleTilt {
+        views: observations.len(),
         relative_std_percent: f64::INFINITY,
         limit_percent: solver.max_focal_relative_std * 100.0,
         max_tilt_deg: max_tilt,
@@ -222,6 +223,7 @@ pub fn calibrate_eo(
     let focal_rel = (intrinsics_std[0] / intrinsics[0]).max(intrinsics_std[1] / intrinsics[1]);
     if !(focal_rel <= solver.max_focal_relative_std) {
         return Err(CalibError::TooLittleTilt {
+            views: observations.len(),
             relative_std_percent: focal_rel * 100.0,
             limit_percent: solver.max_focal_relative_std * 100.0,
             max_tilt_deg: max_tilt,

@@ -33,12 +33,14 @@ pub enum CalibError {
     )]
     FrontoParallel { views: usize, max_tilt_deg: f64 },
     #[error(
-        "too little tilt to fix the focal length: its standard deviation would be \
-         {relative_std_percent:.2} % of f (limit {limit_percent:.2} %) with the largest \
-         board tilt at {max_tilt_deg:.1} degrees. Add views with the board tilted by \
-         20-45 degrees, about both its horizontal and its vertical axis"
+        "too little tilt to fix the focal length: with {views} views whose largest board \
+         tilt is {max_tilt_deg:.1} degrees, its standard deviation would be \
+         {relative_std_percent:.2} % of f (limit {limit_percent:.2} %). Add views with the \
+         board tilted by 20-45 degrees, about both its horizontal and its vertical axis \
+         (more such views if the board was already tilted that much)"
     )]
     TooLittleTilt {
+        views: usize,
         relative_std_percent: f64,
         limit_percent: f64,
         max_tilt_deg: f64,

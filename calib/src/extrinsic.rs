@@ -450,7 +450,7 @@ fn joint_problem(
         let inv = 1.0 / sigmas[CLASS_PLANE];
         let base_camera = PinholeCamera {
             distortion: lidar_distortion,
-            ..p_camera_placeholder()
+            ..camera_shell()
         };
         blocks.push(Block {
             params: params.clone(),
@@ -518,7 +518,7 @@ fn joint_problem(
 }
 
 /// A camera shell whose intrinsics each evaluation overwrites.
-fn p_camera_placeholder() -> PinholeCamera {
+fn camera_shell() -> PinholeCamera {
     PinholeCamera {
         width: 1,
         height: 1,
