@@ -237,8 +237,17 @@ fn accuracy(
         a.focal_error_percent
     );
     println!(
-        "  principal point error     {:.3} px  (limit 1 px)",
-        a.principal_point_error_px
+        "  principal point error     {:.3} px  (limit 1 px; cx {:+.3}, cy {:+.3})",
+        a.principal_point_error_px,
+        calibration.sensor.eo.cx - sim.sensor_model().eo.cx,
+        calibration.sensor.eo.cy - sim.sensor_model().eo.cy
+    );
+    println!(
+        "    (EO-only stage: cx {:+.3}, cy {:+.3}; standard deviations {:.3}, {:.3})",
+        calibration.eo_only.intrinsics[2] - sim.sensor_model().eo.cx,
+        calibration.eo_only.intrinsics[3] - sim.sensor_model().eo.cy,
+        calibration.eo.intrinsics_std[2],
+        calibration.eo.intrinsics_std[3]
     );
     println!(
         "  held-out reprojection RMS {:.4} px  (limit 0.2 px; {} held-out views)",
