@@ -133,7 +133,7 @@ where
             y1 = y1.max(*y);
         }
     }
-    if !(x0 < f64::MAX) {
+    if x0 >= f64::MAX {
         (x0, x1, y0, y1) = (0.1, 10.0, 0.1, 10.0);
     }
     // Log axes with some room around the points.
