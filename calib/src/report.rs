@@ -275,6 +275,8 @@ fn markdown(
 
 fn residual_plot(c: &Calibration, path: &Path) -> Result<(), ReportError> {
     let err = |e: &dyn std::fmt::Display| write_error(path, e);
+    // The plot's text needs the shared chart font registered with plotters.
+    texel_plots::ensure_font().map_err(|e| err(&e))?;
     let root = SVGBackend::new(path, (1000, 420)).into_drawing_area();
     root.fill(&WHITE).map_err(|e| err(&e))?;
     let (left, right) = root.split_horizontally(430);
@@ -290,7 +292,7 @@ fn residual_plot(c: &Calibration, path: &Path) -> Result<(), ReportError> {
         .min(50.0)
         * 1.1;
     let mut chart = ChartBuilder::on(&left)
-        .caption("EO reprojection residuals (px)", ("sans-serif", 18))
+        .caption("EO reprojection residuals (px)", (texel_plots::FAMILY, 18))
         .margin(12)
         .x_label_area_size(30)
         .y_label_area_size(45)
@@ -320,7 +322,7 @@ fn residual_plot(c: &Calibration, path: &Path) -> Result<(), ReportError> {
     let mut chart = ChartBuilder::on(&right)
         .caption(
             "Per view: EO RMS (px, blue), lidar plane RMS (cm, red)",
-            ("sans-serif", 18),
+            (texel_plots::FAMILY, 18),
         )
         .margin(12)
         .x_label_area_size(30)
