@@ -35,7 +35,14 @@ fn every_shipped_scene_loads_and_renders() {
     names.sort();
     assert_eq!(
         names,
-        ["calib-target", "corridor", "courtyard", "lab", "plane"]
+        [
+            "backend-check",
+            "calib-target",
+            "corridor",
+            "courtyard",
+            "lab",
+            "plane"
+        ]
     );
 }
 
