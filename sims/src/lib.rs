@@ -64,6 +64,7 @@ pub mod material;
 pub mod render;
 pub mod rng;
 pub mod scene;
+pub mod serial;
 pub mod simulator;
 pub mod texture_gen;
 pub mod trajectory;

@@ -1,5 +1,5 @@
-//! `texel-sims`: render simulated captures, clean views, list effects, generate
-//! textures.
+//! `texel-sims`: render simulated captures, clean views, list effects, benchmark,
+//! serve a virtual serial lidar, generate textures.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -12,6 +12,7 @@ use sims::{BackendKind, CaptureOptions, Scene, SimOptions, Simulator, render_cap
 use texel::PinholeCamera;
 
 mod cli_backends;
+mod cli_serial;
 
 #[derive(Parser)]
 #[command(name = "texel-sims", version, about = "The simulated texel camera")]
@@ -82,6 +83,9 @@ enum Command {
         #[arg(long)]
         mitsuba: bool,
     },
+    /// Serve the scene's lidar frames as a virtual TXL1 serial device (a new
+    /// pseudo-terminal whose path is printed, or --tty), with fault injection.
+    ServeSerial(cli_serial::ServeSerial),
     /// Write the procedural mural texture as a PNG.
     Texture {
         #[arg(long)]
@@ -125,6 +129,7 @@ fn main() -> Result<()> {
             }
             Ok(())
         }
+        Command::ServeSerial(args) => cli_serial::serve_serial(&args),
         Command::Effects => {
             print_effects();
             Ok(())
