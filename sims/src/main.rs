@@ -372,7 +372,7 @@ fn print_effects() {
             sims::effects::Target::Optics => "lidar + EO",
         };
         let needs = if doc.needs_mitsuba {
-            ", needs the Mitsuba backend (selects it)"
+            "; needs the Mitsuba backend, which it selects"
         } else {
             ""
         };
