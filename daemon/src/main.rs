@@ -4,6 +4,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
+use texel_daemon::cli::{self, RunOverrides};
 
 #[derive(Parser)]
 #[command(name = "texeld", version, about = "The Texel daemon and capture tools")]
@@ -14,6 +15,48 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    /// Run a session from a TOML session file (configs/sessions/*.toml): sources,
+    /// pipeline, recording and the viewer stream, until SIGINT/SIGTERM (or the end of
+    /// a replay when the session says so).
+    Run {
+        #[arg(long)]
+        config: PathBuf,
+        #[command(flatten)]
+        overrides: RunOverrides,
+    },
+    /// Replay a capture through the pipeline, placing each scan at the capture's
+    /// /texel/pose (else /truth/pose), serving viewers and optionally recording the
+    /// result; exits at the end of the capture.
+    Replay {
+        /// The capture (MCAP) file.
+        capture: PathBuf,
+        /// Times real time.
+        #[arg(long, conflicts_with = "fast", default_value_t = 1.0)]
+        speed: f64,
+        /// As fast as the pipeline goes.
+        #[arg(long)]
+        fast: bool,
+        /// Record the replayed frames and the poses to this capture.
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// A session file for every other setting.
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Keep serving the model after the capture ends, until SIGINT/SIGTERM.
+        #[arg(long)]
+        stay: bool,
+        #[command(flatten)]
+        overrides: RunOverrides,
+    },
+    /// Measure the daemon on a capture: replay --fast speed against real time,
+    /// end-to-end latency (frame in -> scan at a client) at x1, memory per scan.
+    Bench {
+        /// The capture (MCAP) file.
+        capture: PathBuf,
+        /// Replay speed for the latency run.
+        #[arg(long, default_value_t = 1.0)]
+        speed: f64,
+    },
     /// Show what a capture holds: topics, message counts, duration, frame sizes,
     /// calibrations and the sensor JSON; report damage and spec violations.
     Info {
@@ -37,11 +80,64 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
     },
+    /// Register a capture offline: write a copy with /texel/pose for every registered
+    /// frame, and optionally a JSON report (status, time, fitness, errors vs truth).
+    Register {
+        /// The capture (MCAP) file.
+        capture: PathBuf,
+        #[arg(long)]
+        out: PathBuf,
+        /// TOML overrides of the registration defaults.
+        #[arg(long)]
+        config: Option<PathBuf>,
+        #[arg(long)]
+        report: Option<PathBuf>,
+    },
+    /// Regenerate a section of docs/tradeoffs.md (what accuracy costs in time) from
+    /// measurements on simulator captures.
+    Tradeoffs {
+        #[arg(value_enum)]
+        section: texel_daemon::tradeoffs::Section,
+        /// Fewer frames and settings, for a quick look.
+        #[arg(long)]
+        quick: bool,
+        /// The repository root (default: the current directory).
+        #[arg(long, default_value = ".")]
+        repo: PathBuf,
+        /// Where rendered captures are kept between runs.
+        #[arg(long, default_value = "target/tradeoffs-cache")]
+        cache: PathBuf,
+        /// The Python with Open3D (default: the venv of scripts/setup.sh).
+        #[arg(long)]
+        python: Option<PathBuf>,
+    },
 }
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
     match cli.command {
+        Command::Run { config, overrides } => cli::run_command(Some(&config), None, &overrides),
+        Command::Replay {
+            capture,
+            speed,
+            fast,
+            out,
+            config,
+            stay,
+            mut overrides,
+        } => {
+            if out.is_some() {
+                overrides.record = out;
+            }
+            let replay = cli::ReplayArgs {
+                capture,
+                speed,
+                fast,
+                stay,
+            };
+            cli::run_command(config.as_deref(), Some(replay), &overrides)
+        }
+        Command::Bench { capture, speed } => cli::bench_command(&capture, speed),
         Command::Info { capture } => match texel_daemon::info::summarize(&capture) {
             Ok(summary) => {
                 print!("{summary}");
@@ -83,5 +179,28 @@ fn main() -> ExitCode {
                 ExitCode::FAILURE
             }
         },
+        Command::Register {
+            capture,
+            out,
+            config,
+            report,
+        } => texel_daemon::register_cli::run(&capture, &out, config.as_deref(), report.as_deref()),
+        Command::Tradeoffs {
+            section,
+            quick,
+            repo,
+            cache,
+            python,
+        } => {
+            let paths = texel_daemon::tradeoffs::Paths { repo, cache };
+            let options = texel_daemon::tradeoffs::RunOptions { quick, python };
+            match texel_daemon::tradeoffs::run(section, &paths, &options) {
+                Ok(()) => ExitCode::SUCCESS,
+                Err(e) => {
+                    eprintln!("texeld tradeoffs: {e:#}");
+                    ExitCode::FAILURE
+                }
+            }
+        }
     }
 }
