@@ -126,9 +126,12 @@ fn per_scan(c: &mut Criterion) {
     let sequence = data::sequence(
         &repo.join("configs/scenes"),
         &repo.join("target/tradeoffs-cache"),
-        "lab-walk",
-        24,
-        1,
+        &data::SequenceSpec {
+            scene: "lab-walk",
+            frames: 24,
+            seed: 1,
+            orbit_period_frames: None,
+        },
     )
     .unwrap();
     let pool = one_thread();

@@ -43,7 +43,7 @@ fn open3d_and_texel_agree_on_a_room_pair() {
     )
     .unwrap();
     assert!(version.starts_with("0."), "{version}");
-    let ours = run_texel(&pairs, &AlignConfig::default(), 1);
+    let ours = run_texel(&pairs, "defaults", &AlignConfig::default(), 1);
     let (o, t) = (&ours[0], &theirs[0]);
     assert!(o.ok);
     // Both moved from 3 degrees / 50 mm to the truth...
