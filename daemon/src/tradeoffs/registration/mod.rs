@@ -141,7 +141,11 @@ pub fn run(paths: &Paths, options: &RunOptions) -> Result<String> {
         graph,
     };
     // Step 5: figures, raw results and the Markdown.
-    let figures = paths.figures();
+    let figures = if quick {
+        paths.quick_dir()
+    } else {
+        paths.figures()
+    };
     std::fs::create_dir_all(&figures)
         .with_context(|| format!("cannot create {}", figures.display()))?;
     let stem = figures.join(if quick {
