@@ -4,6 +4,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
+use texel_daemon::cli::{self, RunOverrides};
 
 #[derive(Parser)]
 #[command(name = "texeld", version, about = "The Texel daemon and capture tools")]
@@ -14,6 +15,48 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    /// Run a session from a TOML session file (configs/sessions/*.toml): sources,
+    /// pipeline, recording and the viewer stream, until SIGINT/SIGTERM (or the end of
+    /// a replay when the session says so).
+    Run {
+        #[arg(long)]
+        config: PathBuf,
+        #[command(flatten)]
+        overrides: RunOverrides,
+    },
+    /// Replay a capture through the pipeline, placing each scan at the capture's
+    /// /texel/pose (else /truth/pose), serving viewers and optionally recording the
+    /// result; exits at the end of the capture.
+    Replay {
+        /// The capture (MCAP) file.
+        capture: PathBuf,
+        /// Times real time.
+        #[arg(long, conflicts_with = "fast", default_value_t = 1.0)]
+        speed: f64,
+        /// As fast as the pipeline goes.
+        #[arg(long)]
+        fast: bool,
+        /// Record the replayed frames and the poses to this capture.
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// A session file for every other setting.
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Keep serving the model after the capture ends, until SIGINT/SIGTERM.
+        #[arg(long)]
+        stay: bool,
+        #[command(flatten)]
+        overrides: RunOverrides,
+    },
+    /// Measure the daemon on a capture: replay --fast speed against real time,
+    /// end-to-end latency (frame in -> scan at a client) at x1, memory per scan.
+    Bench {
+        /// The capture (MCAP) file.
+        capture: PathBuf,
+        /// Replay speed for the latency run.
+        #[arg(long, default_value_t = 1.0)]
+        speed: f64,
+    },
     /// Show what a capture holds: topics, message counts, duration, frame sizes,
     /// calibrations and the sensor JSON; report damage and spec violations.
     Info {
@@ -73,6 +116,28 @@ enum Command {
 fn main() -> ExitCode {
     let cli = Cli::parse();
     match cli.command {
+        Command::Run { config, overrides } => cli::run_command(Some(&config), None, &overrides),
+        Command::Replay {
+            capture,
+            speed,
+            fast,
+            out,
+            config,
+            stay,
+            mut overrides,
+        } => {
+            if out.is_some() {
+                overrides.record = out;
+            }
+            let replay = cli::ReplayArgs {
+                capture,
+                speed,
+                fast,
+                stay,
+            };
+            cli::run_command(config.as_deref(), Some(replay), &overrides)
+        }
+        Command::Bench { capture, speed } => cli::bench_command(&capture, speed),
         Command::Info { capture } => match texel_daemon::info::summarize(&capture) {
             Ok(summary) => {
                 print!("{summary}");

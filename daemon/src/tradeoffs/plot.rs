@@ -133,7 +133,7 @@ where
             y1 = y1.max(*y);
         }
     }
-    if y0 == f64::MAX {
+    if y0 >= f64::MAX {
         (x1, y0, y1) = (10.0, 0.1, 10.0);
     }
     // A linear time axis from 0 and a logarithmic error axis, with some room.
