@@ -5,8 +5,9 @@
 //! - per scan: `Registrar::register` over a 128x128 `lab-walk` sequence;
 //! - the in-run baseline: building one 128x128 pyramid (points, normals, levels).
 //!
-//! Prints each median and its ratio to the baseline measured in the same run (the
-//! machine is shared: ratios travel better than times). The Open3D ratio comes from
+//! Times are CPU time of the process (`CLOCK_PROCESS_CPUTIME_ID`), which a shared,
+//! loaded machine inflates less than wall time. Prints each median and its ratio to
+//! the baseline measured in the same run (ratios travel better than times). The Open3D ratio comes from
 //! `texeld tradeoffs registration`, which runs both on the same pairs.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
@@ -14,9 +15,10 @@ use std::collections::BTreeMap;
 use std::hint::black_box;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use criterion::{Criterion, criterion_group};
+use texel_daemon::register::clock::process_cpu_time;
 use texel_daemon::register::{
     AlignConfig, PyramidOptions, Registrar, RegistrationConfig, ScanPyramid, align_pair,
 };
@@ -28,6 +30,11 @@ static TIMES: Mutex<BTreeMap<&'static str, Vec<f64>>> = Mutex::new(BTreeMap::new
 fn record(name: &'static str, total: Duration, iters: u64) {
     let per = total.as_secs_f64() * 1000.0 / iters.max(1) as f64;
     TIMES.lock().unwrap().entry(name).or_default().push(per);
+}
+
+/// CPU time so far (zero where the clock is not available: then every time is 0).
+fn cpu() -> Duration {
+    process_cpu_time().unwrap_or_default()
 }
 
 fn repo() -> PathBuf {
@@ -67,7 +74,7 @@ fn pairwise(c: &mut Criterion) {
     group.sample_size(30);
     group.bench_function("baseline: pyramid build 128x128", |b| {
         b.iter_custom(|iters| {
-            let start = Instant::now();
+            let start = cpu();
             pool.install(|| {
                 for _ in 0..iters {
                     black_box(ScanPyramid::build_with(
@@ -77,27 +84,27 @@ fn pairwise(c: &mut Criterion) {
                     ));
                 }
             });
-            let t = start.elapsed();
+            let t = cpu().saturating_sub(start);
             record("baseline: pyramid build 128x128", t, iters);
             t
         })
     });
     group.bench_function("pairwise 16k: align", |b| {
         b.iter_custom(|iters| {
-            let start = Instant::now();
+            let start = cpu();
             pool.install(|| {
                 for _ in 0..iters {
                     black_box(align_pair(&source, &target, &pair.initial, &config));
                 }
             });
-            let t = start.elapsed();
+            let t = cpu().saturating_sub(start);
             record("pairwise 16k: align", t, iters);
             t
         })
     });
     group.bench_function("pairwise 16k: both pyramids + align", |b| {
         b.iter_custom(|iters| {
-            let start = Instant::now();
+            let start = cpu();
             pool.install(|| {
                 for _ in 0..iters {
                     let t = ScanPyramid::build_with(
@@ -113,7 +120,7 @@ fn pairwise(c: &mut Criterion) {
                     black_box(align_pair(&s, &t, &pair.initial, &config));
                 }
             });
-            let t = start.elapsed();
+            let t = cpu().saturating_sub(start);
             record("pairwise 16k: both pyramids + align", t, iters);
             t
         })
@@ -126,9 +133,12 @@ fn per_scan(c: &mut Criterion) {
     let sequence = data::sequence(
         &repo.join("configs/scenes"),
         &repo.join("target/tradeoffs-cache"),
-        "lab-walk",
-        24,
-        1,
+        &data::SequenceSpec {
+            scene: "lab-walk",
+            frames: 24,
+            seed: 1,
+            orbit_period_frames: None,
+        },
     )
     .unwrap();
     let pool = one_thread();
@@ -148,9 +158,9 @@ fn per_scan(c: &mut Criterion) {
                         if done == iters {
                             break;
                         }
-                        let start = Instant::now();
+                        let start = cpu();
                         black_box(reg.register(Arc::clone(scan), &sequence.lidar));
-                        total += start.elapsed();
+                        total += cpu().saturating_sub(start);
                         done += 1;
                     }
                 }
@@ -180,7 +190,7 @@ fn main() {
     else {
         return;
     };
-    println!("\nmedians on one core, and their ratio to the baseline (pyramid build):");
+    println!("\nmedian CPU times on one core, and their ratio to the baseline (pyramid build):");
     for (name, v) in times.iter() {
         let m = median(v);
         println!("  {name:<42} {m:>8.3} ms  {:>6.2} x baseline", m / baseline);

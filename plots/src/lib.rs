@@ -140,27 +140,27 @@ where
     root.fill(&WHITE).map_err(err)?;
     let all = || series.iter().flat_map(|s| s.points.iter());
     let positive = |v: f64| v.is_finite() && v > 0.0;
-    let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+    let (mut x1, mut y0, mut y1) = (f64::MIN, f64::MAX, f64::MIN);
     for (x, y, _) in all() {
         if positive(*x) && positive(*y) {
-            x0 = x0.min(*x);
             x1 = x1.max(*x);
             y0 = y0.min(*y);
             y1 = y1.max(*y);
         }
     }
-    if x0 >= f64::MAX {
-        (x0, x1, y0, y1) = (0.1, 10.0, 0.1, 10.0);
+    if y0 >= f64::MAX {
+        (x1, y0, y1) = (10.0, 0.1, 10.0);
     }
-    // Log axes with some room around the points.
-    let (x0, x1) = (x0 / 1.5, x1 * 1.5);
+    // A linear time axis from 0 (costs compare by difference) and a logarithmic error
+    // axis, with some room.
+    let (x0, x1) = (0.0, x1 * 1.1);
     let (y0, y1) = (y0 / 1.5, y1 * 1.5);
     let mut chart = ChartBuilder::on(root)
         .caption(title, (FAMILY, 22))
         .margin(15)
         .x_label_area_size(45)
         .y_label_area_size(70)
-        .build_cartesian_2d((x0..x1).log_scale(), (y0..y1).log_scale())
+        .build_cartesian_2d(x0..x1, (y0..y1).log_scale())
         .map_err(err)?;
     chart
         .configure_mesh()

@@ -49,6 +49,8 @@ pub fn align_pair(
 
 /// Aligns `source` against `targets` (each source point pairs with the nearest
 /// target point it projects onto), starting from `initial` (`world_from_source`).
+/// At most [`MAX_TARGETS`] targets are used (the first ones); the registrar's window
+/// is validated to that size.
 ///
 /// The recipe, per pyramid level from coarse to fine:
 /// 1. move the source samples by the current estimate and pair them by projective
@@ -73,6 +75,7 @@ pub fn align(
     initial: &Pose,
     config: &AlignConfig,
 ) -> Alignment {
+    let targets = &targets[..targets.len().min(MAX_TARGETS)];
     let levels = source
         .level_count()
         .min(config.pyramid_levels.max(1) as usize);
@@ -240,8 +243,8 @@ struct Outcome {
     converged_at: Option<Evaluation>,
 }
 
-/// Most targets per evaluation with per-target sums on the stack.
-const MAX_TARGETS: usize = 16;
+/// Most targets per alignment (per-target sums live on the stack).
+pub const MAX_TARGETS: usize = 16;
 
 impl<'a> Problem<'a> {
     fn new(

@@ -3,17 +3,19 @@
 //! information matrix), optimised by Gauss-Newton with Levenberg-Marquardt damping
 //! on SE(3) (Grisetti et al. 2010, "A tutorial on graph-based SLAM", Sec. IV).
 //!
-//! Cost: each iteration assembles the sparse `6N x 6N` normal matrix in O(E) and
-//! factors it with a sparse Cholesky (nalgebra-sparse) in the scans' time order.
-//! Odometry edges only reach a few keyframes back, so without loops the factor is
-//! banded and an iteration costs O(N); a loop edge spanning `k` scans fills the factor
-//! over those `k` scans, so revisits cost O(N · k) in the worst case.
+//! Cost: each iteration assembles the `6N x 6N` normal matrix in O(E) into its
+//! envelope in the scans' time order and factors it there (`envelope.rs`): row `r`
+//! costs its width times its overlap with the rows it meets. Odometry edges reach
+//! only the keyframe window back, so without loops the factor is banded and an
+//! iteration is O(N). A loop edge from scan `j` back to scan `i` widens the rows of
+//! `j` to `j - i` blocks: a walk that closes one loop at its end adds O(N) per row
+//! after the revisit; a walk that keeps revisiting ground `k` scans back costs
+//! O(N · k²) an iteration.
 
-use nalgebra::{DMatrix, Matrix6, Vector6};
-use nalgebra_sparse::factorization::CscCholesky;
-use nalgebra_sparse::{CooMatrix, CscMatrix};
+use nalgebra::{Matrix6, Vector6};
 use texel::Pose;
 
+use super::envelope::Envelope;
 use super::se3;
 
 /// A relative-pose measurement `node_from_other = T_i⁻¹ T_j`.
@@ -153,12 +155,22 @@ impl PoseGraph {
     }
 
     /// One damped Gauss-Newton step for nodes 1..N (node 0 fixed), `None` if the
-    /// system could not be factored.
+    /// system could not be factored. The normal matrix is assembled straight into
+    /// its lower envelope in time order (each node's rows start at its oldest
+    /// neighbour) and factored there.
     fn step(&self, damping: f64) -> Option<Vec<f64>> {
         let n = self.poses.len();
         let dim = 6 * (n - 1);
-        let mut blocks: std::collections::BTreeMap<(usize, usize), Matrix6<f64>> =
-            std::collections::BTreeMap::new();
+        // Oldest neighbour of each node (itself when none is older).
+        let mut oldest: Vec<usize> = (0..n).collect();
+        for edge in &self.edges {
+            let (lo, hi) = (edge.i.min(edge.j), edge.i.max(edge.j));
+            if lo >= 1 {
+                oldest[hi] = oldest[hi].min(lo);
+            }
+        }
+        let start: Vec<usize> = (0..dim).map(|r| 6 * (oldest[r / 6 + 1] - 1)).collect();
+        let mut h = Envelope::zeros(start);
         let mut b = vec![0.0; dim];
         for edge in &self.edges {
             let e = self.residual(edge);
@@ -176,38 +188,34 @@ impl PoseGraph {
                     b[6 * (a - 1) + r] -= g[r];
                 }
                 for &(c, jc) in &parts {
-                    if c == 0 {
+                    // Lower triangle only: each block pair once.
+                    if c == 0 || c > a {
                         continue;
                     }
                     let block = ja.transpose() * omega * jc;
-                    *blocks.entry((a, c)).or_insert_with(Matrix6::zeros) += block;
-                }
-            }
-        }
-        let mut coo = CooMatrix::new(dim, dim);
-        for k in 1..n {
-            // Damping (and a floor, so nodes with no edges stay put).
-            let entry = blocks.entry((k, k)).or_insert_with(Matrix6::zeros);
-            let scale = (0..6).map(|r| entry[(r, r)]).fold(0.0f64, f64::max);
-            for r in 0..6 {
-                entry[(r, r)] += damping * scale.max(1.0) + 1.0e-9;
-            }
-        }
-        for ((a, c), block) in &blocks {
-            for r in 0..6 {
-                for s in 0..6 {
-                    let v = block[(r, s)];
-                    if v != 0.0 {
-                        coo.push(6 * (a - 1) + r, 6 * (c - 1) + s, v);
+                    for r in 0..6 {
+                        for q in 0..6 {
+                            let (row, col) = (6 * (a - 1) + r, 6 * (c - 1) + q);
+                            if c < a || q <= r {
+                                h.add(row, col, block[(r, q)]);
+                            }
+                        }
                     }
                 }
             }
         }
-        let csc = CscMatrix::from(&coo);
-        let chol = CscCholesky::factor(&csc).ok()?;
-        let rhs = DMatrix::from_column_slice(dim, 1, &b);
-        let x = chol.solve(&rhs);
-        let out: Vec<f64> = x.iter().copied().collect();
+        for k in 1..n {
+            // Damping (and a floor, so nodes with no edges stay put).
+            let base = 6 * (k - 1);
+            let scale = (0..6)
+                .map(|r| h.get(base + r, base + r))
+                .fold(0.0f64, f64::max);
+            for r in 0..6 {
+                h.add(base + r, base + r, damping * scale.max(1.0) + 1.0e-9);
+            }
+        }
+        let factor = h.cholesky()?;
+        let out = factor.solve(&b);
         out.iter().all(|c| c.is_finite()).then_some(out)
     }
 }

@@ -12,6 +12,7 @@ pub mod align;
 pub mod associate;
 pub mod clock;
 pub mod config;
+pub mod envelope;
 pub mod graph;
 pub mod kernel;
 pub mod motion;

@@ -44,6 +44,11 @@ impl Paths {
         self.repo.join("docs").join("tradeoffs")
     }
 
+    /// Where a quick run writes its section and figures.
+    pub fn quick_dir(&self) -> PathBuf {
+        self.cache.join("quick")
+    }
+
     pub fn scenes(&self) -> PathBuf {
         self.repo.join("configs").join("scenes")
     }
@@ -52,18 +57,26 @@ impl Paths {
 /// Options every section understands.
 #[derive(Debug, Clone)]
 pub struct RunOptions {
-    /// A smaller sweep on fewer frames, for a quick look (its numbers are not the
-    /// documented ones).
+    /// A smaller sweep on fewer frames, for a quick look: its numbers are not the
+    /// documented ones, so it writes under the cache directory, not into `docs/`.
     pub quick: bool,
     /// The Python with Open3D (the venv of `scripts/setup.sh` when not given).
     pub python: Option<PathBuf>,
 }
 
-/// Measures `section` and rewrites its part of `docs/tradeoffs.md`.
+/// Measures `section` and rewrites its part of `docs/tradeoffs.md`; a quick run
+/// leaves the documentation alone and writes its section and figures under the
+/// cache directory instead.
 pub fn run(section: Section, paths: &Paths, options: &RunOptions) -> Result<()> {
     let body = match section {
         Section::Registration => registration::run(paths, options)?,
     };
+    if options.quick {
+        let out = paths.quick_dir().join(format!("{}.md", section.marker()));
+        std::fs::write(&out, &body).with_context(|| format!("cannot write {}", out.display()))?;
+        println!("quick run: wrote {} (docs/ unchanged)", out.display());
+        return Ok(());
+    }
     let doc = paths.doc();
     let text =
         std::fs::read_to_string(&doc).with_context(|| format!("cannot read {}", doc.display()))?;

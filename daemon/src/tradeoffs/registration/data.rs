@@ -21,35 +21,45 @@ pub struct Sequence {
     pub path_length_m: f64,
 }
 
-/// A scene of `configs/scenes/` rendered (or found in the cache) and fused.
-pub fn sequence(
-    scenes_dir: &Path,
-    cache_dir: &Path,
-    scene: &str,
-    frames: usize,
-    seed: u64,
-) -> Result<Sequence> {
-    let capture = cached_capture(scenes_dir, cache_dir, scene, frames, seed)?;
-    read_sequence(&capture, scene)
+/// Which capture to make of a scene.
+#[derive(Debug, Clone, Copy)]
+pub struct SequenceSpec<'a> {
+    pub scene: &'a str,
+    pub frames: usize,
+    pub seed: u64,
+    /// For an orbit: the frames of one full turn, replacing the scene's (a slower
+    /// walk round the same circle).
+    pub orbit_period_frames: Option<usize>,
 }
 
-/// The capture of `scene` with `frames` frames, rendered into `cache_dir` unless a
-/// previous run left it there (the name holds scene, frames and seed; delete the
-/// directory after editing a scene file).
+/// A scene of `configs/scenes/` rendered (or found in the cache) and fused.
+pub fn sequence(scenes_dir: &Path, cache_dir: &Path, spec: &SequenceSpec<'_>) -> Result<Sequence> {
+    let capture = cached_capture(scenes_dir, cache_dir, spec)?;
+    read_sequence(&capture, spec.scene)
+}
+
+/// The capture of a spec, rendered into `cache_dir` unless a previous run left it
+/// there (the name holds scene, frames, period and seed; delete the directory after
+/// editing a scene file).
 pub fn cached_capture(
     scenes_dir: &Path,
     cache_dir: &Path,
-    scene: &str,
-    frames: usize,
-    seed: u64,
+    spec: &SequenceSpec<'_>,
 ) -> Result<PathBuf> {
+    let SequenceSpec {
+        scene,
+        frames,
+        seed,
+        orbit_period_frames,
+    } = *spec;
     std::fs::create_dir_all(cache_dir)
         .with_context(|| format!("cannot create the cache directory {}", cache_dir.display()))?;
-    let out = cache_dir.join(format!("{scene}-{frames}f-seed{seed}.mcap"));
+    let period = orbit_period_frames.map_or(String::new(), |p| format!("-period{p}"));
+    let out = cache_dir.join(format!("{scene}-{frames}f{period}-seed{seed}.mcap"));
     if out.exists() {
         return Ok(out);
     }
-    let sim = simulator(scenes_dir, scene, frames, seed, None)?;
+    let sim = simulator(scenes_dir, scene, frames, seed, orbit_period_frames)?;
     let partial = out.with_extension("partial.mcap");
     eprintln!("rendering {scene} ({frames} frames) into {}", out.display());
     sims::render_capture(&sim, &partial, &Default::default(), &mut |_, _| {})
@@ -59,20 +69,26 @@ pub fn cached_capture(
     Ok(out)
 }
 
-/// A simulator of a scene file, with `effects` replacing the scene's list if given.
+/// A simulator of a scene file with the scene's effects, `frames` frames and, for an
+/// orbit, `orbit_period_frames` a turn.
 pub fn simulator(
     scenes_dir: &Path,
     scene: &str,
     frames: usize,
     seed: u64,
-    effects: Option<Vec<sims::Effect>>,
+    orbit_period_frames: Option<usize>,
 ) -> Result<sims::Simulator> {
     let path = scenes_dir.join(format!("{scene}.toml"));
-    let loaded = sims::Scene::load(&path).with_context(|| format!("loading {}", path.display()))?;
+    let mut loaded =
+        sims::Scene::load(&path).with_context(|| format!("loading {}", path.display()))?;
+    if let (Some(p), sims::trajectory::Path::Orbit { period_frames, .. }) =
+        (orbit_period_frames, &mut loaded.trajectory.path)
+    {
+        *period_frames = p.max(1);
+    }
     let options = sims::SimOptions {
         seed,
         frames: Some(frames),
-        effects,
         ..Default::default()
     };
     sims::Simulator::with_options(loaded, &options).with_context(|| format!("simulating {scene}"))

@@ -4,12 +4,11 @@
 //! same place one lap earlier), drifted by noisy odometry, then optimised once
 //! from the drifted poses; the time of that optimisation against the scan count.
 
-use std::time::Instant;
-
 use nalgebra::{Matrix6, Translation3, UnitQuaternion, Vector3};
 use serde::Serialize;
 use texel::Pose;
 
+use crate::register::clock::Stopwatch;
 use crate::register::graph::{Edge, PoseGraph};
 
 /// Scans per lap of the synthetic walk.
@@ -24,7 +23,7 @@ pub struct GraphTiming {
     pub loops: bool,
     pub edges: usize,
     pub iterations: u32,
-    /// Median wall time of one optimisation, milliseconds.
+    /// Median CPU time of one optimisation, milliseconds.
     pub optimise_ms: f64,
     /// Per Gauss-Newton iteration.
     pub per_iteration_ms: f64,
@@ -119,9 +118,9 @@ pub fn measure(sizes: &[usize], max_iterations: u32, repeats: usize) -> Vec<Grap
             for r in 0..repeats.max(1) {
                 let mut graph = synthetic_graph(scans, loops, 7 + r as u64);
                 let edges = graph.edges().len();
-                let start = Instant::now();
+                let watch = Stopwatch::start();
                 let report = graph.optimise(max_iterations);
-                times.push(start.elapsed().as_secs_f64() * 1000.0);
+                times.push(watch.elapsed().cpu_ms);
                 last = Some((edges, report));
             }
             let Some((edges, report)) = last else {

@@ -25,6 +25,8 @@ use crate::register::{AlignConfig, PyramidOptions, ScanPyramid, align_pair};
 pub struct PairOutcome {
     pub name: String,
     pub scene: String,
+    /// The method and its setting ("open3d", or Texel's setting name).
+    pub method: String,
     pub rotation_error_deg: f64,
     pub translation_error_mm: f64,
     /// CPU time (one core), milliseconds: normals (pyramids) and the alignment.
@@ -189,6 +191,7 @@ pub fn run_open3d(
         outcomes.push(PairOutcome {
             name,
             scene: pair.scene.clone(),
+            method: "open3d".to_string(),
             rotation_error_deg: angle.to_degrees(),
             translation_error_mm: dist * 1000.0,
             normals_ms: r.normals_ms,
@@ -200,8 +203,13 @@ pub fn run_open3d(
 }
 
 /// Texel's pairwise registration on the same pairs, on this thread, `repeats` times
-/// each (median CPU times).
-pub fn run_texel(pairs: &[ScanPair], config: &AlignConfig, repeats: u32) -> Vec<PairOutcome> {
+/// each (median CPU times); `setting` names `config` in the outcomes.
+pub fn run_texel(
+    pairs: &[ScanPair],
+    setting: &str,
+    config: &AlignConfig,
+    repeats: u32,
+) -> Vec<PairOutcome> {
     let config = AlignConfig {
         parallel: false,
         ..config.clone()
@@ -235,6 +243,7 @@ pub fn run_texel(pairs: &[ScanPair], config: &AlignConfig, repeats: u32) -> Vec<
             PairOutcome {
                 name: stem(k, pair),
                 scene: pair.scene.clone(),
+                method: setting.to_string(),
                 rotation_error_deg: angle.to_degrees(),
                 translation_error_mm: dist * 1000.0,
                 normals_ms: quantile(&normals, 0.5),
