@@ -9,6 +9,7 @@ pub mod config;
 pub mod export;
 pub mod hub;
 pub mod info;
+pub mod model_export;
 pub mod pipeline;
 pub mod record;
 pub mod register;
