@@ -212,3 +212,28 @@ pub fn bench_command(capture: &Path, speed: f64) -> ExitCode {
         }
     }
 }
+
+/// `texeld bench` on simulator input.
+pub fn bench_sim_command(bench: &crate::bench_sim::SimBench) -> ExitCode {
+    let rt = match runtime() {
+        Ok(rt) => rt,
+        Err(e) => {
+            eprintln!("texeld bench: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    if !(bench.rate_hz.is_finite() && bench.rate_hz > 0.0) || bench.frames < 2 {
+        eprintln!("texeld bench: --rate-hz must be positive and --frames at least 2");
+        return ExitCode::from(2);
+    }
+    match rt.block_on(crate::bench_sim::run(bench)) {
+        Ok(report) => {
+            print!("{report}");
+            ExitCode::SUCCESS
+        }
+        Err(e) => {
+            eprintln!("texeld bench: {e}");
+            ExitCode::FAILURE
+        }
+    }
+}

@@ -3,6 +3,7 @@
 //! configuration; plus the capture tools behind `texeld info` and `texeld export`.
 
 pub mod bench;
+pub mod bench_sim;
 pub mod cli;
 pub mod client;
 pub mod config;

@@ -54,14 +54,25 @@ enum Command {
         #[command(flatten)]
         overrides: RunOverrides,
     },
-    /// Measure the daemon on a capture: replay --fast speed against real time,
-    /// end-to-end latency (frame in -> scan at a client) at x1, memory per scan.
+    /// Measure the daemon: on a capture (replay --fast speed against real time,
+    /// end-to-end latency at --speed, memory per scan, texture encoders), or without
+    /// one on simulator input (latency at --rate-hz with registration and a truth
+    /// baseline, replay --fast with registration, memory per scan).
     Bench {
-        /// The capture (MCAP) file.
-        capture: PathBuf,
-        /// Replay speed for the latency run.
+        /// The capture (MCAP) file; without one, the simulator renders --scene.
+        capture: Option<PathBuf>,
+        /// Replay speed for the latency run on a capture.
         #[arg(long, default_value_t = 1.0)]
         speed: f64,
+        #[arg(long, default_value = "configs/scenes/lab.toml")]
+        scene: PathBuf,
+        #[arg(long, default_value_t = 90)]
+        frames: usize,
+        #[arg(long, default_value_t = 30.0)]
+        rate_hz: f64,
+        /// Where the simulator runs' recordings go.
+        #[arg(long, default_value = "target/bench-sim")]
+        work_dir: PathBuf,
     },
     /// Show what a capture holds: topics, message counts, duration, frame sizes,
     /// calibrations and the sensor JSON; report damage and spec violations.
@@ -153,7 +164,22 @@ fn main() -> ExitCode {
             };
             cli::run_command(config.as_deref(), Some(replay), &overrides)
         }
-        Command::Bench { capture, speed } => cli::bench_command(&capture, speed),
+        Command::Bench {
+            capture,
+            speed,
+            scene,
+            frames,
+            rate_hz,
+            work_dir,
+        } => match capture {
+            Some(capture) => cli::bench_command(&capture, speed),
+            None => cli::bench_sim_command(&texel_daemon::bench_sim::SimBench {
+                scene,
+                frames,
+                rate_hz,
+                work_dir,
+            }),
+        },
         Command::Info { capture } => match texel_daemon::info::summarize(&capture) {
             Ok(summary) => {
                 print!("{summary}");
