@@ -240,3 +240,79 @@ fn check_export(path: &PathBuf) -> serde_json::Value {
     );
     serde_json::from_slice(&out.stdout).unwrap()
 }
+
+/// Runs a sim source alone into a channel; returns the events and the source counters.
+async fn run_source(
+    late: LatePolicy,
+    speed: f64,
+    frames: usize,
+) -> (
+    Vec<texel_daemon::source::SourceEvent>,
+    std::collections::BTreeMap<String, u64>,
+) {
+    use texel_daemon::source::sim::SimSource;
+    use texel_daemon::source::{FrameSink, Source, SourceMetrics};
+    let mut config = sim_config();
+    config.frames = Some(frames);
+    config.lidar_size = Some([16, 16]);
+    config.eo_size = Some([32, 24]);
+    config.effects = Some(vec![]);
+    let source = Box::new(SimSource {
+        name: "sim".into(),
+        setup: config.setup(),
+        pace: texel_daemon::source::replay::Pace::Speed(speed),
+        prerender: false,
+        render_threads: 1,
+        late,
+        truth: true,
+    });
+    let metrics = SourceMetrics::new("sim", "sim");
+    let (tx, mut rx) = tokio::sync::mpsc::channel(4096);
+    let sink = FrameSink::new(0, tx, metrics.clone());
+    let task = tokio::spawn(source.run(sink, CancellationToken::new()));
+    let mut events = Vec::new();
+    while let Some(t) = rx.recv().await {
+        events.push(t.event);
+    }
+    task.await.unwrap().unwrap();
+    (events, metrics.counters())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn frames_rendered_too_late_are_skipped_and_counted_or_sent_late() {
+    use texel_daemon::source::SourceEvent;
+    let frames = 24;
+    // 100 kHz: no frame renders in its 10 us period.
+    for late in [LatePolicy::Skip, LatePolicy::Wait] {
+        let (events, counters) = run_source(late, 10_000.0, frames).await;
+        let get = |k: &str| counters.get(k).copied().unwrap_or(0);
+        let ranges: Vec<u64> = events
+            .iter()
+            .filter_map(|e| match e {
+                SourceEvent::Range(r) => Some(r.timestamp_ns),
+                _ => None,
+            })
+            .collect();
+        // In order, each frame's truth right before its range frame.
+        assert!(ranges.windows(2).all(|w| w[0] < w[1]), "{late:?}");
+        for (i, e) in events.iter().enumerate() {
+            if let SourceEvent::Range(r) = e {
+                assert!(
+                    matches!(&events[i - 1], SourceEvent::Pose { timestamp_ns, .. } if *timestamp_ns == r.timestamp_ns)
+                );
+            }
+        }
+        assert_eq!(get("frames_sent"), ranges.len() as u64);
+        match late {
+            LatePolicy::Skip => {
+                assert!(get("late_skipped") > 0, "{counters:?}");
+                assert_eq!(ranges.len() as u64 + get("late_skipped"), frames as u64);
+            }
+            LatePolicy::Wait => {
+                assert_eq!(ranges.len(), frames);
+                assert_eq!(get("late_skipped"), 0);
+                assert!(get("late_frames") > 0, "{counters:?}");
+            }
+        }
+    }
+}
