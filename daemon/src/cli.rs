@@ -38,6 +38,9 @@ pub struct ReplayArgs {
     pub fast: bool,
     /// Keep serving after the capture ends.
     pub stay: bool,
+    /// How scans are placed; `None`: the session file's mode, else `auto` (capture
+    /// poses when the capture has `/texel/pose`, else registration).
+    pub registration: Option<RegistrationMode>,
 }
 
 /// The session config: file (or defaults), then the replay, then the overrides.
@@ -53,6 +56,7 @@ pub fn build_config(
     if let Some(r) = replay {
         config.source.serial.clear();
         config.source.v4l.clear();
+        config.source.sim.clear();
         config.source.replay = vec![ReplayConfig {
             name: "replay".into(),
             capture: r.capture.clone(),
@@ -62,7 +66,11 @@ pub fn build_config(
         config.session.exit_when_sources_end = !r.stay;
         // A replay registers every frame: the file waits, nothing is skipped.
         config.pipeline.overload = OverloadPolicy::Backpressure;
-        config.pipeline.registration = RegistrationMode::CapturePoses;
+        if let Some(mode) = r.registration {
+            config.pipeline.registration = mode;
+        } else if file.is_none() {
+            config.pipeline.registration = RegistrationMode::Auto;
+        }
         config.pipeline.pose_capture = None;
     }
     if let Some(bind) = overrides.bind {
@@ -194,6 +202,31 @@ pub fn bench_command(capture: &Path, speed: f64) -> ExitCode {
         }
     };
     match rt.block_on(crate::bench::run(capture, speed)) {
+        Ok(report) => {
+            print!("{report}");
+            ExitCode::SUCCESS
+        }
+        Err(e) => {
+            eprintln!("texeld bench: {e}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+/// `texeld bench` on simulator input.
+pub fn bench_sim_command(bench: &crate::bench_sim::SimBench) -> ExitCode {
+    let rt = match runtime() {
+        Ok(rt) => rt,
+        Err(e) => {
+            eprintln!("texeld bench: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    if !(bench.rate_hz.is_finite() && bench.rate_hz > 0.0) || bench.frames < 2 {
+        eprintln!("texeld bench: --rate-hz must be positive and --frames at least 2");
+        return ExitCode::from(2);
+    }
+    match rt.block_on(crate::bench_sim::run(bench)) {
         Ok(report) => {
             print!("{report}");
             ExitCode::SUCCESS

@@ -7,6 +7,8 @@ use std::path::{Path, PathBuf};
 
 use serde::Deserialize;
 use texel::FuseConfig;
+
+use crate::register::RegistrationConfig;
 use texel::wire::TextureFormat;
 use thiserror::Error;
 
@@ -35,6 +37,9 @@ pub struct SessionConfig {
     pub source: SourcesSection,
     pub sync: SyncSection,
     pub pipeline: PipelineSection,
+    /// Overrides of the registration defaults (`crate::register::RegistrationConfig`,
+    /// the same keys as `texeld register --config`).
+    pub registration: RegistrationConfig,
     pub record: RecordSection,
     pub serve: ServeSection,
     pub status: StatusSection,
@@ -69,6 +74,8 @@ pub struct SourcesSection {
     pub serial: Vec<SerialConfig>,
     pub v4l: Vec<V4lConfig>,
     pub replay: Vec<ReplayConfig>,
+    /// The simulator in-process (`sims`).
+    pub sim: Vec<SimConfig>,
 }
 
 #[derive(Debug, Clone, Deserialize)]
@@ -148,6 +155,92 @@ impl Default for ReplayConfig {
     }
 }
 
+/// What a simulator renders: a scene and overrides of its settings.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SimSetup {
+    pub scene: PathBuf,
+    pub seed: u64,
+    pub effects: Option<Vec<String>>,
+    pub frames: Option<usize>,
+    pub lidar_size: Option<[u32; 2]>,
+    pub eo_size: Option<[u32; 2]>,
+}
+
+/// When a simulated frame is not rendered by the time it is due.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum LatePolicy {
+    /// A frame still unrendered when the next one is due is skipped (counted
+    /// `late_skipped`), and rendering moves on to the frame due now: the source keeps
+    /// the trajectory's clock, like a camera that drops frames.
+    Skip,
+    /// Every frame is sent, late if need be (`late_frames` counts those sent more than
+    /// one frame period after they were due).
+    Wait,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SimConfig {
+    pub name: String,
+    /// A scene file (`configs/scenes/*.toml`).
+    pub scene: PathBuf,
+    /// Seed of the simulator's random numbers.
+    pub seed: u64,
+    /// Replaces the scene's effect list (names; `[]` = none).
+    pub effects: Option<Vec<String>>,
+    /// Number of frames (default: the trajectory's).
+    pub frames: Option<usize>,
+    /// Lidar and EO resolution `[width, height]` (intrinsics scale with them).
+    pub lidar_size: Option<[u32; 2]>,
+    pub eo_size: Option<[u32; 2]>,
+    /// Times the trajectory's frame rate; ignored when `fast`.
+    pub speed: f64,
+    /// As fast as frames render and the pipeline takes them.
+    pub fast: bool,
+    /// Render every frame before the first is sent, then send them at the pace (the
+    /// daemon's latency without the simulator's rendering time in it).
+    pub prerender: bool,
+    /// Threads rendering frames ahead of their time (0 = one per core).
+    pub render_threads: usize,
+    pub late: LatePolicy,
+    /// Send each frame's `/truth/pose` (recorded, and the world anchor).
+    pub truth: bool,
+}
+
+impl Default for SimConfig {
+    fn default() -> Self {
+        Self {
+            name: "sim".into(),
+            scene: PathBuf::new(),
+            seed: 1,
+            effects: None,
+            frames: None,
+            lidar_size: None,
+            eo_size: None,
+            speed: 1.0,
+            fast: false,
+            prerender: false,
+            render_threads: 0,
+            late: LatePolicy::Skip,
+            truth: true,
+        }
+    }
+}
+
+impl SimConfig {
+    pub fn setup(&self) -> SimSetup {
+        SimSetup {
+            scene: self.scene.clone(),
+            seed: self.seed,
+            effects: self.effects.clone(),
+            frames: self.frames,
+            lidar_size: self.lidar_size,
+            eo_size: self.eo_size,
+        }
+    }
+}
+
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct SyncSection {
@@ -170,8 +263,14 @@ impl Default for SyncSection {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum RegistrationMode {
+    /// `capture-poses` when `pipeline.pose_capture` is set; else `register` for live
+    /// and simulated sessions, and for a replay `capture-poses` when the capture
+    /// carries `/texel/pose` (it was registered already), else `register`.
+    Auto,
+    /// Register every scan against the model so far (`crate::register`).
+    Register,
     /// Each scan at its capture's `/texel/pose` (else `/truth/pose`): for replaying
-    /// captures that were registered already, or simulated ones.
+    /// captures that were registered already, or placing simulated ones at the truth.
     CapturePoses,
 }
 
@@ -197,6 +296,8 @@ pub struct PipelineSection {
     pub overload: OverloadPolicy,
     /// Texel frames waiting for fusion and registration.
     pub pair_queue: usize,
+    /// Model changes waiting for the encode stage (the worker waits when it is full).
+    pub encode_queue: usize,
     /// Source events waiting for the ingest stage.
     pub ingest_queue: usize,
     pub fuse: FuseConfig,
@@ -205,10 +306,11 @@ pub struct PipelineSection {
 impl Default for PipelineSection {
     fn default() -> Self {
         Self {
-            registration: RegistrationMode::CapturePoses,
+            registration: RegistrationMode::Auto,
             pose_capture: None,
             overload: OverloadPolicy::KeepNewest,
             pair_queue: 2,
+            encode_queue: 8,
             ingest_queue: 64,
             fuse: FuseConfig::default(),
         }
@@ -352,19 +454,34 @@ impl SessionConfig {
             message,
         };
         let s = &self.source;
-        if s.serial.is_empty() && s.v4l.is_empty() && s.replay.is_empty() {
+        let live = !s.serial.is_empty() || !s.v4l.is_empty();
+        let sims = s.sim.len();
+        if !live && s.replay.is_empty() && sims == 0 {
             return Err(invalid(
                 "source",
-                "no source: add [[source.serial]], [[source.v4l]] or [[source.replay]]".into(),
+                "no source: add [[source.serial]], [[source.v4l]], [[source.replay]] or \
+                 [[source.sim]]"
+                    .into(),
             ));
         }
-        if !s.replay.is_empty() && (!s.serial.is_empty() || !s.v4l.is_empty()) {
+        if [live, !s.replay.is_empty(), sims > 0]
+            .iter()
+            .filter(|&&k| k)
+            .count()
+            > 1
+        {
             return Err(invalid(
                 "source",
-                "a replay cannot be mixed with live sources (their clocks differ)".into(),
+                "live sources, replays and simulators cannot be mixed (their clocks differ)".into(),
             ));
         }
-        if s.replay.is_empty() && self.session.sensor.is_none() {
+        if sims > 1 {
+            return Err(invalid(
+                "source",
+                "at most one simulator per session (each has its own sensor model)".into(),
+            ));
+        }
+        if live && self.session.sensor.is_none() {
             return Err(invalid(
                 "session.sensor",
                 "live sources need the texel camera's sensor file".into(),
@@ -381,6 +498,22 @@ impl SessionConfig {
                 return Err(invalid(
                     &format!("source.replay[{i}].speed"),
                     format!("must be a positive number, got {}", r.speed),
+                ));
+            }
+        }
+        for (i, c) in s.sim.iter().enumerate() {
+            let key = format!("source.sim[{i}]");
+            validate_sim(&c.setup(), &key).map_err(|(k, m)| invalid(&k, m))?;
+            if !(c.speed.is_finite() && c.speed > 0.0) {
+                return Err(invalid(
+                    &format!("{key}.speed"),
+                    format!("must be a positive number, got {}", c.speed),
+                ));
+            }
+            if c.render_threads > 64 {
+                return Err(invalid(
+                    &format!("{key}.render_threads"),
+                    format!("must be at most 64, got {}", c.render_threads),
                 ));
             }
         }
@@ -435,6 +568,9 @@ impl SessionConfig {
                 format!("must be >= 0, got {}", self.sync.tolerance_ms),
             ));
         }
+        self.registration
+            .validate(origin)
+            .map_err(|e| invalid("registration", e.to_string()))?;
         if self.pipeline.registration == RegistrationMode::CapturePoses
             && self.pipeline.pose_capture.is_none()
             && s.replay.is_empty()
@@ -446,6 +582,7 @@ impl SessionConfig {
         }
         for (key, v) in [
             ("pipeline.pair_queue", self.pipeline.pair_queue),
+            ("pipeline.encode_queue", self.pipeline.encode_queue),
             ("pipeline.ingest_queue", self.pipeline.ingest_queue),
             ("record.queue", self.record.queue),
             ("serve.max_clients", self.serve.max_clients),
@@ -495,4 +632,29 @@ impl SessionConfig {
         }
         Ok(())
     }
+}
+
+/// Checks a simulator's settings (without loading the scene); the error names the key.
+fn validate_sim(setup: &SimSetup, key: &str) -> Result<(), (String, String)> {
+    if setup.scene.as_os_str().is_empty() {
+        return Err((format!("{key}.scene"), "missing".into()));
+    }
+    if let Some(names) = &setup.effects {
+        for name in names {
+            if let Err(e) = sims::Effect::from_name_and_params(name, toml::Table::new()) {
+                return Err((format!("{key}.effects"), e));
+            }
+        }
+    }
+    if setup.frames == Some(0) {
+        return Err((format!("{key}.frames"), "must be at least 1".into()));
+    }
+    for (name, size) in [("lidar_size", setup.lidar_size), ("eo_size", setup.eo_size)] {
+        if let Some([w, h]) = size
+            && (w == 0 || h == 0)
+        {
+            return Err((format!("{key}.{name}"), format!("{w}x{h} is empty")));
+        }
+    }
+    Ok(())
 }

@@ -3,12 +3,14 @@
 //! configuration; plus the capture tools behind `texeld info` and `texeld export`.
 
 pub mod bench;
+pub mod bench_sim;
 pub mod cli;
 pub mod client;
 pub mod config;
 pub mod export;
 pub mod hub;
 pub mod info;
+pub mod model_export;
 pub mod pipeline;
 pub mod record;
 pub mod register;

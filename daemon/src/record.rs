@@ -1,7 +1,10 @@
 //! The recorder: a dedicated thread that writes everything received, before any lossy
 //! stage, to a capture (`spec/capture-format.md`): sensor model, raw range and EO
-//! frames, source poses, and the poses the pipeline estimated (`/texel/pose`; a
-//! revision is a later `/texel/pose` at the same timestamp). Chunks are flushed at
+//! frames, source poses, and the poses the pipeline estimated (`/texel/pose`). A pose
+//! revision is a further `/texel/pose` message with the frame's timestamp in its
+//! `timestamp` field and, as log time, the latest frame time recorded when the
+//! revision was made: it comes later in the file and in log-time order, and readers
+//! take the last `/texel/pose` of a timestamp. Chunks are flushed at
 //! least every `flush_interval`, so `kill -9` loses at most that much; a clean stop
 //! finalises the file.
 
@@ -29,6 +32,8 @@ pub enum RecordItem {
         topic: PoseTopic,
         timestamp_ns: u64,
         world_from_eo: Pose,
+        /// A revision of a pose recorded before (logged at the latest frame time).
+        revision: bool,
     },
     /// Nothing to write; lets an idle recorder flush on time.
     Tick,
@@ -147,7 +152,14 @@ fn write_loop<W: std::io::Write + std::io::Seek>(
                 topic,
                 timestamp_ns,
                 world_from_eo,
-            } => writer.write_pose(topic, timestamp_ns, &world_from_eo),
+                revision,
+            } => {
+                if revision && latest_ns > timestamp_ns {
+                    write_pose_at(&mut writer, topic, timestamp_ns, latest_ns, &world_from_eo)
+                } else {
+                    writer.write_pose(topic, timestamp_ns, &world_from_eo)
+                }
+            }
             RecordItem::Tick => writer.flush_if_due(),
         };
         note(&mut summary, result);
@@ -156,4 +168,51 @@ fn write_loop<W: std::io::Write + std::io::Seek>(
     summary.messages = writer.messages_written();
     note(&mut summary, writer.finish().map(|_| ()));
     summary
+}
+
+/// A pose message whose log time is later than its timestamp (a revision): the same
+/// `foxglove.FrameTransform` on the same channel as `CaptureWriter::write_pose` writes.
+fn write_pose_at<W: std::io::Write + std::io::Seek>(
+    writer: &mut CaptureWriter<W>,
+    topic: PoseTopic,
+    timestamp_ns: u64,
+    log_time_ns: u64,
+    world_from_eo: &Pose,
+) -> Result<(), CaptureError> {
+    use foxglove::Encode;
+    let message = texel::capture::transform_from_pose(
+        texel::capture::frame_ids::WORLD,
+        texel::capture::frame_ids::EO,
+        world_from_eo,
+        timestamp_ns,
+    );
+    let error = |m: String| CaptureError::Write {
+        path: topic.topic().to_string(),
+        message: m,
+    };
+    let mut data = Vec::with_capacity(message.encoded_len().unwrap_or(256));
+    message
+        .encode(&mut data)
+        .map_err(|e| error(e.to_string()))?;
+    let schema = foxglove::messages::FrameTransform::get_schema()
+        .ok_or_else(|| error("FrameTransform has no schema".into()))?;
+    let channel = mcap::Channel {
+        id: 0,
+        topic: topic.topic().to_string(),
+        schema: Some(Arc::new(mcap::Schema {
+            id: 0,
+            name: schema.name,
+            encoding: schema.encoding,
+            data: std::borrow::Cow::Owned(schema.data.into_owned()),
+        })),
+        message_encoding: foxglove::messages::FrameTransform::get_message_encoding(),
+        metadata: std::collections::BTreeMap::new(),
+    };
+    writer.copy_message(&mcap::Message {
+        channel: Arc::new(channel),
+        sequence: 0,
+        log_time: log_time_ns,
+        publish_time: log_time_ns,
+        data: std::borrow::Cow::Owned(data),
+    })
 }

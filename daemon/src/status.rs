@@ -26,6 +26,12 @@ pub enum Counter {
     FuseFailures,
     RegistrationFailures,
     RegistrationDegenerate,
+    /// Earlier failed scans that a retry placed later.
+    RegistrationRecovered,
+    /// Scans whose texture could not be compressed and went out as raw RGB.
+    EncodeFallbacks,
+    /// Scans that could not be encoded at all (not streamed; should never happen).
+    EncodeFailures,
     /// Pairs not registered because registration was behind (recorded all the same).
     SkippedByOverload,
     Scans,
@@ -37,7 +43,7 @@ pub enum Counter {
 }
 
 impl Counter {
-    pub const ALL: [Counter; 17] = [
+    pub const ALL: [Counter; 20] = [
         Self::Paired,
         Self::UnpairedRange,
         Self::UnpairedEo,
@@ -48,6 +54,9 @@ impl Counter {
         Self::FuseFailures,
         Self::RegistrationFailures,
         Self::RegistrationDegenerate,
+        Self::RegistrationRecovered,
+        Self::EncodeFallbacks,
+        Self::EncodeFailures,
         Self::SkippedByOverload,
         Self::Scans,
         Self::PoseRevisions,
@@ -69,6 +78,9 @@ impl Counter {
             Self::FuseFailures => "fuse_failures",
             Self::RegistrationFailures => "registration_failures",
             Self::RegistrationDegenerate => "registration_degenerate",
+            Self::RegistrationRecovered => "registration_recovered",
+            Self::EncodeFallbacks => "encode_fallbacks",
+            Self::EncodeFailures => "encode_failures",
             Self::SkippedByOverload => "skipped_by_overload",
             Self::Scans => "scans",
             Self::PoseRevisions => "pose_revisions",

@@ -10,7 +10,7 @@ use std::time::Duration;
 use texel::capture::PoseTopic;
 use texel::wire::{Limits, Message, decode_frame};
 use texel_daemon::client::{Client, ClientError};
-use texel_daemon::config::{ReplayConfig, SessionConfig};
+use texel_daemon::config::{RegistrationMode, ReplayConfig, SessionConfig};
 use texel_daemon::pipeline::Session;
 use texel_daemon::source::v4l::{V4lError, V4lSource};
 use texel_daemon::source::v4l_convert::PixelFormat;
@@ -163,6 +163,7 @@ async fn serving_session(token: Option<&str>, max_clients: usize) -> (Session, C
         speed: 1.0,
         fast: true,
     }];
+    c.pipeline.registration = RegistrationMode::CapturePoses;
     c.serve.bind = "127.0.0.1:0".parse().unwrap();
     c.serve.token = token.map(str::to_string);
     c.serve.max_clients = max_clients;

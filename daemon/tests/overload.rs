@@ -8,10 +8,9 @@ use std::time::Duration;
 
 use texel::TexelScan;
 use texel::capture::{CaptureEvent, CaptureReader, PoseTopic};
-use texel::model::ScanId;
-use texel_daemon::config::{OverloadPolicy, ReplayConfig, SessionConfig};
+use texel_daemon::config::{OverloadPolicy, RegistrationMode, ReplayConfig, SessionConfig};
 use texel_daemon::pipeline::Session;
-use texel_daemon::pipeline::placement::{CapturePoses, Placement, PlacementFailure, Registration};
+use texel_daemon::pipeline::placement::{CapturePoses, Registration, ScanInput, StageOutput};
 use texel_daemon::status::Counter;
 use texel_e2e::captures;
 use tokio_util::sync::CancellationToken;
@@ -24,14 +23,9 @@ impl Registration for Slow {
         "slow capture poses"
     }
 
-    fn register(
-        &mut self,
-        id: ScanId,
-        scan: &Arc<TexelScan>,
-        timestamp_ns: u64,
-    ) -> Result<Placement, PlacementFailure> {
+    fn register(&mut self, scan: &Arc<TexelScan>, input: ScanInput<'_>) -> StageOutput {
         std::thread::sleep(Duration::from_millis(20));
-        self.0.register(id, scan, timestamp_ns)
+        self.0.register(scan, input)
     }
 }
 
@@ -50,6 +44,7 @@ async fn keep_newest_skips_and_counts_while_recording_everything() {
             speed: 1.0,
             fast: true,
         }];
+        c.pipeline.registration = RegistrationMode::CapturePoses;
         c.session.exit_when_sources_end = true;
         c.pipeline.overload = policy;
         c.pipeline.pair_queue = 1;

@@ -82,6 +82,7 @@ fn kill_9_while_recording_loses_at_most_a_second_and_the_file_replays() {
         "--out".as_ref(),
         out.as_os_str(),
         "--no-serve".as_ref(),
+        "--capture-poses".as_ref(),
     ]);
     let mut log = Vec::new();
     // The replay clock starts at this line (the first frame is due right after).
@@ -119,7 +120,7 @@ fn kill_9_while_recording_loses_at_most_a_second_and_the_file_replays() {
     let replayed = Command::new(env!("CARGO_BIN_EXE_texeld"))
         .arg("replay")
         .arg(&out)
-        .args(["--fast", "--no-serve"])
+        .args(["--fast", "--no-serve", "--capture-poses"])
         .output()
         .unwrap();
     assert!(

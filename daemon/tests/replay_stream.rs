@@ -10,7 +10,7 @@ use texel::capture::{CaptureEvent, CaptureReader, PoseTopic};
 use texel::pose::pose_difference;
 use texel::wire::{Message, TextureFormat};
 use texel_daemon::client::{Applied, Client, Replica};
-use texel_daemon::config::{OverloadPolicy, ReplayConfig, SessionConfig};
+use texel_daemon::config::{OverloadPolicy, RegistrationMode, ReplayConfig, SessionConfig};
 use texel_daemon::pipeline::Session;
 use texel_daemon::status::Counter;
 use texel_e2e::captures;
@@ -27,6 +27,7 @@ fn config(capture: &Path, record: Option<&Path>) -> SessionConfig {
         speed: 1.0,
         fast: true,
     }];
+    c.pipeline.registration = RegistrationMode::CapturePoses;
     c.pipeline.overload = OverloadPolicy::Backpressure;
     c.serve.bind = "127.0.0.1:0".parse().unwrap();
     c.serve.texture = TextureFormat::Png;

@@ -12,7 +12,9 @@ use texel::capture::PoseTopic;
 use texel::model::Model;
 use texel::wire::{Message, TextureFormat};
 use texel_daemon::client::{Applied, Client, Replica};
-use texel_daemon::config::{OverloadPolicy, ReplayConfig, SessionConfig, SlowClientPolicy};
+use texel_daemon::config::{
+    OverloadPolicy, RegistrationMode, ReplayConfig, SessionConfig, SlowClientPolicy,
+};
 use texel_daemon::pipeline::Session;
 use texel_daemon::status::Counter;
 use texel_e2e::captures;
@@ -26,6 +28,7 @@ fn config(capture: &Path, fast: bool) -> SessionConfig {
         speed: 1.0,
         fast,
     }];
+    c.pipeline.registration = RegistrationMode::CapturePoses;
     c.pipeline.overload = OverloadPolicy::Backpressure;
     c.serve.bind = "127.0.0.1:0".parse().unwrap();
     c.status.log = false;
@@ -46,7 +49,11 @@ async fn follow_until(
                 return;
             }
         }
-        panic!("the stream ended early");
+        panic!(
+            "the stream ended early: {} scans, {} resets",
+            replica.model.len(),
+            replica.resets
+        );
     })
     .await
     .expect("the stream stalled");
@@ -78,7 +85,10 @@ async fn a_client_that_reads_nothing_holds_up_nobody_and_is_resynchronised_or_dr
     let frames = big_capture(&capture) as usize;
 
     for policy in [SlowClientPolicy::Resync, SlowClientPolicy::Disconnect] {
-        let mut c = config(&capture, true);
+        // Paced (100 frames/s): the active client keeps up with its queue of 4 while
+        // the stalled one's queue overflows. A fast replay publishes faster than a
+        // client in this busy test process decodes, and would drop both.
+        let mut c = config(&capture, false);
         c.serve.texture = TextureFormat::Rgb8;
         c.serve.client_queue = 4;
         c.serve.slow_client = policy;

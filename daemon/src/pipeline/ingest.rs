@@ -8,7 +8,7 @@ use std::time::Instant;
 
 use texel::capture::PoseTopic;
 use texel::sync::FrameSync;
-use texel::{FramePair, SensorModel};
+use texel::{FramePair, Pose, SensorModel};
 use tokio::sync::mpsc;
 
 use crate::config::OverloadPolicy;
@@ -23,6 +23,31 @@ pub struct PairJob {
     pub sensor: Arc<SensorModel>,
     /// When the pair's range frame reached ingest.
     pub received: Instant,
+    /// The true pose at the pair's timestamp, when a source sent it first (the
+    /// simulator does); registration anchors the world with it.
+    pub truth: Option<Pose>,
+}
+
+/// Recent true poses by timestamp (bounded).
+struct Truths(VecDeque<(u64, Pose)>);
+
+impl Truths {
+    const KEEP: usize = 64;
+
+    fn note(&mut self, timestamp_ns: u64, pose: Pose) {
+        if self.0.len() == Self::KEEP {
+            self.0.pop_front();
+        }
+        self.0.push_back((timestamp_ns, pose));
+    }
+
+    fn of(&self, timestamp_ns: u64) -> Option<Pose> {
+        self.0
+            .iter()
+            .rev()
+            .find(|(t, _)| *t == timestamp_ns)
+            .map(|(_, p)| *p)
+    }
 }
 
 /// Arrival times of recent range frames, for latency (bounded).
@@ -97,6 +122,7 @@ impl Ingest {
             self.record(RecordItem::Sensor(sensor)).await;
         }
         let mut arrivals = Arrivals(VecDeque::new());
+        let mut truths = Truths(VecDeque::new());
         // keep-newest: the one pair waiting for room in the worker's queue.
         let mut waiting: Option<PairJob> = None;
         let pairs = self.pairs.clone();
@@ -156,10 +182,12 @@ impl Ingest {
                     // The session records its own /texel/pose; a source's texel poses
                     // would duplicate them, its truth is worth keeping.
                     if topic == PoseTopic::Truth {
+                        truths.note(timestamp_ns, world_from_eo);
                         self.record(RecordItem::Pose {
                             topic,
                             timestamp_ns,
                             world_from_eo,
+                            revision: false,
                         })
                         .await;
                     }
@@ -176,10 +204,12 @@ impl Ingest {
                 self.metrics.add(Counter::NoSensor, 1);
                 continue;
             };
+            let truth = truths.of(pair.timestamp_ns());
             let job = PairJob {
                 pair,
                 sensor,
                 received,
+                truth,
             };
             match self.policy {
                 OverloadPolicy::Backpressure => {

@@ -1,18 +1,20 @@
-//! A daemon session: sources -> ingest (record, sync) -> worker (fuse, register,
-//! encode) -> hub -> server, with a recorder thread, a status task and an orderly
-//! shutdown. Every channel is bounded:
+//! A daemon session: sources -> ingest (record, sync) -> worker (fuse, register) ->
+//! encode stage -> hub -> server, with a recorder thread, a status task and an
+//! orderly shutdown. Every channel is bounded:
 //!
 //! | channel | capacity | when full |
 //! |---|---|---|
 //! | sources -> ingest | `pipeline.ingest_queue` | sources wait (ingest only records and pairs) |
 //! | ingest -> recorder | `record.queue` | ingest waits: nothing received is dropped |
 //! | ingest -> worker | `pipeline.pair_queue` | `keep-newest`: one newest pair waits, older waiting ones are skipped and counted; `backpressure`: ingest waits |
+//! | worker -> encode | `pipeline.encode_queue` | the worker waits (encoding is faster than registration) |
 //! | hub -> each client | `serve.client_queue` | the client is resynchronised or disconnected |
 //!
 //! Shutdown: the sources stop, ingest drains and passes on what waits, the worker
 //! finishes its queue, the recorder finalises the capture, then the hub closes and
 //! every client is told why.
 
+pub mod encode;
 pub mod ingest;
 pub mod placement;
 pub mod worker;
@@ -37,12 +39,14 @@ use crate::record::{RecordItem, RecordSummary, Recorder};
 use crate::server::{self, ServeOptions};
 use crate::source::replay::{Pace, ReplaySource};
 use crate::source::serial::SerialSource;
+use crate::source::sim::SimSource;
 use crate::source::v4l::V4lSource;
 use crate::source::v4l_convert::PixelFormat;
 use crate::source::{FrameSink, Source, SourceMetrics};
 use crate::status::{Metrics, QueueProbe, status_line};
+use encode::Encoder;
 use ingest::Ingest;
-use placement::{CapturePoses, Registration};
+use placement::{CapturePoses, RegistrarStage, Registration};
 use worker::Worker;
 
 #[derive(Debug, Error)]
@@ -204,28 +208,57 @@ pub fn build_sources(config: &SessionConfig) -> Vec<Box<dyn Source>> {
             },
         }));
     }
+    for c in &config.source.sim {
+        sources.push(Box::new(SimSource {
+            name: c.name.clone(),
+            setup: c.setup(),
+            pace: if c.fast {
+                Pace::Fast
+            } else {
+                Pace::Speed(c.speed)
+            },
+            prerender: c.prerender,
+            render_threads: c.render_threads,
+            late: c.late,
+            truth: c.truth,
+        }));
+    }
     sources
 }
 
 /// The registration stage `pipeline.registration` names.
 pub fn build_registration(config: &SessionConfig) -> Result<Box<dyn Registration>, SessionError> {
-    match config.pipeline.registration {
+    let replayed = config.source.replay.first().map(|r| r.capture.clone());
+    let read_poses = |path: &std::path::Path| {
+        CapturePoses::from_capture(path).map_err(|e| SessionError::PoseCapture {
+            path: path.display().to_string(),
+            message: e.to_string(),
+        })
+    };
+    let register = |truth| {
+        Box::new(RegistrarStage::new(config.registration.clone()).with_truth(truth))
+            as Box<dyn Registration>
+    };
+    let mode = match config.pipeline.registration {
+        // A pose capture named explicitly is the session's choice.
+        RegistrationMode::Auto if config.pipeline.pose_capture.is_some() => {
+            RegistrationMode::CapturePoses
+        }
+        mode => mode,
+    };
+    match mode {
         RegistrationMode::CapturePoses => {
             let path = config
                 .pipeline
                 .pose_capture
                 .clone()
-                .or_else(|| config.source.replay.first().map(|r| r.capture.clone()))
+                .or(replayed)
                 .ok_or_else(|| {
                     SessionError::Config(
                         "capture-poses needs pipeline.pose_capture or a replay source".into(),
                     )
                 })?;
-            let poses =
-                CapturePoses::from_capture(&path).map_err(|e| SessionError::PoseCapture {
-                    path: path.display().to_string(),
-                    message: e.to_string(),
-                })?;
+            let poses = read_poses(&path)?;
             if poses.is_empty() {
                 tracing::warn!(
                     "{} has no /texel/pose or /truth/pose: no scan can be placed",
@@ -234,6 +267,30 @@ pub fn build_registration(config: &SessionConfig) -> Result<Box<dyn Registration
             }
             Ok(Box::new(poses))
         }
+        RegistrationMode::Register => {
+            // A replayed capture's truth anchors the world, as `texeld register` does.
+            let truth = match &replayed {
+                Some(path) => read_poses(path)?.into_truth(),
+                None => Default::default(),
+            };
+            Ok(register(truth))
+        }
+        RegistrationMode::Auto => match &replayed {
+            None => Ok(register(Default::default())),
+            Some(path) => {
+                let poses = read_poses(path)?;
+                if poses.texel_count() > 0 {
+                    tracing::info!(
+                        "{} carries /texel/pose: scans are placed there (registration = \"register\" registers them again)",
+                        path.display()
+                    );
+                    Ok(Box::new(poses))
+                } else {
+                    tracing::info!("{} has no /texel/pose: registering", path.display());
+                    Ok(register(poses.into_truth()))
+                }
+            }
+        },
     }
 }
 
@@ -303,16 +360,27 @@ async fn run(
         metrics: Arc::clone(&metrics),
     };
     let ingest_task = tokio::spawn(ingest.run());
+    let (publish_tx, publish_rx) = mpsc::channel(config.pipeline.encode_queue);
+    metrics.add_queue(depth_probe("encode", &publish_tx));
     let worker = Worker {
         jobs: pairs_rx,
         registration,
         record: record_tx.clone(),
-        hub: Arc::clone(&hub),
+        publish: publish_tx,
         metrics: Arc::clone(&metrics),
         fuse: config.pipeline.fuse,
+    };
+    let encoder = Encoder {
+        rx: publish_rx,
+        hub: Arc::clone(&hub),
+        metrics: Arc::clone(&metrics),
         texture: config.serve.texture,
         jpeg_quality: config.serve.jpeg_quality,
     };
+    let encode_thread = std::thread::Builder::new()
+        .name("texel-encode".into())
+        .spawn(move || encoder.run())
+        .map_err(|e| SessionError::Thread(e.to_string()))?;
     let worker_thread = std::thread::Builder::new()
         .name("texel-worker".into())
         .spawn(move || worker.run())
@@ -403,6 +471,13 @@ async fn run(
         .map_err(|e| SessionError::Thread(e.to_string()))?;
     if worker_result.is_err() {
         tracing::error!("the worker thread panicked");
+    }
+    // The worker's end closed the encode queue: the encoder publishes what is left.
+    let encode_result = tokio::task::spawn_blocking(move || encode_thread.join())
+        .await
+        .map_err(|e| SessionError::Thread(e.to_string()))?;
+    if encode_result.is_err() {
+        tracing::error!("the encode thread panicked");
     }
     ticks_stop.cancel();
     let recording = match recorder {

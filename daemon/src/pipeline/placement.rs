@@ -1,62 +1,160 @@
-//! The registration stage's interface: a fused scan goes in, a pose (or a failure with
-//! its reason) comes out, and later pose revisions of earlier scans may follow. The
-//! pipeline runs it on a blocking thread and knows nothing else about it.
+//! The registration stage's interface: a fused scan goes in; out come the scan's fate
+//! (placed with an id, or refused with a reason) and every change to the model it
+//! caused, in order: `ScanAdded` for it and for earlier failed scans a retry now
+//! placed, `PoseRevised` for poses global refinement moved. The pipeline runs it on
+//! the worker thread and knows nothing else about it.
 //!
-//! [`CapturePoses`] is the mode for replaying captures that already carry poses
-//! (`registration = "capture-poses"`): each scan is placed at its capture's
-//! `/texel/pose` (else `/truth/pose`) at the scan's timestamp.
+//! Two modes: [`RegistrarStage`] (`registration = "register"`) registers each scan
+//! against the model so far (`crate::register`); [`CapturePoses`]
+//! (`registration = "capture-poses"`) places each scan at its capture's `/texel/pose`
+//! (else `/truth/pose`) at the scan's timestamp.
 
 use std::collections::HashMap;
 use std::path::Path;
 use std::sync::Arc;
 
 use texel::capture::{CaptureError, CaptureEvent, CaptureReader, PoseTopic};
-use texel::model::ScanId;
-use texel::{Pose, TexelScan};
+use texel::model::{ModelEvent, ScanId};
+use texel::{PinholeCamera, Pose, TexelScan};
 
-/// A registered scan's pose, and whether the solution was degenerate (constrained in
-/// too few directions) though accepted.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Placement {
-    pub world_from_scan: Pose,
-    pub degenerate: bool,
-    /// Revisions of earlier scans found while placing this one.
-    pub revisions: Vec<PoseRevision>,
-}
+use crate::register::{Registrar, RegistrationConfig, RegistrationStatus};
 
-/// A better pose for a scan already in the model.
-#[derive(Debug, Clone, PartialEq)]
-pub struct PoseRevision {
-    pub id: ScanId,
-    pub world_from_scan: Pose,
+/// What the stage is given with a scan.
+#[derive(Debug, Clone, Copy)]
+pub struct ScanInput<'a> {
+    /// The texel frame's timestamp (its range frame's).
+    pub timestamp_ns: u64,
+    /// The lidar model the scan was taken with.
+    pub lidar: &'a PinholeCamera,
+    /// The true pose at this timestamp when a simulator or capture knows it; only
+    /// ever used to anchor the world frame at the first scan.
+    pub truth: Option<Pose>,
 }
 
 /// Why a scan could not be placed; it stays recorded but does not join the model.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct PlacementFailure {
-    /// Short, stable, for counters: `no-pose`, `no-overlap`, `degenerate`, ...
+    /// Short, stable, for logs: `no-pose`, `too-little-overlap`, `diverged`, ...
     pub kind: &'static str,
     pub reason: String,
 }
 
-/// A registration stage. Synchronous: the pipeline calls it from its own thread.
+/// The fate of the scan given to [`Registration::register`].
+#[derive(Debug, Clone, PartialEq)]
+pub enum Placement {
+    /// It joined the model as scan `id`; `degenerate`: the solution was constrained
+    /// in too few directions (kept at the prediction there) but accepted.
+    Placed { id: ScanId, degenerate: bool },
+    /// It did not (it may still join later, after a retry: a `ScanAdded` of a later
+    /// call then carries it).
+    Failed(PlacementFailure),
+}
+
+/// What one call changed.
+#[derive(Debug, Clone)]
+pub struct StageOutput {
+    pub placement: Placement,
+    /// Every change to the model, in order; ids count up from 0 without gaps.
+    pub events: Vec<ModelEvent>,
+    /// Earlier failed scans this call placed (their `ScanAdded` are in `events`).
+    pub recovered: u32,
+}
+
+/// A registration stage. Synchronous: the pipeline calls it from its worker thread.
 pub trait Registration: Send {
     /// The mode's name for status and logs.
     fn name(&self) -> &str;
 
-    /// Places scan `id` (the id it gets in the model if placed; ids of failed scans
-    /// are reused) taken at `timestamp_ns`.
-    fn register(
-        &mut self,
-        id: ScanId,
-        scan: &Arc<TexelScan>,
-        timestamp_ns: u64,
-    ) -> Result<Placement, PlacementFailure>;
+    /// Places one scan.
+    fn register(&mut self, scan: &Arc<TexelScan>, input: ScanInput<'_>) -> StageOutput;
+}
 
-    /// Revisions found in the background since the last call (global refinement);
-    /// polled by the pipeline after every scan and when idle.
-    fn take_revisions(&mut self) -> Vec<PoseRevision> {
-        Vec::new()
+/// Registration proper: a [`Registrar`] behind the stage interface. The world frame
+/// is the first scan's true pose when one is known (a simulator's, or a capture's
+/// `/truth/pose` at that timestamp), else `register_cli::default_anchor()`, as in
+/// `texeld register`.
+pub struct RegistrarStage {
+    config: RegistrationConfig,
+    registrar: Option<Registrar>,
+    /// True poses by timestamp known before the session (a replayed capture's),
+    /// consulted for the anchor only.
+    truth: HashMap<u64, Pose>,
+}
+
+impl RegistrarStage {
+    pub fn new(config: RegistrationConfig) -> Self {
+        Self {
+            config,
+            registrar: None,
+            truth: HashMap::new(),
+        }
+    }
+
+    /// Knows the true poses a capture carries, to anchor the world where the capture's
+    /// truth has it (a replay sends its truth after the frame it belongs to).
+    pub fn with_truth(mut self, truth: HashMap<u64, Pose>) -> Self {
+        self.truth = truth;
+        self
+    }
+
+    /// The registrar, once the first scan has arrived.
+    pub fn registrar(&self) -> Option<&Registrar> {
+        self.registrar.as_ref()
+    }
+}
+
+impl Registration for RegistrarStage {
+    fn name(&self) -> &str {
+        "register"
+    }
+
+    fn register(&mut self, scan: &Arc<TexelScan>, input: ScanInput<'_>) -> StageOutput {
+        let registrar = match &mut self.registrar {
+            Some(r) => r,
+            None => {
+                let anchor = input
+                    .truth
+                    .or_else(|| self.truth.get(&input.timestamp_ns).copied())
+                    .unwrap_or_else(crate::register_cli::default_anchor);
+                self.truth = HashMap::new();
+                self.registrar
+                    .insert(Registrar::with_anchor(self.config.clone(), anchor))
+            }
+        };
+        let result = registrar.register(Arc::clone(scan), input.lidar);
+        let recovered = registrar.take_recovered().len() as u32;
+        let events = registrar.take_events();
+        let placement = match (&result.status, result.scan_id) {
+            (RegistrationStatus::Failed { reason }, _) => Placement::Failed(PlacementFailure {
+                kind: failure_kind(reason),
+                reason: reason.to_string(),
+            }),
+            (_, Some(id)) => Placement::Placed {
+                id,
+                degenerate: !result.degenerate.is_empty(),
+            },
+            (_, None) => Placement::Failed(PlacementFailure {
+                kind: "no-id",
+                reason: "the registrar gave the scan no id".into(),
+            }),
+        };
+        StageOutput {
+            placement,
+            events,
+            recovered,
+        }
+    }
+}
+
+fn failure_kind(reason: &crate::register::FailureReason) -> &'static str {
+    use crate::register::FailureReason as F;
+    match reason {
+        F::NoPoints { .. } => "no-points",
+        F::TooLittleOverlap { .. } => "too-little-overlap",
+        F::Diverged { .. } => "diverged",
+        F::NonFinite => "non-finite",
+        F::PoorFit { .. } => "poor-fit",
+        F::NoTargets => "no-targets",
     }
 }
 
@@ -65,6 +163,7 @@ pub trait Registration: Send {
 pub struct CapturePoses {
     texel: HashMap<u64, Pose>,
     truth: HashMap<u64, Pose>,
+    next_id: ScanId,
 }
 
 impl CapturePoses {
@@ -109,6 +208,31 @@ impl CapturePoses {
         self.texel.is_empty() && self.truth.is_empty()
     }
 
+    /// Timestamps with a `/texel/pose` (a registered capture).
+    pub fn texel_count(&self) -> usize {
+        self.texel.len()
+    }
+
+    /// The `/truth/pose` table alone.
+    pub fn into_truth(self) -> HashMap<u64, Pose> {
+        self.truth
+    }
+
+    /// The pose at a timestamp: `/texel/pose` (the last one), else `/truth/pose`.
+    pub fn pose_at(&self, t: u64) -> Option<Pose> {
+        self.lookup(t)
+    }
+
+    /// The `/texel/pose` table alone.
+    pub fn texel_poses(&self) -> &HashMap<u64, Pose> {
+        &self.texel
+    }
+
+    /// The `/truth/pose` table alone.
+    pub fn truth_poses(&self) -> &HashMap<u64, Pose> {
+        &self.truth
+    }
+
     fn lookup(&self, t: u64) -> Option<Pose> {
         self.texel.get(&t).or_else(|| self.truth.get(&t)).copied()
     }
@@ -119,29 +243,40 @@ impl Registration for CapturePoses {
         "capture-poses"
     }
 
-    fn register(
-        &mut self,
-        _id: ScanId,
-        scan: &Arc<TexelScan>,
-        timestamp_ns: u64,
-    ) -> Result<Placement, PlacementFailure> {
+    fn register(&mut self, scan: &Arc<TexelScan>, input: ScanInput<'_>) -> StageOutput {
         // The scan frame is the EO frame, so the capture's world_from_eo is the scan's
         // pose. A live pair may carry the EO timestamp instead of the lidar's.
+        let timestamp_ns = input.timestamp_ns;
         let pose = self
             .lookup(timestamp_ns)
             .or_else(|| self.lookup(scan.texture.timestamp_ns));
         match pose {
-            Some(world_from_scan) => Ok(Placement {
-                world_from_scan,
-                degenerate: false,
-                revisions: Vec::new(),
-            }),
-            None => Err(PlacementFailure {
-                kind: "no-pose",
-                reason: format!(
-                    "no /texel/pose or /truth/pose at {timestamp_ns} ns in the pose capture"
-                ),
-            }),
+            Some(world_from_scan) => {
+                let id = self.next_id;
+                self.next_id += 1;
+                StageOutput {
+                    placement: Placement::Placed {
+                        id,
+                        degenerate: false,
+                    },
+                    events: vec![ModelEvent::ScanAdded {
+                        id,
+                        scan: Arc::clone(scan),
+                        world_from_scan,
+                    }],
+                    recovered: 0,
+                }
+            }
+            None => StageOutput {
+                placement: Placement::Failed(PlacementFailure {
+                    kind: "no-pose",
+                    reason: format!(
+                        "no /texel/pose or /truth/pose at {timestamp_ns} ns in the pose capture"
+                    ),
+                }),
+                events: Vec::new(),
+                recovered: 0,
+            },
         }
     }
 }

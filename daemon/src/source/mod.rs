@@ -1,9 +1,10 @@
 //! Sources: where raw frames come from. Every source (serial lidar, V4L2 camera,
-//! capture replay; the simulator next) implements [`Source`] and yields the same
+//! capture replay, the simulator) implements [`Source`] and yields the same
 //! frame types, so everything downstream is the same whatever the hardware.
 
 pub mod replay;
 pub mod serial;
+pub mod sim;
 pub mod v4l;
 pub mod v4l_convert;
 

@@ -11,7 +11,9 @@ mod bytes_in;
 mod scan;
 mod status;
 
-pub use scan::{MAX_GRID_SIDE, MAX_TEXTURE_BYTES, Texture, TextureFormat, WireScan};
+pub use scan::{
+    MAX_GRID_SIDE, MAX_TEXTURE_BYTES, Texture, TextureFormat, WireScan, check_sendable,
+};
 pub use status::{QueueStatus, RecordingStatus, SourceStatus, StageLatency, Status};
 
 use thiserror::Error;

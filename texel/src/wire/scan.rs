@@ -223,6 +223,12 @@ impl WireScan {
         Ok(wire)
     }
 
+    /// The bytes a `ScanAdded` frame of this scan takes at most, its texture as raw
+    /// RGB (a compressed texture is smaller in practice, but never counted on).
+    pub fn rgb8_frame_bound(scan: &TexelScan) -> usize {
+        256 + scan.vertices.len() * 25 + scan.triangles.len() * 17 + scan.texture.rgb.len()
+    }
+
     /// The texel scan this message carries (texture decoded, the pixel-to-vertex map
     /// rebuilt), with its id and pose.
     pub fn into_scan(self) -> Result<(ScanId, TexelScan, Pose), WireError> {
@@ -474,4 +480,37 @@ impl WireScan {
         scan.validate()?;
         Ok(scan)
     }
+}
+
+/// Whether `scan` can be streamed at all: everything the decoder checks, with the
+/// texture as raw RGB (which needs no compression and so cannot fail to encode), and
+/// the frame within [`super::MAX_SERVER_FRAME_LEN`]. A scan that passes always encodes
+/// at a finite pose, whatever happens to its compressed texture.
+pub fn check_sendable(scan: &TexelScan) -> Result<(), WireError> {
+    let bound = WireScan::rgb8_frame_bound(scan);
+    if bound > super::MAX_SERVER_FRAME_LEN as usize {
+        return Err(WireError::encode(
+            "ScanAdded",
+            format!(
+                "a frame of up to {bound} bytes exceeds the limit {}",
+                super::MAX_SERVER_FRAME_LEN
+            ),
+        ));
+    }
+    if !scan.texture.is_consistent() {
+        return Err(WireError::encode(
+            "Texture",
+            "RGB buffer does not match its size",
+        ));
+    }
+    // The checks run on a copy whose texture is declared but empty (so no pixels are
+    // copied); its RGB size was checked just above.
+    let texture = Texture {
+        format: TextureFormat::Png,
+        width: scan.texture.width,
+        height: scan.texture.height,
+        timestamp_ns: scan.texture.timestamp_ns,
+        data: Vec::new(),
+    };
+    WireScan::with_texture(0, scan, Pose::identity(), texture).map(|_| ())
 }
