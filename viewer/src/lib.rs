@@ -9,5 +9,7 @@ pub mod composite;
 pub mod cull;
 pub mod gpu;
 pub mod headless;
+pub mod live;
 pub mod reliability;
 pub mod scenes;
+pub mod tradeoffs;

@@ -1,48 +1,14 @@
-//! The window under a real X server (Xvfb on a free display): it opens on a capture,
-//! draws frames through the swapchain, and the read-back frame is not blank.
+//! The window under a real X server (Xvfb on a free display): it opens on a capture
+//! replayed through the daemon's pipeline in-process, draws frames through the
+//! swapchain, and the read-back frame is not blank.
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests panic on failure by design
 
 mod support;
 
-use std::process::{Child, Command, Stdio};
-use std::time::{Duration, Instant};
+use std::process::Command;
 
 use support::*;
 use texel::capture::PoseTopic;
-
-struct Xvfb(Child);
-
-impl Drop for Xvfb {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-/// Starts Xvfb on the first display number whose lock file is free.
-fn start_xvfb() -> (Xvfb, String) {
-    for n in 90..140 {
-        if std::path::Path::new(&format!("/tmp/.X{n}-lock")).exists() {
-            continue;
-        }
-        let display = format!(":{n}");
-        let child = Command::new("Xvfb")
-            .args([&display, "-screen", "0", "800x600x24", "-nolisten", "tcp"])
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("Xvfb must be installed (scripts/setup.sh installs xvfb)");
-        let xvfb = Xvfb(child);
-        let start = Instant::now();
-        while start.elapsed() < Duration::from_secs(10) {
-            if std::path::Path::new(&format!("/tmp/.X11-unix/X{n}")).exists() {
-                return (xvfb, display);
-            }
-            std::thread::sleep(Duration::from_millis(50));
-        }
-    }
-    panic!("no free X display for Xvfb");
-}
 
 #[test]
 fn window_opens_and_draws_the_model() {
@@ -61,6 +27,9 @@ fn window_opens_and_draws_the_model() {
             "240",
             "--frames",
             "8",
+            "--min-scans",
+            "3",
+            "--fast",
             "--screenshot",
             shot.to_str().unwrap(),
         ])

@@ -1,7 +1,8 @@
 //! The window: winit + egui over the same renderer as headless rendering. Scans arrive
-//! through a channel of model events (a capture loader now, the live stream later)
-//! and are uploaded as they come; the overlay controls mode, blending, visibility and
-//! the camera.
+//! through a channel of viewer events (a live daemon connection, an in-process
+//! replay, or a loaded capture) and are uploaded as they come; the overlay shows the
+//! connection, the daemon's status and the stream latency, and controls mode,
+//! blending, visibility and the camera.
 
 mod controls;
 mod ui;
@@ -13,6 +14,7 @@ use std::time::Instant;
 
 use anyhow::Context;
 use texel::model::{Model, ModelEvent};
+use texel::wire::Status;
 use winit::application::ApplicationHandler;
 use winit::event::{ElementState, MouseButton, MouseScrollDelta, WindowEvent};
 use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
@@ -23,16 +25,21 @@ pub use controls::CameraControls;
 
 use crate::camera::VirtualCamera;
 use crate::gpu::{FrameStats, GpuContext, RenderSettings, RenderTarget, Renderer};
+use crate::live::{ConnectionState, LatencyMeter, ViewerEvent, fov_y_deg_of_scan};
 
 pub struct AppOptions {
     pub title: String,
     pub width: u32,
     pub height: u32,
-    pub fov_deg: f64,
+    /// Vertical field of view; `None`: estimated from the first scan.
+    pub fov_deg: Option<f64>,
     pub settings: RenderSettings,
-    pub events: Receiver<ModelEvent>,
-    /// Read back the frame after this many frames, write it, and exit.
-    pub screenshot: Option<(PathBuf, u32)>,
+    pub events: Receiver<ViewerEvent>,
+    /// Start following the newest scan.
+    pub follow_newest: bool,
+    /// Read back the frame after this many frames once the model holds this many
+    /// scans (or a minute has passed), write it, and exit.
+    pub screenshot: Option<(PathBuf, u32, usize)>,
 }
 
 /// What the viewer shows, independent of the window.
@@ -46,28 +53,68 @@ pub struct ViewerState {
     pub fps: f64,
     /// A request from the UI to jump to a scan's acquisition view.
     pub jump_to: Option<u64>,
+    /// The source's connection, if it reports one.
+    pub connection: Option<ConnectionState>,
+    /// The daemon's latest status and when it came.
+    pub status: Option<(Status, Instant)>,
+    /// Whether the first snapshot is complete.
+    pub snapshot_complete: bool,
+    pub latency: LatencyMeter,
     camera_placed: bool,
+    fov_known: bool,
 }
 
 impl ViewerState {
-    pub fn new(settings: RenderSettings, fov_deg: f64) -> Self {
+    pub fn new(settings: RenderSettings, fov_deg: Option<f64>) -> Self {
         Self {
             model: Model::new(),
             settings,
             controls: CameraControls::new(texel::Pose::identity(), 3.0),
-            fov_deg,
+            fov_deg: fov_deg.unwrap_or(50.0),
             follow_newest: false,
             stats: FrameStats::default(),
             fps: 0.0,
             jump_to: None,
+            connection: None,
+            status: None,
+            snapshot_complete: false,
+            latency: LatencyMeter::default(),
             camera_placed: false,
+            fov_known: fov_deg.is_some(),
         }
     }
 
-    /// Applies model events and uploads what they bring; a bad event is reported and
-    /// skipped, never fatal.
-    pub fn apply_events(&mut self, events: &Receiver<ModelEvent>, renderer: &mut Renderer) {
-        while let Ok(event) = events.try_recv() {
+    /// Applies the events waiting (at most a bounded batch per frame, so the window
+    /// stays responsive while a large snapshot arrives) and uploads what they bring;
+    /// a bad event is reported and skipped, never fatal.
+    pub fn apply_events(&mut self, events: &Receiver<ViewerEvent>, renderer: &mut Renderer) {
+        const MAX_PER_FRAME: usize = 64;
+        for _ in 0..MAX_PER_FRAME {
+            let Ok(event) = events.try_recv() else {
+                break;
+            };
+            let (event, received) = match event {
+                ViewerEvent::Model { event, received } => (event, received),
+                ViewerEvent::Reset => {
+                    self.model = Model::new();
+                    renderer.clear_scans();
+                    self.snapshot_complete = false;
+                    continue;
+                }
+                ViewerEvent::SnapshotComplete { .. } => {
+                    self.snapshot_complete = true;
+                    continue;
+                }
+                ViewerEvent::Status { status, received } => {
+                    self.status = Some((*status, received));
+                    continue;
+                }
+                ViewerEvent::Connection(state) => {
+                    self.connection = Some(state);
+                    continue;
+                }
+            };
+            self.latency.received(received);
             if let Err(e) = self.model.apply(event.clone()) {
                 eprintln!("warning: model event skipped: {e}");
                 continue;
@@ -78,6 +125,12 @@ impl ViewerState {
                     scan,
                     world_from_scan,
                 } => {
+                    if !self.fov_known
+                        && let Some(fov) = fov_y_deg_of_scan(&scan)
+                    {
+                        self.fov_deg = fov;
+                        self.fov_known = true;
+                    }
                     if self.follow_newest || !self.camera_placed {
                         self.jump(world_from_scan, &scan);
                     }
@@ -88,6 +141,15 @@ impl ViewerState {
                     world_from_scan,
                 } => {
                     renderer.set_pose(id, world_from_scan);
+                    // Following the sensor: the newest scan's revised pose moves the
+                    // camera with it.
+                    if self.follow_newest
+                        && self.model.scans().last().is_some_and(|s| s.id == id)
+                        && let Some(s) = self.model.get(id)
+                    {
+                        let scan = Arc::clone(&s.scan);
+                        self.jump(world_from_scan, &scan);
+                    }
                     Ok(())
                 }
             };
@@ -139,6 +201,7 @@ struct App {
     window: Option<WindowState>,
     error: Option<anyhow::Error>,
     frames: u32,
+    started: Instant,
     last_frame: Instant,
     drag: Option<(MouseButton, (f64, f64))>,
     cursor: (f64, f64),
@@ -149,13 +212,15 @@ struct App {
 pub fn run(options: AppOptions) -> anyhow::Result<()> {
     let event_loop = EventLoop::new().context("cannot open a window (is there a display?)")?;
     event_loop.set_control_flow(ControlFlow::Poll);
-    let viewer = ViewerState::new(options.settings.clone(), options.fov_deg);
+    let mut viewer = ViewerState::new(options.settings.clone(), options.fov_deg);
+    viewer.follow_newest = options.follow_newest;
     let mut app = App {
         options,
         viewer,
         window: None,
         error: None,
         frames: 0,
+        started: Instant::now(),
         last_frame: Instant::now(),
         drag: None,
         cursor: (0.0, 0.0),
@@ -296,6 +361,7 @@ impl App {
             };
             self.viewer.stats = w.renderer.render(&camera, &self.viewer.settings, &target)?;
         }
+        self.viewer.latency.drawn(Instant::now());
         // The overlay, drawn over the frame.
         let raw_input = w.egui_state.take_egui_input(&w.window);
         let viewer = &mut self.viewer;
@@ -361,13 +427,21 @@ impl App {
         // Every delta is applied above.
         textures_delta.clear();
         self.frames += 1;
-        if let Some((path, after)) = &self.options.screenshot
+        if let Some((path, after, min_scans)) = &self.options.screenshot
             && self.frames >= *after
+            && (self.viewer.model.len() >= *min_scans
+                || self.started.elapsed() > std::time::Duration::from_secs(60))
         {
             let image = read_frame(&w.gpu, &frame.texture, w.config.format)?;
             image
                 .save(path)
                 .with_context(|| format!("writing {}", path.display()))?;
+            println!(
+                "screenshot {}: {} scans in the model, {} drawn",
+                path.display(),
+                self.viewer.model.len(),
+                self.viewer.stats.drawn
+            );
             w.gpu.queue.present(frame);
             event_loop.exit();
             return Ok(());

@@ -1,9 +1,11 @@
-//! The egui overlay: mode, blending, stretched triangles, frame statistics, the scan
-//! list with visibility toggles and jumps to acquisition views.
+//! The egui overlay: the connection, the daemon's status and the stream latency;
+//! mode, blending, stretched triangles, frame statistics, the scan list with
+//! visibility toggles and jumps to acquisition views.
 
 use super::ViewerState;
 use crate::composite::{MAX_K, Mode};
 use crate::gpu::Strategy;
+use crate::live::ConnectionState;
 
 /// `roomy`: the window is wide enough to show the panel open at first (in a small
 /// window it starts folded, so the model stays visible).
@@ -13,6 +15,8 @@ pub(super) fn panel(ctx: &egui::Context, v: &mut ViewerState, roomy: bool) {
         .default_pos([8.0, 8.0])
         .default_open(roomy)
         .show(ctx, |ui| {
+            source_section(ui, v);
+            ui.separator();
             ui.label(format!("{:.1} frames/s", v.fps));
             ui.label(format!(
                 "scans {}: drawn {}, outside view {}, facing away {}, hidden {}",
@@ -74,5 +78,93 @@ pub(super) fn panel(ctx: &egui::Context, v: &mut ViewerState, roomy: bool) {
                         });
                     }
                 });
+        });
+}
+
+/// The model's source: connection state, the daemon's status (sources, counters,
+/// stage latencies) and the stream latency.
+fn source_section(ui: &mut egui::Ui, v: &ViewerState) {
+    if let Some(state) = &v.connection {
+        let colour = match state {
+            ConnectionState::Connected { .. } => egui::Color32::from_rgb(90, 200, 90),
+            ConnectionState::Connecting { .. } => egui::Color32::from_rgb(220, 200, 80),
+            ConnectionState::Retrying { .. } | ConnectionState::Ended { .. } => {
+                egui::Color32::from_rgb(230, 110, 90)
+            }
+        };
+        ui.colored_label(colour, state.describe());
+    }
+    ui.label(format!(
+        "model: {} scans{}",
+        v.model.len(),
+        if v.snapshot_complete {
+            ""
+        } else {
+            " (snapshot arriving)"
+        }
+    ));
+    if let Some((p50, max)) = v.latency.summary() {
+        ui.label(format!(
+            "stream latency (received -> drawn): p50 {p50:.0} ms, max {max:.0} ms"
+        ));
+    }
+    let Some((status, at)) = &v.status else {
+        return;
+    };
+    ui.label(format!(
+        "daemon up {:.0} s, {} viewers (status {:.1} s old)",
+        status.uptime_s,
+        status.clients,
+        at.elapsed().as_secs_f64()
+    ));
+    if let Some(e2e) = status.stages.iter().find(|s| s.stage == "end_to_end") {
+        ui.label(format!(
+            "daemon frame -> published: p50 {:.0} ms, p99 {:.0} ms",
+            e2e.p50_ms, e2e.p99_ms
+        ));
+    }
+    egui::CollapsingHeader::new("daemon status")
+        .default_open(false)
+        .show(ui, |ui| {
+            for s in &status.sources {
+                ui.label(format!(
+                    "{} ({}): {}, range {:.1} fps, EO {:.1} fps{}",
+                    s.name,
+                    s.kind,
+                    s.state,
+                    s.range_fps,
+                    s.eo_fps,
+                    s.last_error
+                        .as_ref()
+                        .map_or(String::new(), |e| format!(", last error: {e}"))
+                ));
+            }
+            for st in &status.stages {
+                ui.label(format!(
+                    "{}: p50 {:.1} ms, p99 {:.1} ms ({} samples)",
+                    st.stage, st.p50_ms, st.p99_ms, st.samples
+                ));
+            }
+            for q in &status.queues {
+                ui.label(format!("queue {}: {}/{}", q.name, q.depth, q.capacity));
+            }
+            let nonzero: Vec<String> = status
+                .counters
+                .iter()
+                .filter(|(_, n)| **n > 0)
+                .map(|(k, n)| format!("{k} {n}"))
+                .collect();
+            if !nonzero.is_empty() {
+                ui.label(nonzero.join(", "));
+            }
+            if let Some(r) = &status.recording {
+                ui.label(format!(
+                    "recording {}: {:.1} MiB, {} messages, {} errors",
+                    r.path,
+                    r.bytes as f64 / 1048576.0,
+                    r.messages,
+                    r.errors
+                ));
+            }
         });
 }

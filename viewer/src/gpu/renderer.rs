@@ -197,6 +197,11 @@ impl Renderer {
         Ok(())
     }
 
+    /// Forgets every scan (the source reset its model; ids will be reused).
+    pub fn clear_scans(&mut self) {
+        self.scans.clear();
+    }
+
     pub fn scan_count(&self) -> usize {
         self.scans.len()
     }

@@ -107,3 +107,38 @@ pub fn write_box_capture(path: &std::path::Path, topic: texel::capture::PoseTopi
 pub fn viewer_binary() -> PathBuf {
     PathBuf::from(env!("CARGO_BIN_EXE_texel-viewer"))
 }
+
+/// An Xvfb server, killed when dropped.
+pub struct Xvfb(std::process::Child);
+
+impl Drop for Xvfb {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// Starts Xvfb on the first display number whose lock file is free.
+pub fn start_xvfb() -> (Xvfb, String) {
+    for n in 90..140 {
+        if std::path::Path::new(&format!("/tmp/.X{n}-lock")).exists() {
+            continue;
+        }
+        let display = format!(":{n}");
+        let child = std::process::Command::new("Xvfb")
+            .args([&display, "-screen", "0", "800x600x24", "-nolisten", "tcp"])
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .expect("Xvfb must be installed (scripts/setup.sh installs xvfb)");
+        let xvfb = Xvfb(child);
+        let start = std::time::Instant::now();
+        while start.elapsed() < std::time::Duration::from_secs(10) {
+            if std::path::Path::new(&format!("/tmp/.X11-unix/X{n}")).exists() {
+                return (xvfb, display);
+            }
+            std::thread::sleep(std::time::Duration::from_millis(50));
+        }
+    }
+    panic!("no free X display for Xvfb");
+}
