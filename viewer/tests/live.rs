@@ -57,6 +57,7 @@ impl Daemon {
             speed,
             fast,
             stay: true,
+            registration: None,
         };
         let overrides = RunOverrides {
             bind: Some(bind),

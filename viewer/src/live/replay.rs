@@ -73,6 +73,7 @@ fn run(
         speed: options.speed,
         fast: options.fast,
         stay: false,
+        registration: None,
     };
     let overrides = RunOverrides {
         no_serve: true,

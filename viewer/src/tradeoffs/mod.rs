@@ -19,7 +19,7 @@ use texel::PinholeCamera;
 use texel::model::Model;
 use texel_daemon::register::config::RegistrationConfig;
 use texel_daemon::register_cli::register_capture;
-use texel_daemon::tradeoffs::registration::data::{cached_capture, simulator};
+use texel_daemon::tradeoffs::registration::data::{SequenceSpec, cached_capture, simulator};
 
 use crate::camera::VirtualCamera;
 use crate::capture_load::{PoseSource, load_capture};
@@ -270,7 +270,16 @@ fn measure_scene(
     frames: usize,
     args: &TradeoffsArgs,
 ) -> Result<SceneResult> {
-    let capture = cached_capture(scenes_dir, cache, scene, frames, args.seed)?;
+    let capture = cached_capture(
+        scenes_dir,
+        cache,
+        &SequenceSpec {
+            scene,
+            frames,
+            seed: args.seed,
+            orbit_period_frames: None,
+        },
+    )?;
     let (registered_path, registration_s) = registered_capture(&capture)?;
     let registered = load_capture(&registered_path)?;
     anyhow::ensure!(

@@ -102,6 +102,7 @@ pub fn plot(stem: &Path, results: &[SceneResult]) -> Result<()> {
         "RMSE against ground truth, grey levels (PSNR = 20 log10(255 / RMSE))",
         &series,
     )
+    .map_err(Into::into)
 }
 
 /// `text` with the section between `<!-- BEGIN name -->` and `<!-- END name -->`
