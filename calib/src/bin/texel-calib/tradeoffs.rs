@@ -13,8 +13,8 @@ use calib::config::CalibConfig;
 use calib::pipeline::{CalibInput, calibrate};
 use calib::simulate::{self, PoseStyle};
 
-pub const BEGIN: &str = "<!-- calibration:begin -->";
-pub const END: &str = "<!-- calibration:end -->";
+pub const BEGIN: &str = "<!-- BEGIN calibration -->";
+pub const END: &str = "<!-- END calibration -->";
 
 #[derive(clap::Args)]
 pub struct Args {
