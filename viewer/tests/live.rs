@@ -277,9 +277,9 @@ fn the_connection_reconnects_and_resynchronises() {
         matches!(e, ViewerEvent::Reset)
     });
     assert!(model.is_empty());
-    wait_until(&mut model, &mut seen, &|e, m| {
-        matches!(e, ViewerEvent::SnapshotComplete { .. }) && m.len() == FRAMES
-    });
+    // The new daemon may still be registering when the viewer connects: its snapshot
+    // then holds the scans so far and the rest follow live.
+    wait_until(&mut model, &mut seen, &|_, m| m.len() == FRAMES);
     assert!(
         seen.iter().filter(|s| s.starts_with("connected")).count() >= 2,
         "{seen:?}"
