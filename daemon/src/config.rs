@@ -264,6 +264,10 @@ pub struct SimSerialConfig {
     pub eo_size: Option<[u32; 2]>,
     /// Send each frame's `/truth/pose` (recorded, and the world anchor).
     pub truth: bool,
+    /// When EO rendering falls behind the line: `skip` the frame's EO frame (counted
+    /// `eo_skipped`; the lidar frame is recorded unpaired) or `wait` (the serial
+    /// source waits, the pseudo-terminal buffers the line, the device waits).
+    pub late: LatePolicy,
     /// The serial source's settings, as in `[[source.serial]]`.
     pub baud: u32,
     pub stall_timeout_ms: u64,
@@ -293,6 +297,7 @@ impl Default for SimSerialConfig {
             lidar_size: None,
             eo_size: None,
             truth: true,
+            late: LatePolicy::Skip,
             baud: serial.baud,
             stall_timeout_ms: serial.stall_timeout_ms,
             reopen_backoff_min_ms: serial.reopen_backoff_min_ms,

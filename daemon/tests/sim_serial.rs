@@ -161,7 +161,12 @@ async fn every_intact_frame_is_recorded_bit_identical_and_counters_equal_the_inj
     let intact = n(&log["frames_written"]) - n(&log["crc_errors"]);
     assert_eq!(c["frames_decoded"], intact);
     assert_eq!(c["range_frames"], intact);
-    assert_eq!(c["eo_frames"], intact);
+    // Each lidar frame's EO frame was rendered and sent, or skipped (counted) when
+    // rendering fell behind the line (`late = skip`).
+    let eo_skipped = c.get("eo_skipped").copied().unwrap_or(0);
+    assert_eq!(c["eo_frames"] + eo_skipped, intact);
+    assert!(eo_skipped <= 2, "rendering fell far behind: {c:?}");
+    assert!(!c.contains_key("eo_render_failures"), "{c:?}");
     // The unplug was seen and survived; the injected stall was seen, and the end of
     // the stream shows as one more.
     assert_eq!(c["disconnects"], 1);
@@ -173,8 +178,8 @@ async fn every_intact_frame_is_recorded_bit_identical_and_counters_equal_the_inj
     );
 
     // 3. Every intact lidar frame met its EO frame and went down the pipeline.
-    assert_eq!(metrics.get(Counter::Paired), intact);
-    assert_eq!(metrics.get(Counter::UnpairedRange), 0);
+    assert_eq!(metrics.get(Counter::Paired), c["eo_frames"]);
+    assert_eq!(metrics.get(Counter::UnpairedRange), eo_skipped);
     assert_eq!(metrics.get(Counter::UnpairedEo), 0);
     assert!(summary.scans > 0, "no scan reached the model");
     assert_eq!(summary.recording.unwrap().errors, 0);
@@ -218,8 +223,9 @@ async fn every_intact_frame_is_recorded_bit_identical_and_counters_equal_the_inj
         }
     }
     assert_eq!(ranges, want);
-    assert_eq!(eos, want);
     assert_eq!(truths, want);
+    assert_eq!(eos.len() as u64, c["eo_frames"]);
+    assert!(eos.iter().all(|s| want.contains(s)), "{eos:?}");
 }
 
 #[test]

@@ -31,11 +31,14 @@ use super::sim::build_simulator;
 use super::{
     FrameSink, Source, SourceError, SourceEvent, SourceFuture, SourceMetrics, SourceState,
 };
-use crate::config::{SimSerialConfig, SimSetup};
+use crate::config::{LatePolicy, SimSerialConfig, SimSetup};
 
 /// Lidar frames read from the line waiting for their EO frame. The serial source waits
 /// when it is full (the pseudo-terminal buffers the line meanwhile).
 const LINE_QUEUE: usize = 4;
+/// EO frames waiting to be rendered: fewer than `sync.max_pending` (8 by default),
+/// so a lidar frame is still waiting for its partner when the EO frame comes.
+const EO_QUEUE: usize = 4;
 /// How often the device's events and injection log are looked at.
 const DEVICE_POLL: Duration = Duration::from_millis(20);
 /// The link's name in the private directory made when none is configured.
@@ -52,6 +55,9 @@ pub struct SimSerialSource {
     pub setup: SimSetup,
     /// Send each frame's `/truth/pose`.
     pub truth: bool,
+    /// When EO rendering is behind the line: skip the frame's EO (the lidar frame is
+    /// recorded unpaired), or make the line wait.
+    pub late: LatePolicy,
     pub device: VirtualLidarConfig,
     pub baud: u32,
     pub stall_timeout: Duration,
@@ -69,6 +75,7 @@ impl SimSerialSource {
             name: c.name.clone(),
             setup: c.setup(),
             truth: c.truth,
+            late: c.late,
             device: c.device.clone(),
             baud: c.baud,
             stall_timeout: Duration::from_millis(c.stall_timeout_ms),
@@ -212,6 +219,54 @@ impl DeviceWatch {
     }
 }
 
+/// Renders the EO frame of each seq it is given and sends it on.
+struct EoRenderer {
+    name: String,
+    sim: Arc<Simulator>,
+    /// EO frames render on their own threads: on rayon's global pool their long
+    /// parallel loops would hold up the device's own range rendering, and a device
+    /// held up is a line gone silent.
+    pool: Arc<rayon::ThreadPool>,
+    sink: FrameSink,
+    shutdown: CancellationToken,
+}
+
+impl EoRenderer {
+    async fn run(self, mut jobs: mpsc::Receiver<u32>) {
+        let metrics = Arc::clone(self.sink.metrics());
+        while let Some(seq) = jobs.recv().await {
+            if self.shutdown.is_cancelled() {
+                // Stopping: the lidar frames are passed on, their EO frames are not
+                // worth a render each.
+                metrics.add_counter("eo_skipped", 1);
+                continue;
+            }
+            let (sim, pool) = (Arc::clone(&self.sim), Arc::clone(&self.pool));
+            let rendered =
+                tokio::task::spawn_blocking(move || pool.install(|| sim_frame_for_seq(&sim, seq)))
+                    .await;
+            let message = match rendered {
+                Ok(Ok(frame)) => {
+                    if self
+                        .sink
+                        .send(SourceEvent::Eo(frame.pair.eo))
+                        .await
+                        .is_err()
+                    {
+                        return;
+                    }
+                    continue;
+                }
+                Ok(Err(e)) => format!("EO frame for seq {seq}: {e}"),
+                Err(e) => format!("EO frame for seq {seq}: render thread failed: {e}"),
+            };
+            metrics.add_counter("eo_render_failures", 1);
+            tracing::warn!(source = %self.name, "{message}");
+            metrics.report_error(message);
+        }
+    }
+}
+
 /// Publishes what the device did as `injected_*` counters.
 fn publish_injection(metrics: &SourceMetrics, log: &Mutex<InjectionLog>) {
     let Ok(log) = log.lock() else {
@@ -260,6 +315,14 @@ impl SimSerialSource {
         {
             return Ok(());
         }
+        // Half the cores: the device, the reader and the pipeline need the rest.
+        let threads = std::thread::available_parallelism().map_or(1, |n| (n.get() / 2).max(1));
+        let eo_pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .thread_name(|i| format!("sim-serial-eo-{i}"))
+            .build()
+            .map(Arc::new)
+            .map_err(|e| self.fatal(&metrics, format!("cannot start EO render threads: {e}")))?;
         let lidar = VirtualLidar::new(Arc::clone(&sim), self.device.clone())
             .map_err(|e| self.fatal(&metrics, e.to_string()))?;
         let log = lidar.log_handle();
@@ -294,6 +357,17 @@ impl SimSerialSource {
         });
         let line = tokio::spawn(serial.run(line_sink, line_stop.clone()));
 
+        // EO frames render beside the line, so rendering never holds up reading.
+        let (eo_tx, eo_rx) = mpsc::channel(EO_QUEUE);
+        let renderer = EoRenderer {
+            name: self.name.clone(),
+            sim: Arc::clone(&sim),
+            pool: eo_pool,
+            sink: sink.clone(),
+            shutdown: shutdown.clone(),
+        };
+        let eo_task = tokio::spawn(renderer.run(eo_rx));
+
         let mut watch = DeviceWatch {
             current: None,
             stalls_at_finish: None,
@@ -303,7 +377,7 @@ impl SimSerialSource {
             tokio::select! {
                 event = line_rx.recv() => match event {
                     Some(tagged) => {
-                        if !self.pass_on(tagged.event, &sim, &sink, true).await {
+                        if !self.pass_on(tagged.event, &sim, &sink, &eo_tx).await {
                             break Outcome::PipelineClosed;
                         }
                     }
@@ -327,15 +401,18 @@ impl SimSerialSource {
         // Stop reading, and pass on every frame already read (nothing received is
         // lost); at shutdown without its EO frame, which would take a render.
         line_stop.cancel();
-        let with_eo = outcome != Outcome::Shutdown;
         let mut pipeline_open = outcome != Outcome::PipelineClosed;
         while let Some(tagged) = line_rx.recv().await {
-            if pipeline_open && !self.pass_on(tagged.event, &sim, &sink, with_eo).await {
+            if pipeline_open && !self.pass_on(tagged.event, &sim, &sink, &eo_tx).await {
                 pipeline_open = false;
             }
         }
         if let Err(e) = line.await {
             tracing::warn!(source = %self.name, "serial reader task failed: {e}");
+        }
+        drop(eo_tx);
+        if let Err(e) = eo_task.await {
+            tracing::warn!(source = %self.name, "EO render task failed: {e}");
         }
 
         let stopped = tokio::task::spawn_blocking(move || device.stop()).await;
@@ -358,14 +435,13 @@ impl SimSerialSource {
     }
 
     /// Passes on one event of the serial source: a lidar frame with its true pose
-    /// before it and, if `with_eo`, the simulator's EO frame after it. False when the
-    /// pipeline has stopped.
+    /// before it, and its seq to the EO renderer. False when the pipeline has stopped.
     async fn pass_on(
         &self,
         event: SourceEvent,
-        sim: &Arc<Simulator>,
+        sim: &Simulator,
         sink: &FrameSink,
-        with_eo: bool,
+        eo_jobs: &mpsc::Sender<u32>,
     ) -> bool {
         let SourceEvent::Range(frame) = event else {
             // The serial source yields lidar frames only.
@@ -400,29 +476,14 @@ impl SimSerialSource {
         if sink.forward(SourceEvent::Range(frame)).await.is_err() {
             return false;
         }
-        if !with_eo {
-            sink.metrics().add_counter("eo_skipped_at_shutdown", 1);
-            return true;
+        let queued = match self.late {
+            LatePolicy::Wait => eo_jobs.send(seq).await.is_ok(),
+            LatePolicy::Skip => eo_jobs.try_send(seq).is_ok(),
+        };
+        if !queued {
+            sink.metrics().add_counter("eo_skipped", 1);
         }
-        match self.render_eo(sim, seq).await {
-            Ok(eo) => sink.send(SourceEvent::Eo(eo)).await.is_ok(),
-            Err(message) => {
-                sink.metrics().add_counter("eo_render_failures", 1);
-                tracing::warn!(source = %self.name, "{message}");
-                sink.metrics().report_error(message);
-                true
-            }
-        }
-    }
-
-    /// The EO frame taken with lidar frame `seq`.
-    async fn render_eo(&self, sim: &Arc<Simulator>, seq: u32) -> Result<texel::EoFrame, String> {
-        let sim = Arc::clone(sim);
-        match tokio::task::spawn_blocking(move || sim_frame_for_seq(&sim, seq)).await {
-            Ok(Ok(frame)) => Ok(frame.pair.eo),
-            Ok(Err(e)) => Err(format!("EO frame for seq {seq}: {e}")),
-            Err(e) => Err(format!("EO frame for seq {seq}: render thread failed: {e}")),
-        }
+        true
     }
 
     fn write_injection_log(&self, metrics: &SourceMetrics, log: &Mutex<InjectionLog>) {
