@@ -33,7 +33,7 @@ use super::{
 };
 use crate::config::{LatePolicy, SimSerialConfig, SimSetup};
 
-/// Lidar frames read from the line waiting for their EO frame. The serial source waits
+/// Lidar frames read from the line waiting to be passed on. The serial source waits
 /// when it is full (the pseudo-terminal buffers the line meanwhile).
 const LINE_QUEUE: usize = 4;
 /// EO frames waiting to be rendered: fewer than `sync.max_pending` (8 by default),
