@@ -57,6 +57,7 @@ pub fn build_config(
         config.source.serial.clear();
         config.source.v4l.clear();
         config.source.sim.clear();
+        config.source.sim_serial.clear();
         config.source.replay = vec![ReplayConfig {
             name: "replay".into(),
             capture: r.capture.clone(),

@@ -76,6 +76,9 @@ pub struct SourcesSection {
     pub replay: Vec<ReplayConfig>,
     /// The simulator in-process (`sims`).
     pub sim: Vec<SimConfig>,
+    /// The simulator's virtual TXL1 lidar on a pseudo-terminal, read through the
+    /// serial source, with the simulator's EO frames (`source::sim_serial`).
+    pub sim_serial: Vec<SimSerialConfig>,
 }
 
 #[derive(Debug, Clone, Deserialize)]
@@ -229,6 +232,84 @@ impl Default for SimConfig {
 }
 
 impl SimConfig {
+    pub fn setup(&self) -> SimSetup {
+        SimSetup {
+            scene: self.scene.clone(),
+            seed: self.seed,
+            effects: self.effects.clone(),
+            frames: self.frames,
+            lidar_size: self.lidar_size,
+            eo_size: self.eo_size,
+        }
+    }
+}
+
+/// The serial path end to end: the simulator's virtual TXL1 device
+/// (`sims::serial::VirtualLidar`) on a pseudo-terminal pair, read by the `serial`
+/// source's own code, each lidar frame paired with the simulator's EO frame.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SimSerialConfig {
+    pub name: String,
+    /// A scene file (`configs/scenes/*.toml`).
+    pub scene: PathBuf,
+    /// Seed of the simulator's random numbers.
+    pub seed: u64,
+    /// Replaces the scene's effect list (names; `[]` = none).
+    pub effects: Option<Vec<String>>,
+    /// Number of frames of the trajectory (default: the scene's).
+    pub frames: Option<usize>,
+    /// Lidar and EO resolution `[width, height]` (intrinsics scale with them).
+    pub lidar_size: Option<[u32; 2]>,
+    pub eo_size: Option<[u32; 2]>,
+    /// Send each frame's `/truth/pose` (recorded, and the world anchor).
+    pub truth: bool,
+    /// When EO rendering falls behind the line: `skip` the frame's EO frame (counted
+    /// `eo_skipped`; the lidar frame is recorded unpaired) or `wait` (the serial
+    /// source waits, the pseudo-terminal buffers the line, the device waits).
+    pub late: LatePolicy,
+    /// The serial source's settings, as in `[[source.serial]]`.
+    pub baud: u32,
+    pub stall_timeout_ms: u64,
+    pub reopen_backoff_min_ms: u64,
+    pub reopen_backoff_max_ms: u64,
+    /// A symbolic link kept pointing at the device's current pseudo-terminal, which the
+    /// serial source opens (default: one in a private directory under the system's
+    /// temporary directory).
+    pub link: Option<PathBuf>,
+    /// Write the device's injection log (`sims::serial::InjectionLog`, JSON) here when
+    /// the source ends.
+    pub injection_log: Option<PathBuf>,
+    /// The virtual device: `rate_hz`, `range_unit_um`, `loop_trajectory`,
+    /// `max_frames` and the `[faults]` table (`sims::serial::VirtualLidarConfig`).
+    pub device: sims::serial::VirtualLidarConfig,
+}
+
+impl Default for SimSerialConfig {
+    fn default() -> Self {
+        let serial = SerialConfig::default();
+        Self {
+            name: "sim-serial".into(),
+            scene: PathBuf::new(),
+            seed: 1,
+            effects: None,
+            frames: None,
+            lidar_size: None,
+            eo_size: None,
+            truth: true,
+            late: LatePolicy::Skip,
+            baud: serial.baud,
+            stall_timeout_ms: serial.stall_timeout_ms,
+            reopen_backoff_min_ms: serial.reopen_backoff_min_ms,
+            reopen_backoff_max_ms: serial.reopen_backoff_max_ms,
+            link: None,
+            injection_log: None,
+            device: sims::serial::VirtualLidarConfig::default(),
+        }
+    }
+}
+
+impl SimSerialConfig {
     pub fn setup(&self) -> SimSetup {
         SimSetup {
             scene: self.scene.clone(),
@@ -455,12 +536,12 @@ impl SessionConfig {
         };
         let s = &self.source;
         let live = !s.serial.is_empty() || !s.v4l.is_empty();
-        let sims = s.sim.len();
+        let sims = s.sim.len() + s.sim_serial.len();
         if !live && s.replay.is_empty() && sims == 0 {
             return Err(invalid(
                 "source",
-                "no source: add [[source.serial]], [[source.v4l]], [[source.replay]] or \
-                 [[source.sim]]"
+                "no source: add [[source.serial]], [[source.v4l]], [[source.replay]], \
+                 [[source.sim]] or [[source.sim_serial]]"
                     .into(),
             ));
         }
@@ -521,16 +602,36 @@ impl SessionConfig {
             if c.path.is_empty() {
                 return Err(invalid(&format!("source.serial[{i}].path"), "empty".into()));
             }
-            if c.stall_timeout_ms == 0 || c.reopen_backoff_min_ms == 0 {
+            validate_line(
+                &format!("source.serial[{i}]"),
+                c.stall_timeout_ms,
+                c.reopen_backoff_min_ms,
+                c.reopen_backoff_max_ms,
+            )
+            .map_err(|(k, m)| invalid(&k, m))?;
+        }
+        for (i, c) in s.sim_serial.iter().enumerate() {
+            let key = format!("source.sim_serial[{i}]");
+            validate_sim(&c.setup(), &key).map_err(|(k, m)| invalid(&k, m))?;
+            validate_line(
+                &key,
+                c.stall_timeout_ms,
+                c.reopen_backoff_min_ms,
+                c.reopen_backoff_max_ms,
+            )
+            .map_err(|(k, m)| invalid(&k, m))?;
+            c.device
+                .validate()
+                .map_err(|e| invalid(&format!("{key}.device"), e.to_string()))?;
+            if let Some([w, h]) = c.lidar_size
+                && (w > u32::from(texel::txl1::MAX_SIDE) || h > u32::from(texel::txl1::MAX_SIDE))
+            {
                 return Err(invalid(
-                    &format!("source.serial[{i}]"),
-                    "stall_timeout_ms and reopen_backoff_min_ms must be positive".into(),
-                ));
-            }
-            if c.reopen_backoff_max_ms < c.reopen_backoff_min_ms {
-                return Err(invalid(
-                    &format!("source.serial[{i}].reopen_backoff_max_ms"),
-                    "must not be below reopen_backoff_min_ms".into(),
+                    &format!("{key}.lidar_size"),
+                    format!(
+                        "{w}x{h} does not fit a TXL1 frame (at most {} per side)",
+                        texel::txl1::MAX_SIDE
+                    ),
                 ));
             }
         }
@@ -554,6 +655,8 @@ impl SessionConfig {
             .map(|c| c.name.as_str())
             .chain(s.v4l.iter().map(|c| c.name.as_str()))
             .chain(s.replay.iter().map(|c| c.name.as_str()))
+            .chain(s.sim.iter().map(|c| c.name.as_str()))
+            .chain(s.sim_serial.iter().map(|c| c.name.as_str()))
             .collect();
         names.sort_unstable();
         if let Some(w) = names.windows(2).find(|w| w[0] == w[1]) {
@@ -632,6 +735,28 @@ impl SessionConfig {
         }
         Ok(())
     }
+}
+
+/// Checks a serial line's timing settings; the error names the key.
+fn validate_line(
+    key: &str,
+    stall_timeout_ms: u64,
+    backoff_min_ms: u64,
+    backoff_max_ms: u64,
+) -> Result<(), (String, String)> {
+    if stall_timeout_ms == 0 || backoff_min_ms == 0 {
+        return Err((
+            key.to_string(),
+            "stall_timeout_ms and reopen_backoff_min_ms must be positive".into(),
+        ));
+    }
+    if backoff_max_ms < backoff_min_ms {
+        return Err((
+            format!("{key}.reopen_backoff_max_ms"),
+            "must not be below reopen_backoff_min_ms".into(),
+        ));
+    }
+    Ok(())
 }
 
 /// Checks a simulator's settings (without loading the scene); the error names the key.

@@ -40,6 +40,7 @@ use crate::server::{self, ServeOptions};
 use crate::source::replay::{Pace, ReplaySource};
 use crate::source::serial::SerialSource;
 use crate::source::sim::SimSource;
+use crate::source::sim_serial::SimSerialSource;
 use crate::source::v4l::V4lSource;
 use crate::source::v4l_convert::PixelFormat;
 use crate::source::{FrameSink, Source, SourceMetrics};
@@ -222,6 +223,9 @@ pub fn build_sources(config: &SessionConfig) -> Vec<Box<dyn Source>> {
             late: c.late,
             truth: c.truth,
         }));
+    }
+    for c in &config.source.sim_serial {
+        sources.push(Box::new(SimSerialSource::from_config(c)));
     }
     sources
 }

@@ -5,6 +5,7 @@
 pub mod replay;
 pub mod serial;
 pub mod sim;
+pub mod sim_serial;
 pub mod v4l;
 pub mod v4l_convert;
 
@@ -210,6 +211,18 @@ impl FrameSink {
     /// Sends from async code, waiting while the pipeline is full.
     pub async fn send(&self, event: SourceEvent) -> Result<(), SinkClosed> {
         self.count(&event);
+        self.tx
+            .send(Tagged {
+                source: self.index,
+                event,
+            })
+            .await
+            .map_err(|_| SinkClosed)
+    }
+
+    /// Sends an event another sink sharing these metrics has counted already (a
+    /// source that wraps another, like `sim-serial` around `serial`).
+    pub async fn forward(&self, event: SourceEvent) -> Result<(), SinkClosed> {
         self.tx
             .send(Tagged {
                 source: self.index,
