@@ -430,6 +430,10 @@ impl VirtualLidar {
         let interval = Duration::from_secs_f64(1.0 / rate);
         let mut anchor = Instant::now();
         let mut slot: u32 = 0;
+        // When the last bytes went out: a disconnect waits one interval after them
+        // even when rendering has fallen behind the time slots, so the reader has
+        // had the time the slot promises to read the frame before it.
+        let mut last_write = Instant::now();
         let total = self.sim.frame_count() as u64;
         loop {
             if stop.is_stopped() {
@@ -468,6 +472,9 @@ impl VirtualLidar {
             // Faults happen in the frame's time slot, so the frame before them has had
             // one frame interval to reach the reader.
             if disconnect {
+                if stop.sleep_until(last_write + interval) {
+                    return Ok(StreamEnd::Stopped);
+                }
                 self.disconnected = true;
                 let at_s = self.seconds();
                 self.with_log(|l| {
@@ -510,6 +517,7 @@ impl VirtualLidar {
             if garbage {
                 let junk = garbage_bytes(faults.seed, seq, faults.garbage_bytes);
                 out.write_all(&junk).map_err(SerialError::Write)?;
+                last_write = Instant::now();
                 self.with_log(|l| {
                     l.garbage_bytes += junk.len() as u64;
                     l.bytes_written += junk.len() as u64;
@@ -526,6 +534,7 @@ impl VirtualLidar {
             out.write_all(&bytes)
                 .and_then(|()| out.flush())
                 .map_err(SerialError::Write)?;
+            last_write = Instant::now();
             self.with_log(|l| {
                 l.frames_written += 1;
                 l.bytes_written += bytes.len() as u64;
