@@ -116,6 +116,7 @@ fn run_writes_a_sensor_file_and_report_that_fuse_and_register_like_the_true_sens
     assert_eq!(c.truth.registered, REGISTER_FRAMES);
     assert_eq!(c.calibrated.registered, REGISTER_FRAMES);
     assert!(c.ate_ratio() <= 1.10, "{c:?}");
+    assert!(c.aligned_ate_ratio() <= 1.10, "{c:?}");
 }
 
 /// Frames of the lab capture registered by the check above.
