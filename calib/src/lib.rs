@@ -25,7 +25,9 @@
 //! ```
 //!
 //! [`simulate`] measures a calibration against the simulator's truth (tests, the
-//! `accuracy` and `tradeoffs` commands); [`report`] writes the Markdown report.
+//! `accuracy` and `tradeoffs` commands); [`lab_check`] registers a `lab` capture with
+//! the daemon's offline path using a calibrated and the true sensor model;
+//! [`report`] writes the Markdown report.
 
 // NaN-safe guards: `!(x > 0.0)` is true for NaN as well, which is the point of
 // writing them that way.
@@ -39,6 +41,7 @@ pub mod error;
 pub mod extrinsic;
 pub mod geometry;
 pub mod gray;
+pub mod lab_check;
 pub mod lidar;
 pub mod lm;
 pub mod pipeline;

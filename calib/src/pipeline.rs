@@ -27,7 +27,8 @@ pub struct CalibInput {
     /// The lidar's intrinsics, taken as known (the capture's `/lidar/calibration`)
     /// unless the configuration asks to estimate them.
     pub lidar: PinholeCamera,
-    /// Range noise, range limits and name carried into the sensor file.
+    /// Range noise, range limits and name carried into the sensor file (its range bias
+    /// is replaced by the estimate, since the ranges given are the raw measurements).
     pub info: SensorInfo,
     /// Things worth knowing about the input (skipped messages, a truncated file).
     pub warnings: Vec<String>,
@@ -226,12 +227,15 @@ pub fn calibrate_detected(
         &config.solver,
     )?;
     progress(Stage::SolveJoint, 1, 1);
-    let sensor = SensorModel::from_capture_parts(
+    let mut sensor = SensorModel::from_capture_parts(
         lidar.lidar.clone(),
         eo.camera.clone(),
         lidar.eo_from_lidar,
         &input.info,
     );
+    // The ranges calibrated from are raw measurements, so the estimate is the whole
+    // bias (zero when the configuration does not estimate one).
+    sensor.range_bias_m = lidar.range_bias_m;
     Ok(Calibration {
         sensor,
         eo,
@@ -244,14 +248,14 @@ pub fn calibrate_detected(
 }
 
 impl Calibration {
-    /// The sensor file text, with a header recording how it was made and the range
-    /// bias (which the sensor file format has no field for).
+    /// The sensor file text, with a header recording how it was made and the
+    /// uncertainty of the range bias it carries.
     pub fn sensor_file_text(&self, source: &str) -> String {
         let used = self.eo.per_view.len();
         format!(
             "# Calibrated by texel-calib from {source}: {used} EO views (reprojection RMS \
              {:.3} px), {} lidar views.\n# Estimated range bias: {:+.2} mm ± {:.2} mm \
-             (not applied: the sensor file has no range-bias field).\n{}",
+             ([range] bias_m).\n{}",
             self.eo.rms_px,
             self.lidar.per_view.len(),
             self.lidar.range_bias_m * 1e3,

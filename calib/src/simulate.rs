@@ -203,8 +203,10 @@ pub struct Accuracy {
     pub model_rms_px: f64,
     pub rotation_error_deg: f64,
     pub translation_error_mm: f64,
-    /// Estimated range bias (the truth is 0), millimetres.
+    /// Estimated range bias, millimetres.
     pub range_bias_mm: f64,
+    /// Estimated minus true range bias, millimetres.
+    pub range_bias_error_mm: f64,
     pub held_out_views: usize,
 }
 
@@ -270,6 +272,7 @@ pub fn accuracy(
         rotation_error_deg: rot.to_degrees(),
         translation_error_mm: trans * 1e3,
         range_bias_mm: calibration.lidar.range_bias_m * 1e3,
+        range_bias_error_mm: (calibration.lidar.range_bias_m - truth.range_bias_m) * 1e3,
         held_out_views: views,
     }
 }

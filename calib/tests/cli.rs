@@ -1,6 +1,7 @@
 //! `texel-calib run` on a rendered calib-target capture writes a sensor file that
-//! reads back, a report with its figures, and fuses a lab frame within 10 % of the
-//! true sensor's errors; a damaged capture gives a clear error.
+//! reads back, a report with its figures, and, used on a lab capture rendered with the
+//! true sensor, fuses and registers (the daemon's `texeld register` path) within 10 %
+//! of the true sensor file's errors; a damaged capture gives a clear error.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests panic on failure by design
 
@@ -12,7 +13,7 @@ use common::*;
 use sims::{CaptureOptions, SimOptions, Simulator};
 
 #[test]
-fn run_writes_a_sensor_file_and_report_that_fuse_like_the_true_sensor() {
+fn run_writes_a_sensor_file_and_report_that_fuse_and_register_like_the_true_sensor() {
     let dir = tempfile::tempdir().unwrap();
     let capture = dir.path().join("target.mcap");
     let sim = Simulator::with_options(
@@ -90,7 +91,36 @@ fn run_writes_a_sensor_file_and_report_that_fuse_like_the_true_sensor() {
         calibrated.colour_rms <= 1.10 * truth.colour_rms,
         "{calibrated:?} vs {truth:?}"
     );
+    // The truth has no range bias; the file carries the estimate.
+    assert!(model.range_bias_m.abs() < 0.0015, "{}", model.range_bias_m);
+
+    // Registration of a short lab capture rendered with the true sensor, by the
+    // daemon's offline path, with the capture's own sensor and with the calibrated
+    // file in its place: the trajectory error is within 10 %.
+    let lab_capture = dir.path().join("lab.mcap");
+    calib::lab_check::render_lab_capture(
+        sims::Scene::load(&root().join("configs/scenes/lab.toml")).unwrap(),
+        1,
+        REGISTER_FRAMES,
+        &lab_capture,
+    )
+    .unwrap();
+    let c = calib::lab_check::compare_registration(
+        &lab_capture,
+        &model,
+        dir.path(),
+        &texel_daemon::register::RegistrationConfig::default(),
+    )
+    .unwrap();
+    println!("{c:?}");
+    assert_eq!(c.truth.registered, REGISTER_FRAMES);
+    assert_eq!(c.calibrated.registered, REGISTER_FRAMES);
+    assert!(c.ate_ratio() <= 1.10, "{c:?}");
+    assert!(c.aligned_ate_ratio() <= 1.10, "{c:?}");
 }
+
+/// Frames of the lab capture registered by the check above.
+const REGISTER_FRAMES: usize = 8;
 
 #[test]
 fn a_missing_or_damaged_capture_is_a_clear_error() {

@@ -91,6 +91,7 @@ pub mod captures {
                 sigma_m: 0.005,
                 sigma_per_m: 0.0,
             },
+            range_bias_m: 0.0,
             min_range_m: 0.3,
             max_range_m: 30.0,
         }

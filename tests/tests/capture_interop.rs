@@ -173,6 +173,7 @@ fn captures_written_here_decode_in_python() {
             sigma_m: 0.003,
             sigma_per_m: 0.0005,
         },
+        range_bias_m: 0.0,
         min_range_m: 0.2,
         max_range_m: 50.0,
     };

@@ -40,6 +40,7 @@ fn sensor(side: u32) -> Sensor {
             sigma_m: 0.005,
             sigma_per_m: 0.001,
         },
+        range_bias_m: 0.0,
         min_range_m: 0.3,
         max_range_m: 30.0,
     })

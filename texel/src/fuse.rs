@@ -213,8 +213,9 @@ fn empty_scan(range: &RangeFrame, eo: EoFrame, sensor: &Sensor) -> TexelScan {
     }
 }
 
-/// Points: unit ray × radial range, moved into the EO frame by `eo_from_lidar`, then
-/// projected through the EO model (distortion included) to a texture coordinate.
+/// Points: unit ray × radial range (the measured range less the sensor's range bias),
+/// moved into the EO frame by `eo_from_lidar`, then projected through the EO model
+/// (distortion included) to a texture coordinate.
 fn place_vertices(range: &RangeFrame, sensor: &Sensor, scan: &mut TexelScan) {
     let eo_from_lidar = sensor.model.eo_from_lidar.to_homogeneous();
     let rot = eo_from_lidar.fixed_view::<3, 3>(0, 0).into_owned();
@@ -232,8 +233,13 @@ fn place_vertices(range: &RangeFrame, sensor: &Sensor, scan: &mut TexelScan) {
         let Some(ray) = sensor.lidar_rays.ray(pixel) else {
             continue;
         };
+        // A bias as large as the range leaves no point in front of the lidar.
+        let true_range_m = f64::from(r) - sensor.model.range_bias_m;
+        if true_range_m.is_nan() || true_range_m <= 0.0 {
+            continue;
+        }
         let p_lidar =
-            Vector3::new(f64::from(ray[0]), f64::from(ray[1]), f64::from(ray[2])) * f64::from(r);
+            Vector3::new(f64::from(ray[0]), f64::from(ray[1]), f64::from(ray[2])) * true_range_m;
         let p_eo = rot * p_lidar + trans;
         let uv = eo_cam
             .project_with_domain(&p_eo, eo_max_r2)

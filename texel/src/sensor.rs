@@ -1,5 +1,6 @@
 //! The texel camera's sensor model: both cameras, the co-boresight extrinsic
-//! `eo_from_lidar`, the lidar's range limits and its range-noise model; read from and
+//! `eo_from_lidar`, the lidar's range limits, range bias and range-noise model; read
+//! from and
 //! written to sensor files (`configs/sensors/*.toml`) and the capture's
 //! `/texel/sensor` JSON.
 
@@ -47,6 +48,9 @@ pub struct SensorInfo {
     pub version: u32,
     pub range_noise_sigma_m: f64,
     pub range_noise_sigma_per_m: f64,
+    /// Constant range bias: a measured range is the true range plus this. Not in the
+    /// spec's field list; a reader without it takes the spec's rule (missing = 0).
+    pub range_bias_m: f64,
     pub min_range_m: f64,
     pub max_range_m: f64,
     pub name: String,
@@ -58,6 +62,7 @@ impl Default for SensorInfo {
             version: 1,
             range_noise_sigma_m: 0.01,
             range_noise_sigma_per_m: 0.0,
+            range_bias_m: 0.0,
             min_range_m: 0.3,
             max_range_m: 30.0,
             name: String::new(),
@@ -78,6 +83,7 @@ impl SensorInfo {
         let finite = [
             self.range_noise_sigma_m,
             self.range_noise_sigma_per_m,
+            self.range_bias_m,
             self.min_range_m,
             self.max_range_m,
         ]
@@ -110,6 +116,9 @@ pub struct SensorModel {
     /// The lidar frame's pose in the EO frame (maps lidar coordinates to EO).
     pub eo_from_lidar: Pose,
     pub range_noise: RangeNoise,
+    /// Constant range bias, metres: the lidar reports `true range + range_bias_m`;
+    /// fusion subtracts it.
+    pub range_bias_m: f64,
     pub min_range_m: f64,
     pub max_range_m: f64,
 }
@@ -159,6 +168,8 @@ struct ExtrinsicFile {
 struct RangeFile {
     noise_sigma_m: f64,
     noise_sigma_per_m: f64,
+    /// Measured range minus true range, metres.
+    bias_m: f64,
     min_range_m: f64,
     max_range_m: f64,
 }
@@ -169,6 +180,7 @@ impl Default for RangeFile {
         Self {
             noise_sigma_m: info.range_noise_sigma_m,
             noise_sigma_per_m: info.range_noise_sigma_per_m,
+            bias_m: info.range_bias_m,
             min_range_m: info.min_range_m,
             max_range_m: info.max_range_m,
         }
@@ -217,6 +229,7 @@ impl SensorModel {
                 sigma_m: file.range.noise_sigma_m,
                 sigma_per_m: file.range.noise_sigma_per_m,
             },
+            range_bias_m: file.range.bias_m,
             min_range_m: file.range.min_range_m,
             max_range_m: file.range.max_range_m,
         };
@@ -241,6 +254,7 @@ impl SensorModel {
             range: RangeFile {
                 noise_sigma_m: self.range_noise.sigma_m,
                 noise_sigma_per_m: self.range_noise.sigma_per_m,
+                bias_m: self.range_bias_m,
                 min_range_m: self.min_range_m,
                 max_range_m: self.max_range_m,
             },
@@ -255,6 +269,7 @@ impl SensorModel {
             version: 1,
             range_noise_sigma_m: self.range_noise.sigma_m,
             range_noise_sigma_per_m: self.range_noise.sigma_per_m,
+            range_bias_m: self.range_bias_m,
             min_range_m: self.min_range_m,
             max_range_m: self.max_range_m,
             name: self.name.clone(),
@@ -274,6 +289,7 @@ impl SensorModel {
             eo,
             eo_from_lidar,
             range_noise: info.range_noise(),
+            range_bias_m: info.range_bias_m,
             min_range_m: info.min_range_m,
             max_range_m: info.max_range_m,
         }
@@ -344,6 +360,7 @@ noise_sigma_m = 0.005
         assert_eq!(m.lidar.width, 128);
         assert_eq!(m.range_noise.sigma_m, 0.005);
         assert_eq!(m.max_range_m, 30.0);
+        assert_eq!(m.range_bias_m, 0.0);
         let text = m.to_toml_string();
         let back = SensorModel::from_toml_str(&text, "again").unwrap();
         assert_eq!(back, m);
@@ -375,6 +392,36 @@ noise_sigma_m = 0.005
         assert_eq!(info.range_noise_sigma_m, 0.02);
         assert_eq!(info.max_range_m, 30.0);
         assert_eq!(info.version, 1);
+        assert_eq!(info.range_bias_m, 0.0);
         assert!((info.range_noise().sigma_at(10.0) - 0.02).abs() < 1e-15);
+    }
+
+    #[test]
+    fn range_bias_reads_round_trips_and_must_be_finite() {
+        let biased = FILE.replace(
+            "noise_sigma_m = 0.005",
+            "noise_sigma_m = 0.005\nbias_m = 0.02",
+        );
+        let m = SensorModel::from_toml_str(&biased, "biased.toml").unwrap();
+        assert_eq!(m.range_bias_m, 0.02);
+        assert_eq!(m.info().range_bias_m, 0.02);
+        let back = SensorModel::from_toml_str(&m.to_toml_string(), "again").unwrap();
+        assert_eq!(back.range_bias_m, 0.02);
+        let json = serde_json::to_string(&m.info()).unwrap();
+        let info: SensorInfo = serde_json::from_str(&json).unwrap();
+        assert_eq!(info.range_bias_m, 0.02);
+        let bad = FILE.replace(
+            "noise_sigma_m = 0.005",
+            "noise_sigma_m = 0.005\nbias_m = nan",
+        );
+        let e = SensorModel::from_toml_str(&bad, "nan.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("nan.toml") && e.contains("finite"), "{e}");
+        let info = SensorInfo {
+            range_bias_m: f64::INFINITY,
+            ..SensorInfo::default()
+        };
+        assert!(info.validate().is_err());
     }
 }

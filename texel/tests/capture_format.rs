@@ -49,6 +49,7 @@ fn sensor() -> SensorModel {
             sigma_m: 0.005,
             sigma_per_m: 0.001,
         },
+        range_bias_m: 0.0,
         min_range_m: 0.3,
         max_range_m: 25.0,
     }

@@ -46,6 +46,7 @@ fn sensor(lidar: PinholeCamera, eo_from_lidar: Pose, sigma_m: f64) -> Sensor {
             sigma_m,
             sigma_per_m: 0.0,
         },
+        range_bias_m: 0.0,
         min_range_m: 0.1,
         max_range_m: 100.0,
     })
@@ -150,6 +151,41 @@ fn non_identity_extrinsic_is_applied() {
         .map(|v| (f64::from(v[2]) - 4.0).abs())
         .fold(0.0, f64::max);
     assert!(worst > 0.005, "{worst}");
+}
+
+#[test]
+fn range_bias_is_subtracted_before_the_points_are_placed() {
+    let eo_from_lidar = pose_from_parts([0.02, 0.0, 0.0], [0.0, 0.0017, 0.0, 1.0]).unwrap();
+    let mut s = sensor(lidar(64, 48, 40.0), eo_from_lidar, 0.005);
+    let (n, d) = (Vector3::new(0.2, -0.1, 1.0).normalize(), 3.0);
+    let (mut frame, truth) = plane_frame(&s, n, d);
+    // The lidar reports 2 cm too far everywhere.
+    let bias = 0.02;
+    for r in frame.ranges_m.iter_mut().filter(|r| r.is_finite()) {
+        *r += bias as f32;
+    }
+    let worst_error = |s: &Sensor| {
+        let scan = fuse(&frame, eo_frame(s), s, &FuseConfig::default()).unwrap();
+        assert_eq!(scan.vertex_count(), frame.return_count());
+        scan.vertices
+            .iter()
+            .zip(&scan.vertex_pixel)
+            .map(|(v, &pixel)| {
+                let p = Vector3::new(f64::from(v[0]), f64::from(v[1]), f64::from(v[2]));
+                (p - truth[pixel as usize].unwrap()).norm()
+            })
+            .fold(0.0, f64::max)
+    };
+    // Ignoring the bias puts every point about 2 cm behind the plane...
+    assert!(worst_error(&s) > 0.019, "{}", worst_error(&s));
+    // ... subtracting it puts them back on the true surface (f32 ranges: ~1e-6 m).
+    s.model.range_bias_m = bias;
+    assert!(worst_error(&s) < 1e-5, "{}", worst_error(&s));
+    // A bias beyond every range leaves no point, and nothing non-finite.
+    s.model.range_bias_m = 50.0;
+    let scan = fuse(&frame, eo_frame(&s), &s, &FuseConfig::default()).unwrap();
+    assert_eq!(scan.vertex_count(), 0);
+    assert!(scan.triangles.is_empty());
 }
 
 #[test]
@@ -382,6 +418,7 @@ proptest! {
             eo,
             eo_from_lidar: pose_from_parts(t, [q[0], q[1], q[2], 1.0]).unwrap(),
             range_noise: RangeNoise { sigma_m: sigma, sigma_per_m: 0.001 },
+            range_bias_m: 0.0,
             min_range_m: 0.1,
             max_range_m: 100.0,
         });

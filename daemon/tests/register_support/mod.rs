@@ -157,6 +157,7 @@ pub fn sensor(w: u32, h: u32, sigma_m: f64) -> Sensor {
             sigma_m: sigma_m.max(1e-4),
             sigma_per_m: 0.0,
         },
+        range_bias_m: 0.0,
         min_range_m: 0.1,
         max_range_m: 30.0,
     })

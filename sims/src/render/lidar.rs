@@ -87,7 +87,9 @@ pub fn render_range(
             let Some(echo) = echo else {
                 return (f32::NAN, 0.0);
             };
-            let mut r = echo.range_m;
+            // The sensor's constant range bias (zero unless its sensor file sets one):
+            // a property of the camera, not an effect a scene opts into.
+            let mut r = echo.range_m + sensor.range_bias_m;
             if let Some(d) = &effects.dropouts {
                 let rng = PixelRng::new(key.seed, key.frame, pixel as u64, Stream::Dropouts);
                 if d.decide(echo, sensor.min_range_m, sensor.max_range_m, &rng)

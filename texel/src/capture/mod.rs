@@ -78,6 +78,7 @@ pub const SENSOR_JSON_SCHEMA: &str = r#"{
     "version": {"type": "integer"},
     "range_noise_sigma_m": {"type": "number"},
     "range_noise_sigma_per_m": {"type": "number"},
+    "range_bias_m": {"type": "number"},
     "min_range_m": {"type": "number"},
     "max_range_m": {"type": "number"},
     "name": {"type": "string"}

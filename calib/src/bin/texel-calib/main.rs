@@ -7,11 +7,13 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
 use calib::config::CalibConfig;
+use calib::lab_check;
 use calib::pipeline::{Stage, calibrate};
 use calib::simulate::{self, PoseStyle};
 use clap::{Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 use texel::SensorModel;
+use texel_daemon::register::RegistrationConfig;
 
 #[derive(Parser)]
 #[command(
@@ -59,9 +61,15 @@ enum Command {
         /// Lab frames fused for the fusion check.
         #[arg(long, default_value_t = 3)]
         lab_frames: usize,
+        /// Lab frames rendered into a capture and registered for the registration
+        /// check (0: none).
+        #[arg(long, default_value_t = 0)]
+        register_frames: usize,
     },
     /// Fuse frames of a scene (rendered with its true sensor) with a sensor file and
-    /// with the true sensor, and compare the errors.
+    /// with the true sensor, and compare the errors; then register a capture of the
+    /// scene with the daemon's offline path (`texeld register`) using each sensor, and
+    /// compare the trajectory errors.
     FusionCheck {
         #[arg(long)]
         sensor: PathBuf,
@@ -71,6 +79,17 @@ enum Command {
         frames: usize,
         #[arg(long, default_value_t = 1)]
         seed: u64,
+        /// Frames of the scene rendered into a capture and registered (0: skip the
+        /// registration check).
+        #[arg(long, default_value_t = 12)]
+        register_frames: usize,
+        /// Register this capture (rendered with the true sensor, with /truth/pose)
+        /// instead of rendering one.
+        #[arg(long)]
+        lab_capture: Option<PathBuf>,
+        /// Registration settings (TOML, the keys of `texeld register --config`).
+        #[arg(long)]
+        registration: Option<PathBuf>,
     },
     /// Measure error against truth and time for a sweep of the number of views and
     /// of the LM iterations; rewrite the calibration section of docs/tradeoffs.md.
@@ -93,13 +112,31 @@ fn main() -> anyhow::Result<()> {
             views,
             seed,
             lab_frames,
-        } => accuracy(&scene, &lab, views, seed, lab_frames),
+            register_frames,
+        } => accuracy(&scene, &lab, views, seed, lab_frames, register_frames),
         Command::FusionCheck {
             sensor,
             scene,
             frames,
             seed,
-        } => fusion_check(&sensor, &scene, frames, seed),
+            register_frames,
+            lab_capture,
+            registration,
+        } => {
+            let model = SensorModel::load(&sensor)?;
+            compare_fusion(&model, &scene, frames, seed)?;
+            let config = match registration {
+                Some(p) => RegistrationConfig::load(&p)?,
+                None => RegistrationConfig::default(),
+            };
+            match lab_capture {
+                Some(capture) => compare_registration(&model, &capture, &config),
+                None if register_frames > 0 => {
+                    render_and_register(&model, &scene, register_frames, seed, &config)
+                }
+                None => Ok(()),
+            }
+        }
         Command::Tradeoffs(args) => tradeoffs::run(&args),
     }
 }
@@ -213,6 +250,7 @@ fn accuracy(
     views: usize,
     seed: u64,
     lab_frames: usize,
+    register_frames: usize,
 ) -> anyhow::Result<()> {
     if views < 3 {
         bail!("--views must be at least 3");
@@ -266,9 +304,10 @@ fn accuracy(
         a.translation_error_mm
     );
     println!(
-        "  range bias                {:+.3} mm ± {:.3} (truth 0)",
+        "  range bias                {:+.3} mm ± {:.3} (truth {:+.3} mm)",
         a.range_bias_mm,
-        calibration.lidar.range_bias_std_m * 1e3
+        calibration.lidar.range_bias_std_m * 1e3,
+        sim.sensor_model().range_bias_m * 1e3
     );
     println!(
         "  time: detection {:.2} s, estimation {:.2} s",
@@ -277,12 +316,65 @@ fn accuracy(
     if lab_frames > 0 {
         compare_fusion(&calibration.sensor, lab, lab_frames, seed)?;
     }
+    if register_frames > 0 {
+        let config = RegistrationConfig::default();
+        render_and_register(&calibration.sensor, lab, register_frames, seed, &config)?;
+    }
     Ok(())
 }
 
-fn fusion_check(sensor: &Path, scene: &Path, frames: usize, seed: u64) -> anyhow::Result<()> {
-    let model = SensorModel::load(sensor)?;
-    compare_fusion(&model, scene, frames, seed)
+/// Renders `frames` frames of `scene` into a temporary capture and compares their
+/// registration with `model` and with the true sensor.
+fn render_and_register(
+    model: &SensorModel,
+    scene: &Path,
+    frames: usize,
+    seed: u64,
+    config: &RegistrationConfig,
+) -> anyhow::Result<()> {
+    let dir = tempfile::tempdir().context("creating a temporary directory")?;
+    let capture = dir.path().join("lab.mcap");
+    eprintln!(
+        "rendering {frames} frames of {} into a capture",
+        scene.display()
+    );
+    lab_check::render_lab_capture(sims::Scene::load(scene)?, seed, frames, &capture)?;
+    compare_registration(model, &capture, config)
+}
+
+fn compare_registration(
+    model: &SensorModel,
+    capture: &Path,
+    config: &RegistrationConfig,
+) -> anyhow::Result<()> {
+    let dir = tempfile::tempdir().context("creating a temporary directory")?;
+    eprintln!("registering {} with each sensor", capture.display());
+    let c = lab_check::compare_registration(capture, model, dir.path(), config)?;
+    println!(
+        "registration of {} ({} frames, texeld register's path, against /truth/pose):",
+        capture.display(),
+        c.truth.frames
+    );
+    println!(
+        "  sensor     ATE RMSE (mm)  aligned ATE (mm)  mean RPE (mm)  mean RPE (deg)  registered"
+    );
+    for (name, e) in [("true", c.truth), ("calibrated", c.calibrated)] {
+        println!(
+            "  {name:10} {:13.3}  {:16.3}  {:13.3}  {:14.4}  {}/{}",
+            e.ate_rmse_mm,
+            e.aligned_ate_rmse_mm,
+            e.rpe_translation_mm,
+            e.rpe_rotation_deg,
+            e.registered,
+            e.frames
+        );
+    }
+    println!(
+        "  ratio calibrated/true: ATE {:.3}, aligned ATE {:.3} (within 10 % means <= 1.10)",
+        c.ate_ratio(),
+        c.aligned_ate_ratio()
+    );
+    Ok(())
 }
 
 fn compare_fusion(
@@ -297,7 +389,7 @@ fn compare_fusion(
     let list: Vec<usize> = (0..n).map(|k| k * step).collect();
     let truth = simulate::fusion_errors(&sim, sim.sensor_model(), &list);
     let calibrated = simulate::fusion_errors(&sim, model, &list);
-    let ratio = |a: f64, b: f64| if b > 0.0 { a / b } else { f64::INFINITY };
+    let ratio = lab_check::ratio;
     println!(
         "fusion of {} frames of {} (rendered with the true sensor):",
         list.len(),
