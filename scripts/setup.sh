@@ -9,10 +9,10 @@ repo="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 
 # Packages: lavapipe (software Vulkan) for wgpu; Xvfb and X client libraries for the
 # windowed viewer; libclang for the v4l crate's bindgen; libusb for Open3D; LLVM 19
-# for Mitsuba's LLVM backend.
+# for Mitsuba's LLVM backend; DejaVu fonts for the text of plots.
 packages=(
   mesa-vulkan-drivers libvulkan1 xvfb xauth libxcursor1 libxi6 libxrandr2
-  libxkbcommon-x11-0 libx11-xcb1 libclang-dev libusb-1.0-0 libllvm19 pkg-config
+  libxkbcommon-x11-0 libx11-xcb1 libclang-dev libusb-1.0-0 libllvm19 pkg-config fonts-dejavu-core
 )
 
 missing=()

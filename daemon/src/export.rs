@@ -1,12 +1,15 @@
 //! `texeld export`: one texel frame of a capture, fused and written as PLY or glTF, in
 //! its own EO frame or placed in the world by the capture's `/texel/pose` (else
-//! `/truth/pose`).
+//! `/truth/pose`); or the whole registered model: every frame placed by its
+//! `/texel/pose` (the last one of its timestamp: revisions come later), or, when the
+//! capture has none, registered on the fly. See `model_export.rs`.
 
-use std::collections::HashMap;
 use std::path::Path;
 use std::sync::Arc;
 
-use texel::capture::{CaptureError, PoseTopic, TexelItem, open_texel_frames};
+use texel::capture::{CaptureError, TexelItem, open_texel_frames};
+
+use crate::pipeline::placement::CapturePoses;
 use texel::export::{ExportError, ExportScan, write_gltf, write_ply};
 use texel::fuse::FuseError;
 use texel::{FuseConfig, Pose, Sensor, SensorModel, TexelScan, fuse};
@@ -37,6 +40,8 @@ pub enum ExportCommandError {
         index: usize,
         timestamp_ns: u64,
     },
+    #[error("{path}: none of its {frames} texel frames has a pose (none registered)")]
+    NothingToExport { path: String, frames: usize },
     #[error("frame {index}: {source}")]
     Fuse { index: usize, source: FuseError },
     #[error(transparent)]
@@ -52,7 +57,8 @@ pub struct ExportSummary {
     pub world_from_scan: Option<Pose>,
 }
 
-/// Reads frame `index` (0-based, in file order) and its poses.
+/// Reads frame `index` (0-based, in file order) and its pose: the last `/texel/pose`
+/// of its timestamp (a revision supersedes the first), else its `/truth/pose`.
 fn read_frame(
     capture: &Path,
     index: usize,
@@ -61,8 +67,6 @@ fn read_frame(
     let path = capture.display().to_string();
     let mut found = None;
     let mut frames = 0;
-    // Poses may come before or after their frame; keep them by timestamp.
-    let mut poses: HashMap<(u64, bool), Pose> = HashMap::new();
     for item in open_texel_frames(capture)? {
         match item {
             Err(e) if e.is_fatal() => return Err(e.into()),
@@ -71,25 +75,11 @@ fn read_frame(
             Ok(TexelItem::Pair { pair, sensor }) => {
                 if frames == index {
                     found = Some((pair, sensor));
-                    if !want_pose {
-                        break;
-                    }
+                    break;
                 }
                 frames += 1;
             }
-            Ok(TexelItem::Pose {
-                topic,
-                timestamp_ns,
-                world_from_eo,
-            }) => {
-                poses.insert((timestamp_ns, topic == PoseTopic::Texel), world_from_eo);
-            }
-        }
-        if let Some((pair, _)) = &found {
-            let t = pair.timestamp_ns();
-            if poses.contains_key(&(t, true)) {
-                break;
-            }
+            Ok(TexelItem::Pose { .. }) => {}
         }
     }
     let Some((pair, sensor)) = found else {
@@ -99,11 +89,12 @@ fn read_frame(
             frames,
         });
     };
-    let t = pair.timestamp_ns();
-    let pose = poses
-        .get(&(t, true))
-        .or_else(|| poses.get(&(t, false)))
-        .copied();
+    let pose = if want_pose {
+        let poses = CapturePoses::from_capture(capture)?;
+        poses.pose_at(pair.timestamp_ns())
+    } else {
+        None
+    };
     Ok((pair, sensor, pose))
 }
 

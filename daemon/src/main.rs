@@ -4,6 +4,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
+use texel_daemon::cli::{self, RunOverrides};
 
 #[derive(Parser)]
 #[command(name = "texeld", version, about = "The Texel daemon and capture tools")]
@@ -14,34 +15,171 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    /// Run a session from a TOML session file (configs/sessions/*.toml): sources,
+    /// pipeline, recording and the viewer stream, until SIGINT/SIGTERM (or the end of
+    /// a replay when the session says so).
+    Run {
+        #[arg(long)]
+        config: PathBuf,
+        #[command(flatten)]
+        overrides: RunOverrides,
+    },
+    /// Replay a capture through the pipeline, serving viewers and optionally recording
+    /// the result; exits at the end of the capture. Scans are registered, unless the
+    /// capture carries /texel/pose (then they are placed there).
+    Replay {
+        /// The capture (MCAP) file.
+        capture: PathBuf,
+        /// Times real time.
+        #[arg(long, conflicts_with = "fast", default_value_t = 1.0)]
+        speed: f64,
+        /// As fast as the pipeline goes.
+        #[arg(long)]
+        fast: bool,
+        /// Record the replayed frames and the poses to this capture.
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// A session file for every other setting.
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Keep serving the model after the capture ends, until SIGINT/SIGTERM.
+        #[arg(long)]
+        stay: bool,
+        /// Register every scan, even when the capture carries /texel/pose.
+        #[arg(long, conflicts_with = "capture_poses")]
+        register: bool,
+        /// Place scans at the capture's /texel/pose (else /truth/pose), no registration.
+        #[arg(long)]
+        capture_poses: bool,
+        #[command(flatten)]
+        overrides: RunOverrides,
+    },
+    /// Measure the daemon: on a capture (replay --fast speed against real time,
+    /// end-to-end latency at --speed, memory per scan, texture encoders), or without
+    /// one on simulator input (latency at --rate-hz with registration and a truth
+    /// baseline, replay --fast with registration, memory per scan).
+    Bench {
+        /// The capture (MCAP) file; without one, the simulator renders --scene.
+        capture: Option<PathBuf>,
+        /// Replay speed for the latency run on a capture.
+        #[arg(long, default_value_t = 1.0)]
+        speed: f64,
+        #[arg(long, default_value = "configs/scenes/lab.toml")]
+        scene: PathBuf,
+        #[arg(long, default_value_t = 90)]
+        frames: usize,
+        #[arg(long, default_value_t = 30.0)]
+        rate_hz: f64,
+        /// Where the simulator runs' recordings go.
+        #[arg(long, default_value = "target/bench-sim")]
+        work_dir: PathBuf,
+    },
     /// Show what a capture holds: topics, message counts, duration, frame sizes,
     /// calibrations and the sensor JSON; report damage and spec violations.
     Info {
         /// The capture (MCAP) file.
         capture: PathBuf,
     },
-    /// Fuse one texel frame of a capture and write it as PLY (points with colours and
-    /// triangles) or glTF 2.0 (a textured mesh; `.glb` for the binary container).
+    /// Write a capture's registered model (every frame placed by its /texel/pose, or
+    /// registered now when the capture has none), or one texel frame with --frame, as
+    /// PLY (points with colours and triangles) or glTF 2.0 (textured meshes; `.glb` for
+    /// the binary container).
     Export {
         /// The capture (MCAP) file.
         capture: PathBuf,
-        /// Which texel frame, counting from 0 in file order.
+        /// Only this texel frame, counting from 0 in file order.
         #[arg(long)]
-        frame: usize,
+        frame: Option<usize>,
         #[arg(long, value_enum)]
         format: texel_daemon::export::ExportFormat,
-        /// Place the scan in the world by /texel/pose (else /truth/pose) instead of
-        /// its own EO frame.
-        #[arg(long)]
+        /// With --frame: place the scan in the world by /texel/pose (else
+        /// /truth/pose) instead of its own EO frame.
+        #[arg(long, requires = "frame")]
         world: bool,
         #[arg(long)]
         out: PathBuf,
+    },
+    /// Register a capture offline: write a copy with /texel/pose for every registered
+    /// frame, and optionally a JSON report (status, time, fitness, errors vs truth).
+    Register {
+        /// The capture (MCAP) file.
+        capture: PathBuf,
+        #[arg(long)]
+        out: PathBuf,
+        /// TOML overrides of the registration defaults.
+        #[arg(long)]
+        config: Option<PathBuf>,
+        #[arg(long)]
+        report: Option<PathBuf>,
+    },
+    /// Regenerate a section of docs/tradeoffs.md (what accuracy costs in time) from
+    /// measurements on simulator captures.
+    Tradeoffs {
+        #[arg(value_enum)]
+        section: texel_daemon::tradeoffs::Section,
+        /// Fewer frames and settings, for a quick look.
+        #[arg(long)]
+        quick: bool,
+        /// The repository root (default: the current directory).
+        #[arg(long, default_value = ".")]
+        repo: PathBuf,
+        /// Where rendered captures are kept between runs.
+        #[arg(long, default_value = "target/tradeoffs-cache")]
+        cache: PathBuf,
+        /// The Python with Open3D (default: the venv of scripts/setup.sh).
+        #[arg(long)]
+        python: Option<PathBuf>,
     },
 }
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
     match cli.command {
+        Command::Run { config, overrides } => cli::run_command(Some(&config), None, &overrides),
+        Command::Replay {
+            capture,
+            speed,
+            fast,
+            out,
+            config,
+            stay,
+            register,
+            capture_poses,
+            mut overrides,
+        } => {
+            if out.is_some() {
+                overrides.record = out;
+            }
+            use texel_daemon::config::RegistrationMode;
+            let replay = cli::ReplayArgs {
+                capture,
+                speed,
+                fast,
+                stay,
+                registration: match (register, capture_poses) {
+                    (true, _) => Some(RegistrationMode::Register),
+                    (_, true) => Some(RegistrationMode::CapturePoses),
+                    _ => None,
+                },
+            };
+            cli::run_command(config.as_deref(), Some(replay), &overrides)
+        }
+        Command::Bench {
+            capture,
+            speed,
+            scene,
+            frames,
+            rate_hz,
+            work_dir,
+        } => match capture {
+            Some(capture) => cli::bench_command(&capture, speed),
+            None => cli::bench_sim_command(&texel_daemon::bench_sim::SimBench {
+                scene,
+                frames,
+                rate_hz,
+                work_dir,
+            }),
+        },
         Command::Info { capture } => match texel_daemon::info::summarize(&capture) {
             Ok(summary) => {
                 print!("{summary}");
@@ -62,26 +200,94 @@ fn main() -> ExitCode {
             format,
             world,
             out,
-        } => match texel_daemon::export::export_frame(&capture, frame, format, world, &out) {
-            Ok(s) => {
-                println!(
-                    "exported frame {frame} ({} ns): {} vertices, {} triangles, {} frame -> {}",
-                    s.timestamp_ns,
-                    s.vertices,
-                    s.usable_triangles,
-                    if s.world_from_scan.is_some() {
-                        "world"
-                    } else {
-                        "EO"
-                    },
-                    out.display()
-                );
-                ExitCode::SUCCESS
+        } => {
+            let Some(frame) = frame else {
+                return export_model(&capture, format, &out);
+            };
+            export_frame(&capture, frame, format, world, &out)
+        }
+        Command::Register {
+            capture,
+            out,
+            config,
+            report,
+        } => texel_daemon::register_cli::run(&capture, &out, config.as_deref(), report.as_deref()),
+        Command::Tradeoffs {
+            section,
+            quick,
+            repo,
+            cache,
+            python,
+        } => {
+            let paths = texel_daemon::tradeoffs::Paths { repo, cache };
+            let options = texel_daemon::tradeoffs::RunOptions { quick, python };
+            match texel_daemon::tradeoffs::run(section, &paths, &options) {
+                Ok(()) => ExitCode::SUCCESS,
+                Err(e) => {
+                    eprintln!("texeld tradeoffs: {e:#}");
+                    ExitCode::FAILURE
+                }
             }
-            Err(e) => {
-                eprintln!("texeld export: {e}");
-                ExitCode::FAILURE
-            }
-        },
+        }
+    }
+}
+
+fn export_frame(
+    capture: &std::path::Path,
+    frame: usize,
+    format: texel_daemon::export::ExportFormat,
+    world: bool,
+    out: &std::path::Path,
+) -> ExitCode {
+    match texel_daemon::export::export_frame(capture, frame, format, world, out) {
+        Ok(s) => {
+            println!(
+                "exported frame {frame} ({} ns): {} vertices, {} triangles, {} frame -> {}",
+                s.timestamp_ns,
+                s.vertices,
+                s.usable_triangles,
+                if s.world_from_scan.is_some() {
+                    "world"
+                } else {
+                    "EO"
+                },
+                out.display()
+            );
+            ExitCode::SUCCESS
+        }
+        Err(e) => {
+            eprintln!("texeld export: {e}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn export_model(
+    capture: &std::path::Path,
+    format: texel_daemon::export::ExportFormat,
+    out: &std::path::Path,
+) -> ExitCode {
+    let config = texel_daemon::register::RegistrationConfig::default();
+    match texel_daemon::model_export::export_model(capture, format, out, &config) {
+        Ok(s) => {
+            println!(
+                "exported the model: {} scans of {} frames ({} left out, poses {}): {} vertices, {} triangles -> {}",
+                s.scans,
+                s.frames,
+                s.left_out,
+                match s.poses {
+                    texel_daemon::model_export::PoseSource::Capture => "from /texel/pose",
+                    texel_daemon::model_export::PoseSource::Registered => "registered now",
+                },
+                s.vertices,
+                s.usable_triangles,
+                out.display()
+            );
+            ExitCode::SUCCESS
+        }
+        Err(e) => {
+            eprintln!("texeld export: {e}");
+            ExitCode::FAILURE
+        }
     }
 }

@@ -51,10 +51,20 @@
 //!
 //! # Backends
 //!
-//! The clean signal (echoes, radiance) comes from a [`render::RenderBackend`]; the
-//! built-in ray caster is the only one in this build (`BackendKind::Mitsuba` returns
-//! [`SimError::BackendUnavailable`]). Effects are applied by the same pipelines
-//! whatever the backend.
+//! The clean signal (echoes, radiance) comes from a [`render::RenderBackend`]: the
+//! built-in ray caster, or Mitsuba 3 ([`render::mitsuba`], a Python process in the
+//! venv `scripts/setup.sh` makes) traced along the same per-pixel rays. `SimOptions::
+//! backend` is [`BackendKind::Auto`] by default: built-in, unless an effect only
+//! Mitsuba simulates (`global_illumination`) is asked for. Effects are applied by the
+//! same pipelines whatever the backend; a backend that fails while rendering makes
+//! [`Simulator::frame`] return [`SimError::Backend`].
+//!
+//! # Virtual serial lidar
+//!
+//! [`serial::VirtualLidar`] writes a simulation's range frames as TXL1 to any `Write`,
+//! with injected faults and an exact [`serial::InjectionLog`]; [`serial::spawn_pty`]
+//! runs it on a pseudo-terminal a reader opens like a real port;
+//! [`serial::sim_frame_for_seq`] gives the texel frame (with its EO image) of a seq.
 
 pub mod capture;
 pub mod effects;
@@ -64,6 +74,7 @@ pub mod material;
 pub mod render;
 pub mod rng;
 pub mod scene;
+pub mod serial;
 pub mod simulator;
 pub mod texture_gen;
 pub mod trajectory;

@@ -1,5 +1,5 @@
-//! `texel-sims`: render simulated captures, clean views, list effects, generate
-//! textures.
+//! `texel-sims`: render simulated captures, clean views, list effects, benchmark,
+//! serve a virtual serial lidar, generate textures.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -10,6 +10,9 @@ use indicatif::{ProgressBar, ProgressStyle};
 use sims::effects::effect_docs;
 use sims::{BackendKind, CaptureOptions, Scene, SimOptions, Simulator, render_capture};
 use texel::PinholeCamera;
+
+mod cli_backends;
+mod cli_serial;
 
 #[derive(Parser)]
 #[command(name = "texel-sims", version, about = "The simulated texel camera")]
@@ -38,8 +41,9 @@ enum Command {
         /// Seed of every random number.
         #[arg(long, default_value_t = 0)]
         seed: u64,
-        #[arg(long, value_enum, default_value = "builtin")]
-        backend: Backend,
+        /// Renderer (default: builtin, or mitsuba when an effect needs it).
+        #[arg(long, value_enum)]
+        backend: Option<Backend>,
         /// Replace the scene's effects: a comma-separated list of names, or "none".
         #[arg(long)]
         effects: Option<String>,
@@ -74,7 +78,14 @@ enum Command {
         /// Frames rendered per configuration.
         #[arg(long, default_value_t = 30)]
         frames: usize,
+        /// Also time the Mitsuba backend against the built-in one on the same clean
+        /// range and EO images, and measure how far their images differ.
+        #[arg(long)]
+        mitsuba: bool,
     },
+    /// Serve the scene's lidar frames as a virtual TXL1 serial device (a new
+    /// pseudo-terminal whose path is printed, or --tty), with fault injection.
+    ServeSerial(cli_serial::ServeSerial),
     /// Write the procedural mural texture as a PNG.
     Texture {
         #[arg(long)]
@@ -107,7 +118,18 @@ fn main() -> Result<()> {
             height,
             fov_deg,
         } => view(&scene, &pose, &out, width, height, fov_deg),
-        Command::Bench { scene, frames } => bench(&scene, frames),
+        Command::Bench {
+            scene,
+            frames,
+            mitsuba,
+        } => {
+            bench(&scene, frames)?;
+            if mitsuba {
+                cli_backends::bench_backends(&scene, frames)?;
+            }
+            Ok(())
+        }
+        Command::ServeSerial(args) => cli_serial::serve_serial(&args),
         Command::Effects => {
             print_effects();
             Ok(())
@@ -144,12 +166,13 @@ fn render(
     out: &Path,
     frames: Option<usize>,
     seed: u64,
-    backend: Backend,
+    backend: Option<Backend>,
     effects: Option<&str>,
 ) -> Result<()> {
     let backend = match backend {
-        Backend::Builtin => BackendKind::Builtin,
-        Backend::Mitsuba => BackendKind::Mitsuba,
+        None => BackendKind::Auto,
+        Some(Backend::Builtin) => BackendKind::Builtin,
+        Some(Backend::Mitsuba) => BackendKind::Mitsuba,
     };
     let scene = Scene::load(scene_path)?;
     let options = SimOptions {
@@ -175,12 +198,13 @@ fn render(
     bar.finish_and_clear();
     let secs = start.elapsed().as_secs_f64();
     println!(
-        "wrote {} frames ({} messages) to {} in {:.2} s ({:.1} frames/s); effects: {}",
+        "wrote {} frames ({} messages) to {} in {:.2} s ({:.1} frames/s); backend: {}; effects: {}",
         summary.frames,
         summary.messages,
         summary.path.display(),
         secs,
         summary.frames as f64 / secs.max(1e-9),
+        sim.backend_name(),
         {
             let names = sim.effects().names();
             if names.is_empty() {
@@ -299,7 +323,13 @@ fn bench(scene_path: &Path, frames: usize) -> Result<()> {
         baseline,
         cpu_text(cpu)
     );
-    let mut configs: Vec<(String, Option<Vec<sims::Effect>>)> = sims::effects::EFFECT_NAMES
+    // Effects only Mitsuba simulates are timed by `--mitsuba`.
+    let builtin_effects: Vec<&str> = effect_docs()
+        .iter()
+        .filter(|d| !d.needs_mitsuba)
+        .map(|d| d.name)
+        .collect();
+    let mut configs: Vec<(String, Option<Vec<sims::Effect>>)> = builtin_effects
         .iter()
         .map(|n| {
             Ok((
@@ -315,7 +345,7 @@ fn bench(scene_path: &Path, frames: usize) -> Result<()> {
     configs.push((
         "all effects".to_string(),
         Some(
-            sims::effects::EFFECT_NAMES
+            builtin_effects
                 .iter()
                 .map(|n| sims::Effect::with_defaults(n).map_err(anyhow::Error::msg))
                 .collect::<Result<_>>()?,
@@ -341,7 +371,12 @@ fn print_effects() {
             sims::effects::Target::Eo => "EO",
             sims::effects::Target::Optics => "lidar + EO",
         };
-        println!("{} ({target})", doc.name);
+        let needs = if doc.needs_mitsuba {
+            "; needs the Mitsuba backend, which it selects"
+        } else {
+            ""
+        };
+        println!("{} ({target}{needs})", doc.name);
         println!("    {}", doc.model);
         for (p, default) in &doc.params {
             println!(

@@ -456,6 +456,10 @@ impl MipImage {
         self.levels.first().map_or(1, |l| l.width as u32)
     }
 
+    pub fn height(&self) -> u32 {
+        self.levels.first().map_or(1, |l| l.height as u32)
+    }
+
     /// Trilinear lookup at normalised (s, t) for a footprint of `texels` level-0
     /// texels.
     pub fn sample(&self, s: f64, t: f64, texels: f64) -> Rgb {

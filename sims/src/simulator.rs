@@ -10,6 +10,7 @@ use thiserror::Error;
 use crate::effects::lens_distortion::effective_model;
 use crate::effects::{Effect, EffectSet};
 use crate::render::lidar::{LidarRays, NoiseKey, echoes, render_range};
+use crate::render::mitsuba::{MitsubaBackend, MitsubaRenderer};
 use crate::render::{
     BackendKind, BuiltinBackend, CameraRays, RenderBackend, SurfaceSample, eo, world_ray,
 };
@@ -35,8 +36,17 @@ pub struct SimOptions {
 
 #[derive(Debug, Error)]
 pub enum SimError {
-    #[error("the {0} backend is not yet available in this build (use --backend builtin)")]
-    BackendUnavailable(&'static str),
+    #[error("the {backend} backend is not available: {reason}")]
+    BackendUnavailable {
+        backend: &'static str,
+        reason: String,
+    },
+    /// The backend failed while rendering (the Mitsuba process died or refused).
+    #[error("the {backend} backend failed: {reason}")]
+    Backend {
+        backend: &'static str,
+        reason: String,
+    },
     #[error("frame {index} does not exist: the simulation has {frames} frames")]
     FrameOutOfRange { index: usize, frames: usize },
     #[error("invalid option: {0}")]
@@ -74,7 +84,12 @@ pub struct Simulator {
     sensor: Sensor,
     lidar_rays: LidarRays,
     eo_rays: CameraRays,
+    /// Renders with the simulation's effects (global illumination included).
     backend: Arc<dyn RenderBackend>,
+    /// Renders the clean signal (`clean_*_at`): the same renderer without effects.
+    clean_backend: Arc<dyn RenderBackend>,
+    /// The Mitsuba process, when the Mitsuba backend renders.
+    mitsuba: Option<Arc<MitsubaRenderer>>,
     frames: usize,
 }
 
@@ -118,12 +133,21 @@ impl Simulator {
     }
 
     pub fn with_options(scene: Scene, options: &SimOptions) -> Result<Self, SimError> {
-        if options.backend != BackendKind::Builtin {
-            return Err(SimError::BackendUnavailable(options.backend.name()));
-        }
         let effects = match &options.effects {
             Some(list) => EffectSet::from_list(list).map_err(SimError::BadOption)?,
             None => scene.effect_set(),
+        };
+        let use_mitsuba = match (options.backend, &effects.global_illumination) {
+            (BackendKind::Builtin, Some(_)) => {
+                return Err(SimError::BadOption(
+                    "global_illumination is simulated by the Mitsuba backend only \
+                     (use --backend mitsuba, or leave the backend to be chosen)"
+                        .into(),
+                ));
+            }
+            (BackendKind::Builtin, None) => false,
+            (BackendKind::Mitsuba, _) | (BackendKind::Auto, Some(_)) => true,
+            (BackendKind::Auto, None) => false,
         };
         let mut model = effective_model(scene.sensor(), effects.lens_distortion.as_ref());
         if let Some(size) = options.lidar_size {
@@ -156,7 +180,28 @@ impl Simulator {
             pixel_rad: 1.0 / sensor.model.lidar.fx.max(sensor.model.lidar.fy),
         };
         let eo_rays = CameraRays::new(&sensor.model.eo);
-        let backend: Arc<dyn RenderBackend> = Arc::new(BuiltinBackend::new(scene.world.clone()));
+        let (backend, clean_backend, mitsuba): (Arc<dyn RenderBackend>, Arc<dyn RenderBackend>, _) =
+            if use_mitsuba {
+                let renderer =
+                    Arc::new(MitsubaRenderer::start(&scene.world).map_err(|reason| {
+                        SimError::BackendUnavailable {
+                            backend: "mitsuba",
+                            reason,
+                        }
+                    })?);
+                (
+                    Arc::new(MitsubaBackend::new(
+                        renderer.clone(),
+                        effects.global_illumination.clone(),
+                    )),
+                    Arc::new(MitsubaBackend::new(renderer.clone(), None)),
+                    Some(renderer),
+                )
+            } else {
+                let builtin: Arc<dyn RenderBackend> =
+                    Arc::new(BuiltinBackend::new(scene.world.clone()));
+                (builtin.clone(), builtin, None)
+            };
         Ok(Self {
             seed: options.seed,
             effects,
@@ -164,9 +209,37 @@ impl Simulator {
             lidar_rays,
             eo_rays,
             backend,
+            clean_backend,
+            mitsuba,
             frames,
             scene,
         })
+    }
+
+    /// The renderer in use: `"builtin"` or `"mitsuba"`.
+    pub fn backend_name(&self) -> &'static str {
+        self.backend.name()
+    }
+
+    /// The Mitsuba process, when the Mitsuba backend renders (start-up time, version).
+    pub fn mitsuba(&self) -> Option<&Arc<MitsubaRenderer>> {
+        self.mitsuba.as_ref()
+    }
+
+    /// Why the backend failed, if it did. Frames rendered after a failure are empty
+    /// (no returns, black); [`Self::frame`] reports the failure instead.
+    pub fn backend_failure(&self) -> Option<String> {
+        self.backend.failure()
+    }
+
+    fn check_backend(&self) -> Result<(), SimError> {
+        match self.backend.failure() {
+            Some(reason) => Err(SimError::Backend {
+                backend: self.backend.name(),
+                reason,
+            }),
+            None => Ok(()),
+        }
     }
 
     pub fn scene(&self) -> &Scene {
@@ -244,6 +317,7 @@ impl Simulator {
             || self.range_frame(&world_from_eo, key, timestamp_ns, index as u32),
             || self.eo_frame(&eo_poses, key, timestamp_ns),
         );
+        self.check_backend()?;
         Ok(SimFrame {
             index,
             pair: FramePair { range, eo },
@@ -313,7 +387,7 @@ impl Simulator {
     /// The clean range frame at any pose: exact radial distances, no effects.
     pub fn clean_range_at(&self, world_from_eo: &Pose, timestamp_ns: u64) -> RangeFrame {
         render_range(
-            self.backend.as_ref(),
+            self.clean_backend.as_ref(),
             &self.sensor.model,
             &self.lidar_rays,
             &EffectSet::default(),
@@ -328,7 +402,7 @@ impl Simulator {
     pub fn clean_eo_at(&self, world_from_eo: &Pose, timestamp_ns: u64) -> EoFrame {
         let clean = EffectSet::default();
         let linear = eo::radiance(
-            self.backend.as_ref(),
+            self.clean_backend.as_ref(),
             &self.eo_rays,
             &clean,
             std::slice::from_ref(world_from_eo),

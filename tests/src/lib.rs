@@ -66,3 +66,120 @@ pub fn workspace_binary(name: &str) -> PathBuf {
         .unwrap_or_default();
     dir.join(name)
 }
+
+/// Small captures of an analytic scene, written with the project's own capture
+/// writer, for tests of the daemon's pipeline.
+pub mod captures {
+    use std::path::Path;
+
+    use nalgebra::Vector2;
+    use texel::capture::{CaptureWriter, EoEncoding, PoseTopic, RangeEncoding, WriterOptions};
+    use texel::pose::pose_from_parts;
+    use texel::{EoFrame, PinholeCamera, Pose, RangeFrame, RangeNoise, SensorModel};
+
+    /// A 16x12 lidar and a 64x48 EO camera, 2 cm apart.
+    pub fn sensor() -> SensorModel {
+        SensorModel {
+            name: "analytic".into(),
+            lidar: PinholeCamera::from_vertical_fov(16, 12, 30.0)
+                .unwrap_or_else(|e| panic!("lidar model: {e}")),
+            eo: PinholeCamera::from_vertical_fov(64, 48, 40.0)
+                .unwrap_or_else(|e| panic!("EO model: {e}")),
+            eo_from_lidar: pose_from_parts([0.02, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0])
+                .unwrap_or_else(|e| panic!("extrinsic: {e}")),
+            range_noise: RangeNoise {
+                sigma_m: 0.005,
+                sigma_per_m: 0.0,
+            },
+            min_range_m: 0.3,
+            max_range_m: 30.0,
+        }
+    }
+
+    /// Frame `i` at `timestamp_ns`: a wall `3 + 0.01 i` m away with a box at 2 m
+    /// over the left third; the EO image a colour ramp that changes with `i`.
+    pub fn frame(m: &SensorModel, i: u32, timestamp_ns: u64) -> (RangeFrame, EoFrame) {
+        let (w, h) = (m.lidar.width, m.lidar.height);
+        let mut r = RangeFrame::empty(w, h, timestamp_ns, i);
+        for v in 0..h {
+            for u in 0..w {
+                let ray = m
+                    .lidar
+                    .unproject_ray(Vector2::new(f64::from(u), f64::from(v)))
+                    .unwrap_or_else(|e| panic!("ray: {e}"));
+                let depth = if u < w / 3 {
+                    2.0
+                } else {
+                    3.0 + 0.01 * f64::from(i)
+                };
+                r.ranges_m[(v * w + u) as usize] = (depth / ray.z) as f32;
+            }
+        }
+        let (ew, eh) = (m.eo.width, m.eo.height);
+        let mut rgb = Vec::with_capacity((ew * eh * 3) as usize);
+        for v in 0..eh {
+            for u in 0..ew {
+                rgb.extend_from_slice(&[
+                    (u * 4) as u8,
+                    (v * 5) as u8,
+                    (i.wrapping_mul(17) % 256) as u8,
+                ]);
+            }
+        }
+        let eo = EoFrame {
+            width: ew,
+            height: eh,
+            rgb,
+            timestamp_ns,
+        };
+        (r, eo)
+    }
+
+    /// The pose of frame `i`: walking along +x, turning slowly about z.
+    pub fn pose(i: u32) -> Pose {
+        let angle = 0.01 * f64::from(i);
+        pose_from_parts(
+            [0.1 * f64::from(i), 0.0, 1.5],
+            [0.0, 0.0, (angle / 2.0).sin(), (angle / 2.0).cos()],
+        )
+        .unwrap_or_else(|e| panic!("pose: {e}"))
+    }
+
+    /// The timestamp of frame `i` for a capture starting at 1 s with `period_ns`.
+    pub fn timestamp(i: u32, period_ns: u64) -> u64 {
+        1_000_000_000 + u64::from(i) * period_ns
+    }
+
+    /// Writes `frames` texel frames `period_ns` apart, each with its pose on `poses`
+    /// (none when `None`).
+    pub fn write(path: &Path, frames: u32, period_ns: u64, poses: Option<PoseTopic>) {
+        write_with(path, &sensor(), frames, period_ns, poses);
+    }
+
+    /// As [`write`], with a given sensor model.
+    pub fn write_with(
+        path: &Path,
+        m: &SensorModel,
+        frames: u32,
+        period_ns: u64,
+        poses: Option<PoseTopic>,
+    ) {
+        let mut w =
+            CaptureWriter::create(path, WriterOptions::default()).unwrap_or_else(|e| panic!("{e}"));
+        w.write_sensor(m, timestamp(0, period_ns))
+            .unwrap_or_else(|e| panic!("{e}"));
+        for i in 0..frames {
+            let t = timestamp(i, period_ns);
+            let (r, eo) = frame(m, i, t);
+            w.write_range(&r, RangeEncoding::F32Metres)
+                .unwrap_or_else(|e| panic!("{e}"));
+            w.write_eo(&eo, EoEncoding::Rgb8)
+                .unwrap_or_else(|e| panic!("{e}"));
+            if let Some(topic) = poses {
+                w.write_pose(topic, t, &pose(i))
+                    .unwrap_or_else(|e| panic!("{e}"));
+            }
+        }
+        w.finish().unwrap_or_else(|e| panic!("{e}"));
+    }
+}

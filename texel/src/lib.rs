@@ -14,6 +14,7 @@ pub mod scan;
 pub mod sensor;
 pub mod sync;
 pub mod txl1;
+pub mod wire;
 
 pub use camera::{Distortion, PinholeCamera};
 pub use distortion::PlumbBob;

@@ -1,1 +1,15 @@
-//! The texel model viewer: stream client, view-dependent renderer and headless rendering.
+//! The texel model viewer: the view-dependent wgpu renderer (Killpack & Budge 2016),
+//! its CPU reference, capture loading, headless rendering and the window.
+
+pub mod app;
+pub mod bench;
+pub mod camera;
+pub mod capture_load;
+pub mod composite;
+pub mod cull;
+pub mod gpu;
+pub mod headless;
+pub mod live;
+pub mod reliability;
+pub mod scenes;
+pub mod tradeoffs;

@@ -1,5 +1,500 @@
-//! `texel-viewer`: renders the texel model (arrives with the viewer issue).
+//! `texel-viewer`: renders the texel model live from a daemon (`--connect`: a window,
+//! or snapshots to a folder without a display), headless (`render`), in a window on
+//! a replayed capture (`open`), and measures the renderer (`bench`, `tradeoffs`).
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use anyhow::{Context, bail};
+use clap::{Args, Parser, Subcommand};
+use texel::pose::parse_pose;
+use texel_viewer::camera::VirtualCamera;
+use texel_viewer::capture_load::{LoadedCapture, load_capture};
+use texel_viewer::composite::{MAX_K, Mode};
+use texel_viewer::gpu::{GpuContext, RenderSettings, Renderer, Strategy};
+use texel_viewer::headless::parse_views;
+use texel_viewer::live;
+use texel_viewer::live::snapshots::SnapshotView;
+
+#[derive(Parser)]
+#[command(
+    name = "texel-viewer",
+    version,
+    about = "Renders the texel model with view-dependent blending",
+    args_conflicts_with_subcommands = true
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Option<Command>,
+    #[command(flatten)]
+    live: LiveArgs,
+}
+
+/// `texel-viewer --connect HOST:PORT`: the live model in a window, or, without a
+/// display, snapshots of it in a folder.
+#[derive(Args)]
+struct LiveArgs {
+    /// The daemon to follow.
+    #[arg(long, value_name = "HOST:PORT")]
+    connect: Option<String>,
+    /// The daemon's token (needed when it listens beyond loopback).
+    #[arg(long, default_value = "")]
+    token: String,
+    #[arg(long, default_value_t = 1280)]
+    width: u32,
+    #[arg(long, default_value_t = 800)]
+    height: u32,
+    /// Vertical field of view in degrees (default: estimated from the first scan).
+    #[arg(long)]
+    fov_deg: Option<f64>,
+    #[command(flatten)]
+    display: DisplayArgs,
+    /// Write snapshots to this folder instead of opening a window (the default when
+    /// there is no display: `texel-snapshots`).
+    #[arg(long, value_name = "DIR")]
+    snapshots: Option<PathBuf>,
+    /// A snapshot at least this often while the model changes (seconds).
+    #[arg(long, default_value_t = 5.0)]
+    every_s: f64,
+    /// And whenever this many new scans arrived (0: only by time).
+    #[arg(long, default_value_t = 10)]
+    every_scans: usize,
+    /// Where snapshots are seen from.
+    #[arg(long, value_enum, default_value = "newest")]
+    snapshot_view: SnapshotView,
+    /// Stop after this many snapshots.
+    #[arg(long)]
+    max_snapshots: Option<usize>,
+    /// Window: write a read-back of the frame to this PNG, then exit.
+    #[arg(long)]
+    screenshot: Option<PathBuf>,
+    /// Window: frames to draw before the screenshot.
+    #[arg(long, default_value_t = 5)]
+    frames: u32,
+    /// Window: scans the model must hold before the screenshot (waits at most 60 s).
+    #[arg(long, default_value_t = 1)]
+    min_scans: usize,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Render views of a capture's model to PNG files.
+    Render(RenderArgs),
+    /// Open a window on a capture's model.
+    Open(OpenArgs),
+    /// Measure frame time and GPU memory (k-buffer against naive layers).
+    Bench(texel_viewer::bench::BenchArgs),
+    /// What rendering quality costs in time: regenerate the rendering section of docs/tradeoffs.md.
+    Tradeoffs(texel_viewer::tradeoffs::TradeoffsArgs),
+}
+
+/// Where the model comes from: exactly one source.
+#[derive(Args)]
+#[group(required = true, multiple = false)]
+struct SourceArgs {
+    /// A capture (MCAP): every texel frame fused and placed by /texel/pose, else /truth/pose.
+    #[arg(long, value_name = "RESULT.mcap")]
+    capture: Option<PathBuf>,
+    /// A running daemon: its model once the snapshot is complete.
+    #[arg(long, value_name = "HOST:PORT")]
+    connect: Option<String>,
+}
+
+/// Options of a `render --connect`.
+#[derive(Args)]
+struct FetchArgs {
+    /// The daemon's token.
+    #[arg(long, default_value = "", requires = "connect")]
+    token: String,
+    /// Wait until the model holds at least this many scans.
+    #[arg(long, default_value_t = 1, requires = "connect")]
+    wait_scans: usize,
+    /// Give up after this many seconds (connecting included).
+    #[arg(long, default_value_t = 60.0, requires = "connect")]
+    timeout_s: f64,
+}
+
+/// A model to render and the field of view it suggests.
+struct SourceModel {
+    model: texel::model::Model,
+    default_fov_deg: f64,
+}
+
+impl SourceArgs {
+    fn load(&self, fetch: &FetchArgs) -> anyhow::Result<SourceModel> {
+        match (&self.capture, &self.connect) {
+            (Some(path), _) => {
+                let loaded = load(path)?;
+                Ok(SourceModel {
+                    default_fov_deg: VirtualCamera::fov_y_deg_of(&loaded.eo_camera),
+                    model: loaded.model,
+                })
+            }
+            (None, Some(addr)) => {
+                let model = texel_viewer::live::fetch::fetch_model(
+                    addr,
+                    &fetch.token,
+                    fetch.wait_scans,
+                    std::time::Duration::from_secs_f64(fetch.timeout_s.clamp(0.1, 86400.0)),
+                )?;
+                eprintln!("{addr}: {} scans", model.len());
+                let default_fov_deg = model
+                    .scans()
+                    .first()
+                    .and_then(|s| texel_viewer::live::fov_y_deg_of_scan(&s.scan))
+                    .unwrap_or(50.0);
+                Ok(SourceModel {
+                    model,
+                    default_fov_deg,
+                })
+            }
+            (None, None) => bail!("give a model source (--capture or --connect)"),
+        }
+    }
+}
+
+#[derive(Args, Clone)]
+struct DisplayArgs {
+    /// painter, best, blended, scan-colour or reliability.
+    #[arg(long, default_value = "blended")]
+    mode: Mode,
+    /// Fragments within this reliability of the best are blended.
+    #[arg(long, default_value_t = 0.15)]
+    blend_threshold: f32,
+    /// At most this many fragments per pixel are ranked and blended (1..=8).
+    #[arg(long, default_value_t = 4)]
+    k: u32,
+    /// Exponent of the range confidence.
+    #[arg(long, default_value_t = 1.0)]
+    range_gamma: f32,
+    /// Keep stretched triangles (the paper removes them).
+    #[arg(long)]
+    keep_stretched: bool,
+    /// Use the naive one-layer-per-scan composite instead of the k-buffer.
+    #[arg(long)]
+    naive: bool,
+}
+
+impl DisplayArgs {
+    fn settings(&self) -> anyhow::Result<RenderSettings> {
+        if self.k == 0 || self.k > MAX_K {
+            bail!("--k {} is outside 1..={MAX_K}", self.k);
+        }
+        if !self.blend_threshold.is_finite() || self.blend_threshold < 0.0 {
+            bail!(
+                "--blend-threshold {} must be finite and not negative",
+                self.blend_threshold
+            );
+        }
+        if !self.range_gamma.is_finite() || self.range_gamma <= 0.0 {
+            bail!(
+                "--range-gamma {} must be finite and positive",
+                self.range_gamma
+            );
+        }
+        let mut s = RenderSettings::with_mode(self.mode);
+        s.composite.blend_threshold = self.blend_threshold;
+        s.composite.k = self.k;
+        s.range_gamma = self.range_gamma;
+        s.keep_stretched = self.keep_stretched;
+        if self.naive {
+            s.strategy = Strategy::NaiveLayers;
+        }
+        Ok(s)
+    }
+}
+
+#[derive(Args)]
+struct RenderArgs {
+    #[command(flatten)]
+    source: SourceArgs,
+    #[command(flatten)]
+    fetch: FetchArgs,
+    /// Virtual camera pose, world_from_eo: "x y z qx qy qz qw" (EO frame: x right, y down, z forward).
+    #[arg(long, allow_hyphen_values = true, conflicts_with_all = ["acquisition", "views"])]
+    pose: Option<String>,
+    /// Render from scan N's own acquisition pose.
+    #[arg(long, conflicts_with = "views")]
+    acquisition: Option<u64>,
+    /// A batch of views: lines "OUT.png x y z qx qy qz qw [fov_deg]".
+    #[arg(long)]
+    views: Option<PathBuf>,
+    /// Vertical field of view in degrees (default: the model's EO camera).
+    #[arg(long)]
+    fov_deg: Option<f64>,
+    #[arg(long)]
+    width: u32,
+    #[arg(long)]
+    height: u32,
+    #[command(flatten)]
+    display: DisplayArgs,
+    /// Output PNG (single view).
+    #[arg(long, default_value = "view.png")]
+    out: PathBuf,
+}
+
+#[derive(Args)]
+struct OpenArgs {
+    /// The capture to open: replayed through the daemon's pipeline in-process, scans
+    /// appearing as the replay reaches them.
+    capture: PathBuf,
+    /// Replay speed, a multiple of real time.
+    #[arg(long, default_value_t = 1.0)]
+    speed: f64,
+    /// Replay as fast as the pipeline goes.
+    #[arg(long)]
+    fast: bool,
+    /// Load and fuse the whole capture first instead of replaying it.
+    #[arg(long, conflicts_with_all = ["speed", "fast"])]
+    load: bool,
+    #[arg(long, default_value_t = 1280)]
+    width: u32,
+    #[arg(long, default_value_t = 800)]
+    height: u32,
+    #[command(flatten)]
+    display: DisplayArgs,
+    /// Write a read-back of the window's frame to this PNG after --frames frames, then exit.
+    #[arg(long)]
+    screenshot: Option<PathBuf>,
+    /// Frames to draw before the screenshot.
+    #[arg(long, default_value_t = 5)]
+    frames: u32,
+    /// Scans the model must hold before the screenshot (waits at most 60 s).
+    #[arg(long, default_value_t = 1)]
+    min_scans: usize,
+}
+
+fn load(path: &std::path::Path) -> anyhow::Result<LoadedCapture> {
+    let loaded = load_capture(path).with_context(|| format!("loading {}", path.display()))?;
+    for w in &loaded.warnings {
+        eprintln!("warning: {w}");
+    }
+    eprintln!(
+        "{}: {} scans placed by {}{}",
+        path.display(),
+        loaded.model.len(),
+        loaded.pose_source.topic(),
+        if loaded.unplaced > 0 {
+            format!(" ({} frames without a pose were left out)", loaded.unplaced)
+        } else {
+            String::new()
+        }
+    );
+    if loaded.model.is_empty() {
+        bail!("{}: no scan could be placed", path.display());
+    }
+    Ok(loaded)
+}
+
+fn render(args: RenderArgs) -> anyhow::Result<()> {
+    let settings = args.display.settings()?;
+    let loaded = args.source.load(&args.fetch)?;
+    let default_fov = loaded.default_fov_deg;
+    let mut views = Vec::new();
+    if let Some(file) = &args.views {
+        for v in parse_views(file)? {
+            views.push((
+                v.out,
+                v.world_from_eo,
+                v.fov_deg.or(args.fov_deg).unwrap_or(default_fov),
+            ));
+        }
+    } else {
+        let pose = match (&args.pose, args.acquisition) {
+            (Some(text), _) => parse_pose(text).context("--pose")?,
+            (None, Some(n)) => {
+                loaded
+                    .model
+                    .get(n)
+                    .with_context(|| {
+                        format!(
+                            "--acquisition {n}: the model has {} scans",
+                            loaded.model.len()
+                        )
+                    })?
+                    .world_from_scan
+            }
+            (None, None) => bail!("give --pose, --acquisition or --views"),
+        };
+        views.push((args.out.clone(), pose, args.fov_deg.unwrap_or(default_fov)));
+    }
+    let gpu = GpuContext::headless()?;
+    let mut renderer = Renderer::new(&gpu);
+    renderer.sync_model(&loaded.model)?;
+    for (out, pose, fov) in views {
+        let camera = VirtualCamera::new(pose, fov, args.width, args.height)?;
+        let (image, stats) = renderer.render_to_image(&camera, &settings)?;
+        image
+            .save(&out)
+            .with_context(|| format!("writing {}", out.display()))?;
+        eprintln!(
+            "{}: {} scans drawn, {} outside the view, {} facing away",
+            out.display(),
+            stats.drawn,
+            stats.culled_frustum,
+            stats.culled_facing
+        );
+    }
+    Ok(())
+}
+
+fn open(args: OpenArgs) -> anyhow::Result<()> {
+    let settings = args.display.settings()?;
+    let (events, fov, keep_alive): (_, Option<f64>, Box<dyn std::any::Any>) = if args.load {
+        let loaded = load(&args.capture)?;
+        let fov = VirtualCamera::fov_y_deg_of(&loaded.eo_camera);
+        (
+            live::spawn_model_feed(loaded.model),
+            Some(fov),
+            Box::new(()),
+        )
+    } else {
+        if !(args.speed.is_finite() && args.speed > 0.0) {
+            bail!("--speed {} must be finite and positive", args.speed);
+        }
+        let (tx, rx) = std::sync::mpsc::sync_channel(live::EVENT_QUEUE);
+        let handle = live::replay::spawn(
+            live::replay::ReplayOptions {
+                capture: args.capture.clone(),
+                speed: args.speed,
+                fast: args.fast,
+            },
+            tx,
+        );
+        (rx, None, Box::new(handle))
+    };
+    let result = texel_viewer::app::run(texel_viewer::app::AppOptions {
+        title: format!("texel-viewer: {}", args.capture.display()),
+        width: args.width,
+        height: args.height,
+        fov_deg: fov,
+        settings,
+        events,
+        follow_newest: false,
+        screenshot: args.screenshot.map(|p| (p, args.frames, args.min_scans)),
+    });
+    drop(keep_alive);
+    result
+}
+
+/// Whether a window can be opened here.
+fn have_display() -> bool {
+    ["DISPLAY", "WAYLAND_DISPLAY"]
+        .iter()
+        .any(|v| std::env::var_os(v).is_some_and(|s| !s.is_empty()))
+}
+
+/// Sets the flag on SIGINT or SIGTERM (snapshot mode stops cleanly).
+fn stop_on_signal() -> Arc<AtomicBool> {
+    let flag = Arc::new(AtomicBool::new(false));
+    let set = Arc::clone(&flag);
+    let spawned = std::thread::Builder::new()
+        .name("signals".into())
+        .spawn(move || {
+            let Ok(rt) = tokio::runtime::Builder::new_current_thread()
+                .enable_all()
+                .build()
+            else {
+                return;
+            };
+            rt.block_on(async {
+                use tokio::signal::unix::{SignalKind, signal};
+                let (Ok(mut term), Ok(mut int)) = (
+                    signal(SignalKind::terminate()),
+                    signal(SignalKind::interrupt()),
+                ) else {
+                    return;
+                };
+                tokio::select! {
+                    _ = term.recv() => {}
+                    _ = int.recv() => {}
+                }
+                set.store(true, Ordering::Release);
+            });
+        });
+    if spawned.is_err() {
+        eprintln!("warning: no signal handling; stop with SIGKILL");
+    }
+    flag
+}
+
+fn connect(args: LiveArgs, addr: String) -> anyhow::Result<()> {
+    let settings = args.display.settings()?;
+    let (tx, rx) = std::sync::mpsc::sync_channel(live::EVENT_QUEUE);
+    let mut connection = live::connection::spawn(
+        live::connection::ConnectOptions::new(addr.clone(), args.token.clone()),
+        tx,
+    );
+    let snapshots = args
+        .snapshots
+        .clone()
+        .or_else(|| (!have_display()).then(|| PathBuf::from("texel-snapshots")));
+    let result = match snapshots {
+        Some(dir) => {
+            if !(args.every_s.is_finite() && args.every_s > 0.0) {
+                bail!("--every-s {} must be finite and positive", args.every_s);
+            }
+            std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+            let shown = std::fs::canonicalize(&dir).unwrap_or_else(|_| dir.clone());
+            println!(
+                "texel-viewer: no window{}; writing snapshots of the live model from {addr} to {}",
+                if args.snapshots.is_some() {
+                    ""
+                } else {
+                    " (no DISPLAY or WAYLAND_DISPLAY)"
+                },
+                shown.display()
+            );
+            let stop = stop_on_signal();
+            let summary = live::snapshots::run(
+                &rx,
+                &live::snapshots::SnapshotOptions {
+                    dir: dir.clone(),
+                    every: std::time::Duration::from_secs_f64(args.every_s),
+                    every_scans: args.every_scans,
+                    view: args.snapshot_view,
+                    width: args.width,
+                    height: args.height,
+                    fov_deg: args.fov_deg,
+                    settings,
+                    max_snapshots: args.max_snapshots,
+                },
+                &stop,
+            )?;
+            println!(
+                "texel-viewer: {} snapshots of up to {} scans in {}",
+                summary.written.len(),
+                summary.scans,
+                std::fs::canonicalize(&dir).unwrap_or(dir).display()
+            );
+            Ok(())
+        }
+        None => texel_viewer::app::run(texel_viewer::app::AppOptions {
+            title: format!("texel-viewer: {addr}"),
+            width: args.width,
+            height: args.height,
+            fov_deg: args.fov_deg,
+            settings,
+            events: rx,
+            follow_newest: true,
+            screenshot: args.screenshot.map(|p| (p, args.frames, args.min_scans)),
+        }),
+    };
+    connection.stop();
+    result
+}
 
 fn main() -> anyhow::Result<()> {
-    anyhow::bail!("texel-viewer: the renderer is not built yet; see the README")
+    let cli = Cli::parse();
+    match cli.command {
+        Some(Command::Render(a)) => render(a),
+        Some(Command::Open(a)) => open(a),
+        Some(Command::Bench(a)) => texel_viewer::bench::run(&a),
+        Some(Command::Tradeoffs(a)) => texel_viewer::tradeoffs::run(&a),
+        None => match cli.live.connect.clone() {
+            Some(addr) => connect(cli.live, addr),
+            None => bail!("give --connect HOST:PORT or a command (see --help)"),
+        },
+    }
 }

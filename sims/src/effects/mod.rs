@@ -12,6 +12,7 @@
 
 pub mod dropouts;
 pub mod exposure;
+pub mod global_illumination;
 pub mod lens_distortion;
 pub mod mixed_pixels;
 pub mod motion_blur;
@@ -26,6 +27,7 @@ use serde::de::DeserializeOwned;
 
 pub use dropouts::Dropouts;
 pub use exposure::{Exposure, Response};
+pub use global_illumination::GlobalIllumination;
 pub use lens_distortion::LensDistortion;
 pub use mixed_pixels::MixedPixels;
 pub use motion_blur::MotionBlur;
@@ -59,6 +61,8 @@ pub trait EffectParams: Default + Serialize + DeserializeOwned + Clone + Partial
     /// One paragraph: the physical model.
     const MODEL: &'static str;
     const PARAMS: &'static [ParamDoc];
+    /// Only the Mitsuba backend simulates this effect (asking for it selects it).
+    const NEEDS_MITSUBA: bool = false;
     /// Checks values a physical device can have; the message names the parameter.
     fn validate(&self) -> Result<(), String>;
 }
@@ -76,16 +80,18 @@ pub enum Effect {
     Exposure(Exposure),
     MotionBlur(MotionBlur),
     Specular(Specular),
+    GlobalIllumination(GlobalIllumination),
 }
 
 /// Every effect's name, in pipeline order.
-pub const EFFECT_NAMES: [&str; 10] = [
+pub const EFFECT_NAMES: [&str; 11] = [
     MixedPixels::NAME,
     Dropouts::NAME,
     RangeNoiseEffect::NAME,
     RangeQuantisation::NAME,
     LensDistortion::NAME,
     Specular::NAME,
+    GlobalIllumination::NAME,
     MotionBlur::NAME,
     Vignetting::NAME,
     Exposure::NAME,
@@ -100,6 +106,8 @@ pub struct EffectDoc {
     pub model: &'static str,
     /// `(doc, default value as TOML text)` per parameter.
     pub params: Vec<(ParamDoc, String)>,
+    /// Only the Mitsuba backend simulates it.
+    pub needs_mitsuba: bool,
 }
 
 fn doc_of<P: EffectParams>() -> EffectDoc {
@@ -120,6 +128,7 @@ fn doc_of<P: EffectParams>() -> EffectDoc {
                 (*d, default)
             })
             .collect(),
+        needs_mitsuba: P::NEEDS_MITSUBA,
     }
 }
 
@@ -132,6 +141,7 @@ pub fn effect_docs() -> Vec<EffectDoc> {
         doc_of::<RangeQuantisation>(),
         doc_of::<LensDistortion>(),
         doc_of::<Specular>(),
+        doc_of::<GlobalIllumination>(),
         doc_of::<MotionBlur>(),
         doc_of::<Vignetting>(),
         doc_of::<Exposure>(),
@@ -160,6 +170,7 @@ impl Effect {
             Self::Exposure(_) => Exposure::NAME,
             Self::MotionBlur(_) => MotionBlur::NAME,
             Self::Specular(_) => Specular::NAME,
+            Self::GlobalIllumination(_) => GlobalIllumination::NAME,
         }
     }
 
@@ -176,6 +187,7 @@ impl Effect {
             Exposure::NAME => Self::Exposure(parse_params(params)?),
             MotionBlur::NAME => Self::MotionBlur(parse_params(params)?),
             Specular::NAME => Self::Specular(parse_params(params)?),
+            GlobalIllumination::NAME => Self::GlobalIllumination(parse_params(params)?),
             other => {
                 return Err(format!(
                     "unknown effect {other:?}; valid effects are: {}",
@@ -227,6 +239,7 @@ pub struct EffectSet {
     pub exposure: Option<Exposure>,
     pub motion_blur: Option<MotionBlur>,
     pub specular: Option<Specular>,
+    pub global_illumination: Option<GlobalIllumination>,
 }
 
 impl EffectSet {
@@ -245,6 +258,7 @@ impl EffectSet {
                 Effect::Exposure(p) => set.exposure.replace(p).is_some(),
                 Effect::MotionBlur(p) => set.motion_blur.replace(p).is_some(),
                 Effect::Specular(p) => set.specular.replace(p).is_some(),
+                Effect::GlobalIllumination(p) => set.global_illumination.replace(p).is_some(),
             };
             if dup {
                 return Err(format!("effect {:?} is listed twice", e.name()));
@@ -270,6 +284,7 @@ impl EffectSet {
             self.range_quantisation.is_some(),
             self.lens_distortion.is_some(),
             self.specular.is_some(),
+            self.global_illumination.is_some(),
             self.motion_blur.is_some(),
             self.vignetting.is_some(),
             self.exposure.is_some(),

@@ -69,6 +69,11 @@ impl Bvh {
         self.primitives.len() + self.unbounded.len()
     }
 
+    /// Every primitive, bounded ones first (in no particular order).
+    pub fn primitives(&self) -> impl Iterator<Item = &Primitive> {
+        self.primitives.iter().chain(&self.unbounded)
+    }
+
     /// The scene's bounded extent (`None` when only unbounded primitives exist).
     pub fn bounds(&self) -> Option<Aabb> {
         self.nodes.first().map(|n| n.bounds)

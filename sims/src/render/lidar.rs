@@ -1,6 +1,12 @@
 //! The lidar pipeline: clean echoes from a backend, then the scene's lidar effects in
 //! order (mixed pixels → dropouts → range noise → quantisation), per pixel, in
 //! parallel, with noise keyed by (seed, frame, pixel, stream).
+//!
+//! Every frame also carries the return **intensity** a flash lidar reports: the
+//! range-normalised Lambertian signal `ρ · cos α` (lidar reflectivity times the
+//! incidence cosine of the pixel's echo) in integer counts, [`INTENSITY_FULL_SCALE`]
+//! for a white surface seen head-on, 0 where the pixel has no return. Integer counts
+//! travel exactly as `mono16` in captures and as TXL1 intensities.
 
 use rayon::prelude::*;
 use texel::{Pose, RangeFrame, SensorModel};
@@ -19,6 +25,21 @@ pub struct LidarRays {
     pub footprint: Option<CameraRays>,
     /// Angular width of one lidar pixel, radians.
     pub pixel_rad: f64,
+}
+
+/// Intensity counts of a head-on return from a surface of reflectivity 1.
+pub const INTENSITY_FULL_SCALE: f32 = 10_000.0;
+
+/// The intensity counts of an echo (see the module documentation).
+#[inline]
+pub fn intensity_counts(echo: &SurfaceSample) -> f32 {
+    let signal = f64::from(echo.reflectivity) * echo.cos_incidence;
+    let signal = if signal.is_finite() {
+        signal.clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    (signal as f32 * INTENSITY_FULL_SCALE).round()
 }
 
 /// Key of a frame's random numbers.
@@ -60,12 +81,12 @@ pub fn render_range(
     seq: u32,
 ) -> RangeFrame {
     let echoes = echoes(backend, rays, effects, world_from_lidar);
-    let ranges_m: Vec<f32> = echoes
+    let (ranges_m, intensity): (Vec<f32>, Vec<f32>) = echoes
         .par_iter()
         .enumerate()
         .map(|(pixel, echo)| {
             let Some(echo) = echo else {
-                return f32::NAN;
+                return (f32::NAN, 0.0);
             };
             let mut r = echo.range_m;
             if let Some(d) = &effects.dropouts {
@@ -73,7 +94,7 @@ pub fn render_range(
                 if d.decide(echo, sensor.min_range_m, sensor.max_range_m, &rng)
                     .is_some()
                 {
-                    return f32::NAN;
+                    return (f32::NAN, 0.0);
                 }
             }
             if let Some(n) = &effects.range_noise {
@@ -84,18 +105,41 @@ pub fn render_range(
                 r = q.apply(r);
             }
             if r.is_finite() && r > 0.0 {
-                r as f32
+                (r as f32, intensity_counts(echo))
             } else {
-                f32::NAN
+                (f32::NAN, 0.0)
             }
         })
-        .collect();
+        .unzip();
     RangeFrame {
         width: sensor.lidar.width,
         height: sensor.lidar.height,
         ranges_m,
         timestamp_ns,
         seq,
-        intensity: None,
+        intensity: Some(intensity),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn echo(reflectivity: f32, cos_incidence: f64) -> SurfaceSample {
+        SurfaceSample {
+            range_m: 2.0,
+            cos_incidence,
+            reflectivity,
+            object: 0,
+        }
+    }
+
+    #[test]
+    fn intensity_is_reflectivity_times_incidence_in_counts() {
+        assert_eq!(intensity_counts(&echo(1.0, 1.0)), INTENSITY_FULL_SCALE);
+        assert_eq!(intensity_counts(&echo(0.5, 0.5)), 2500.0);
+        assert_eq!(intensity_counts(&echo(0.0, 1.0)), 0.0);
+        assert_eq!(intensity_counts(&echo(f32::NAN, 1.0)), 0.0);
+        assert_eq!(intensity_counts(&echo(2.0, 1.0)), INTENSITY_FULL_SCALE);
     }
 }

@@ -4,6 +4,8 @@
 
 pub mod eo;
 pub mod lidar;
+pub mod mitsuba;
+pub mod mitsuba_scene;
 
 use std::sync::Arc;
 
@@ -250,21 +252,32 @@ pub trait RenderBackend: Send + Sync {
     ) -> Vec<Option<SurfaceSample>> {
         self.echoes(world_from_camera, &rays.rays, beam_rad)
     }
+
+    /// Why rendering failed, if it did (an out-of-process renderer that died): the
+    /// results of the failed calls are empty (no echoes, black radiance) and the
+    /// simulator reports this message instead of returning them.
+    fn failure(&self) -> Option<String> {
+        None
+    }
 }
 
 /// Which renderer makes the clean signal.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum BackendKind {
-    /// Ray casting against the scene's BVH, in this process.
+    /// The built-in ray caster, unless an effect only Mitsuba simulates is asked for
+    /// (`global_illumination`), which selects Mitsuba.
     #[default]
+    Auto,
+    /// Ray casting against the scene's BVH, in this process.
     Builtin,
-    /// Mitsuba 3 (not available in this build).
+    /// Mitsuba 3 in a Python process ([`mitsuba`]).
     Mitsuba,
 }
 
 impl BackendKind {
     pub fn name(self) -> &'static str {
         match self {
+            Self::Auto => "auto",
             Self::Builtin => "builtin",
             Self::Mitsuba => "mitsuba",
         }

@@ -1,0 +1,319 @@
+//! `texel-calib`: calibrates a texel camera from a capture of a checkerboard target,
+//! and measures calibration against the simulator's truth.
+
+mod tradeoffs;
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, bail};
+use calib::config::CalibConfig;
+use calib::pipeline::{Stage, calibrate};
+use calib::simulate::{self, PoseStyle};
+use clap::{Parser, Subcommand};
+use indicatif::{ProgressBar, ProgressStyle};
+use texel::SensorModel;
+
+#[derive(Parser)]
+#[command(
+    name = "texel-calib",
+    version,
+    about = "Calibrates a texel camera from a capture of a checkerboard"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Calibrate from a capture of the target and write a sensor file.
+    Run {
+        /// The capture (MCAP) of the target.
+        #[arg(long)]
+        capture: PathBuf,
+        /// The sensor file to write.
+        #[arg(long)]
+        out: PathBuf,
+        /// Also write a Markdown report (with an SVG residual plot and PNG images).
+        #[arg(long)]
+        report: Option<PathBuf>,
+        /// Calibration settings (TOML: [target], [solver]); defaults otherwise.
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Name written into the sensor file (default: the output file's stem).
+        #[arg(long)]
+        name: Option<String>,
+    },
+    /// Calibrate from simulated views of the calib-target scene and print the errors
+    /// against the true sensor model, and the fusion check on the lab scene.
+    Accuracy {
+        #[arg(long, default_value = "configs/scenes/calib-target.toml")]
+        scene: PathBuf,
+        #[arg(long, default_value = "configs/scenes/lab.toml")]
+        lab: PathBuf,
+        /// Calibration views (plus 6 held-out views).
+        #[arg(long, default_value_t = 40)]
+        views: usize,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Lab frames fused for the fusion check.
+        #[arg(long, default_value_t = 3)]
+        lab_frames: usize,
+    },
+    /// Fuse frames of a scene (rendered with its true sensor) with a sensor file and
+    /// with the true sensor, and compare the errors.
+    FusionCheck {
+        #[arg(long)]
+        sensor: PathBuf,
+        #[arg(long, default_value = "configs/scenes/lab.toml")]
+        scene: PathBuf,
+        #[arg(long, default_value_t = 3)]
+        frames: usize,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+    },
+    /// Measure error against truth and time for a sweep of the number of views and
+    /// of the LM iterations; rewrite the calibration section of docs/tradeoffs.md.
+    Tradeoffs(tradeoffs::Args),
+}
+
+fn main() -> anyhow::Result<()> {
+    let cli = Cli::parse();
+    match cli.command {
+        Command::Run {
+            capture,
+            out,
+            report,
+            config,
+            name,
+        } => run(&capture, &out, report.as_deref(), config.as_deref(), name),
+        Command::Accuracy {
+            scene,
+            lab,
+            views,
+            seed,
+            lab_frames,
+        } => accuracy(&scene, &lab, views, seed, lab_frames),
+        Command::FusionCheck {
+            sensor,
+            scene,
+            frames,
+            seed,
+        } => fusion_check(&sensor, &scene, frames, seed),
+        Command::Tradeoffs(args) => tradeoffs::run(&args),
+    }
+}
+
+fn progress_bar() -> ProgressBar {
+    let bar = ProgressBar::new(1);
+    bar.set_style(
+        ProgressStyle::with_template("{msg:28} [{bar:40}] {pos}/{len} ({elapsed})")
+            .unwrap_or_else(|_| ProgressStyle::default_bar())
+            .progress_chars("=> "),
+    );
+    bar
+}
+
+fn run(
+    capture: &Path,
+    out: &Path,
+    report: Option<&Path>,
+    config: Option<&Path>,
+    name: Option<String>,
+) -> anyhow::Result<()> {
+    let config = match config {
+        Some(p) => CalibConfig::load(p)?,
+        None => CalibConfig::default(),
+    };
+    eprintln!("reading {}", capture.display());
+    let mut input = calib::capture::read_capture(capture)?;
+    for w in &input.warnings {
+        eprintln!("warning: {w}");
+    }
+    input.info.name = name.unwrap_or_else(|| {
+        out.file_stem()
+            .map_or_else(|| "calibrated".into(), |s| s.to_string_lossy().into_owned())
+    });
+    let bar = progress_bar();
+    let mut stage = None;
+    let result = calibrate(&input, &config, &mut |s: Stage, done, total| {
+        if stage != Some(s) {
+            stage = Some(s);
+            bar.set_message(s.name());
+            bar.set_length(total as u64);
+        }
+        bar.set_position(done as u64);
+    });
+    bar.finish_and_clear();
+    let calibration = result?;
+    let text = calibration.sensor_file_text(&capture.display().to_string());
+    // The written file must read back as a sensor file.
+    SensorModel::from_toml_str(&text, &out.display().to_string())
+        .context("the calibrated sensor file does not read back")?;
+    if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    std::fs::write(out, text).with_context(|| format!("writing {}", out.display()))?;
+    let eo = &calibration.eo;
+    let l = &calibration.lidar;
+    println!(
+        "EO: fx {:.3} ± {:.3}, fy {:.3} ± {:.3}, cx {:.3} ± {:.3}, cy {:.3} ± {:.3} px; \
+         RMS {:.4} px over {} views",
+        eo.intrinsics[0],
+        eo.intrinsics_std[0],
+        eo.intrinsics[1],
+        eo.intrinsics_std[1],
+        eo.intrinsics[2],
+        eo.intrinsics_std[2],
+        eo.intrinsics[3],
+        eo.intrinsics_std[3],
+        eo.rms_px,
+        eo.per_view.len()
+    );
+    let t = l.eo_from_lidar.translation.vector * 1e3;
+    println!(
+        "eo_from_lidar: translation [{:.2}, {:.2}, {:.2}] mm (std [{:.2}, {:.2}, {:.2}]), \
+         rotation {:.4} deg (std [{:.4}, {:.4}, {:.4}]); range bias {:+.2} ± {:.2} mm; \
+         {} lidar views",
+        t.x,
+        t.y,
+        t.z,
+        l.translation_std_m[0] * 1e3,
+        l.translation_std_m[1] * 1e3,
+        l.translation_std_m[2] * 1e3,
+        l.eo_from_lidar.rotation.angle().to_degrees(),
+        l.rotation_std_deg[0],
+        l.rotation_std_deg[1],
+        l.rotation_std_deg[2],
+        l.range_bias_m * 1e3,
+        l.range_bias_std_m * 1e3,
+        l.per_view.len()
+    );
+    println!("wrote {}", out.display());
+    if let Some(report) = report {
+        let files = calib::report::write_report(
+            &calibration,
+            &input,
+            &capture.display().to_string(),
+            report,
+        )?;
+        println!(
+            "wrote {} (+ {} and {} images)",
+            files.markdown.display(),
+            files.plot.display(),
+            files.images.len()
+        );
+    }
+    Ok(())
+}
+
+fn accuracy(
+    scene: &Path,
+    lab: &Path,
+    views: usize,
+    seed: u64,
+    lab_frames: usize,
+) -> anyhow::Result<()> {
+    if views < 3 {
+        bail!("--views must be at least 3");
+    }
+    let config = CalibConfig::default();
+    let sim = simulate::simulator(sims::Scene::load(scene)?, seed, None)?;
+    let poses = simulate::sample_poses(&sim, &config.target, views + 6, PoseStyle::Varied, seed);
+    if poses.len() < views + 6 {
+        bail!("could not place {} views of the board", views + 6);
+    }
+    eprintln!("rendering {} views", views + 6);
+    let input = simulate::render_input(&sim, &poses[..views], 0);
+    let held = simulate::render_input(&sim, &poses[views..], 10_000);
+    let calibration = calibrate(&input, &config, &mut |_, _, _| {})?;
+    let a = simulate::accuracy(&calibration, sim.sensor_model(), &held, &config.target);
+    println!(
+        "calibration from {views} simulated views (seed {seed}), all effects of {}:",
+        scene.display()
+    );
+    println!(
+        "  focal length error        {:.4} %   (limit 0.2 %)",
+        a.focal_error_percent
+    );
+    println!(
+        "  principal point error     {:.3} px  (limit 1 px; cx {:+.3}, cy {:+.3})",
+        a.principal_point_error_px,
+        calibration.sensor.eo.cx - sim.sensor_model().eo.cx,
+        calibration.sensor.eo.cy - sim.sensor_model().eo.cy
+    );
+    println!(
+        "    (EO-only stage: cx {:+.3}, cy {:+.3}; standard deviations {:.3}, {:.3})",
+        calibration.eo_only.intrinsics[2] - sim.sensor_model().eo.cx,
+        calibration.eo_only.intrinsics[3] - sim.sensor_model().eo.cy,
+        calibration.eo.intrinsics_std[2],
+        calibration.eo.intrinsics_std[3]
+    );
+    println!(
+        "  held-out reprojection RMS {:.4} px  (limit 0.2 px; {} held-out views)",
+        a.held_out_rms_px, a.held_out_views
+    );
+    println!(
+        "  EO model difference RMS   {:.3} px  (same rays, whole image)",
+        a.model_rms_px
+    );
+    println!(
+        "  extrinsic rotation error  {:.4} deg (limit 0.05 deg)",
+        a.rotation_error_deg
+    );
+    println!(
+        "  extrinsic translation err {:.3} mm  (limit 2 mm)",
+        a.translation_error_mm
+    );
+    println!(
+        "  range bias                {:+.3} mm ± {:.3} (truth 0)",
+        a.range_bias_mm,
+        calibration.lidar.range_bias_std_m * 1e3
+    );
+    println!(
+        "  time: detection {:.2} s, estimation {:.2} s",
+        calibration.seconds_detect, calibration.seconds_solve
+    );
+    if lab_frames > 0 {
+        compare_fusion(&calibration.sensor, lab, lab_frames, seed)?;
+    }
+    Ok(())
+}
+
+fn fusion_check(sensor: &Path, scene: &Path, frames: usize, seed: u64) -> anyhow::Result<()> {
+    let model = SensorModel::load(sensor)?;
+    compare_fusion(&model, scene, frames, seed)
+}
+
+fn compare_fusion(
+    model: &SensorModel,
+    scene: &Path,
+    frames: usize,
+    seed: u64,
+) -> anyhow::Result<()> {
+    let sim = simulate::simulator(sims::Scene::load(scene)?, seed, None)?;
+    let n = frames.clamp(1, sim.frame_count());
+    let step = (sim.frame_count() / n).max(1);
+    let list: Vec<usize> = (0..n).map(|k| k * step).collect();
+    let truth = simulate::fusion_errors(&sim, sim.sensor_model(), &list);
+    let calibrated = simulate::fusion_errors(&sim, model, &list);
+    let ratio = |a: f64, b: f64| if b > 0.0 { a / b } else { f64::INFINITY };
+    println!(
+        "fusion of {} frames of {} (rendered with the true sensor):",
+        list.len(),
+        scene.display()
+    );
+    println!("  sensor     point RMS (mm)  texture RMS (px)  colour RMS (8-bit)  points");
+    for (name, e) in [("true", truth), ("calibrated", calibrated)] {
+        println!(
+            "  {name:10} {:14.3}  {:16.3}  {:18.3}  {}",
+            e.point_rms_mm, e.texture_rms_px, e.colour_rms, e.points
+        );
+    }
+    println!(
+        "  ratio calibrated/true: points {:.3}, colour {:.3} (within 10 % means <= 1.10)",
+        ratio(calibrated.point_rms_mm, truth.point_rms_mm),
+        ratio(calibrated.colour_rms, truth.colour_rms)
+    );
+    Ok(())
+}

@@ -1,0 +1,239 @@
+//! The model hub: the daemon's model (`texel::model`), the encoded frames a newcomer
+//! needs to rebuild it, and a bounded queue per connected client.
+//!
+//! Publishing never waits: a frame is encoded once, then offered to every client
+//! queue with `try_send`. A client whose queue is full is cut off from live updates
+//! and told to resynchronise: its connection task drops what is queued and sends a
+//! fresh snapshot (or, by policy or after too many resyncs, disconnects it). So a
+//! slow viewer never stalls ingest or the other viewers, and no queue grows without
+//! bound. Queued frames are shared (`Bytes`), so a queue costs references, not copies.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+
+use bytes::Bytes;
+use texel::Pose;
+use texel::model::{Model, ModelError, ModelEvent, ScanId};
+use texel::wire::{Message, WireError};
+use tokio::sync::mpsc;
+
+use texel::TexelScan;
+
+/// One client's live feed.
+pub struct Subscription {
+    pub client_id: u64,
+    /// The frames that rebuild the model as it was when subscribing: `ModelReset`,
+    /// every scan, the revised poses, `SnapshotComplete`.
+    pub snapshot: Vec<Bytes>,
+    /// Live frames after the snapshot.
+    pub live: mpsc::Receiver<Bytes>,
+    /// Set when the hub cut this client off because its queue overflowed.
+    pub lagged: Arc<AtomicBool>,
+}
+
+struct ClientSlot {
+    id: u64,
+    tx: mpsc::Sender<Bytes>,
+    lagged: Arc<AtomicBool>,
+}
+
+struct Inner {
+    model: Model,
+    /// The `ScanAdded` frame of each scan as first published.
+    scan_frames: Vec<Bytes>,
+    /// The `PoseRevised` frame of the latest revision of each scan, if any.
+    revision_frames: Vec<Option<Bytes>>,
+    clients: Vec<ClientSlot>,
+    next_client_id: u64,
+    /// Set once the hub is closed: the reason clients are told.
+    closed: Option<String>,
+}
+
+/// Why publishing failed.
+#[derive(Debug, thiserror::Error)]
+pub enum HubError {
+    #[error(transparent)]
+    Model(#[from] ModelError),
+    #[error(transparent)]
+    Wire(#[from] WireError),
+    #[error("the hub is closed")]
+    Closed,
+}
+
+/// The shared model and its subscribers.
+pub struct Hub {
+    inner: Mutex<Inner>,
+    client_queue: usize,
+}
+
+impl Hub {
+    pub fn new(client_queue: usize) -> Arc<Self> {
+        Arc::new(Self {
+            inner: Mutex::new(Inner {
+                model: Model::new(),
+                scan_frames: Vec::new(),
+                revision_frames: Vec::new(),
+                clients: Vec::new(),
+                next_client_id: 0,
+                closed: None,
+            }),
+            client_queue: client_queue.max(1),
+        })
+    }
+
+    fn lock(&self) -> MutexGuard<'_, Inner> {
+        self.inner
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    /// Offers a frame to every client; cuts off those whose queues are full.
+    fn broadcast(inner: &mut Inner, frame: &Bytes) {
+        inner
+            .clients
+            .retain(|c| match c.tx.try_send(frame.clone()) {
+                Ok(()) => true,
+                Err(mpsc::error::TrySendError::Full(_)) => {
+                    c.lagged.store(true, Ordering::Release);
+                    false
+                }
+                Err(mpsc::error::TrySendError::Closed(_)) => false,
+            });
+    }
+
+    /// Adds a scan, already encoded as a `ScanAdded` frame with id `id`.
+    pub fn add_scan(
+        &self,
+        id: ScanId,
+        scan: Arc<TexelScan>,
+        world_from_scan: Pose,
+        frame: Bytes,
+    ) -> Result<(), HubError> {
+        let mut inner = self.lock();
+        if inner.closed.is_some() {
+            return Err(HubError::Closed);
+        }
+        inner.model.apply(ModelEvent::ScanAdded {
+            id,
+            scan,
+            world_from_scan,
+        })?;
+        inner.scan_frames.push(frame.clone());
+        inner.revision_frames.push(None);
+        Self::broadcast(&mut inner, &frame);
+        Ok(())
+    }
+
+    /// Revises a scan's pose.
+    pub fn revise_pose(&self, id: ScanId, world_from_scan: Pose) -> Result<(), HubError> {
+        let frame = Bytes::from(
+            Message::PoseRevised {
+                id,
+                world_from_scan,
+            }
+            .encode()?,
+        );
+        let mut inner = self.lock();
+        if inner.closed.is_some() {
+            return Err(HubError::Closed);
+        }
+        inner.model.apply(ModelEvent::PoseRevised {
+            id,
+            world_from_scan,
+        })?;
+        if let Some(slot) = usize::try_from(id)
+            .ok()
+            .and_then(|i| inner.revision_frames.get_mut(i))
+        {
+            *slot = Some(frame.clone());
+        }
+        Self::broadcast(&mut inner, &frame);
+        Ok(())
+    }
+
+    /// Offers a status frame; a client with a full queue simply misses it (statuses
+    /// are periodic and superseded, so missing one is not a reason to resync).
+    pub fn publish_status(&self, frame: &Bytes) {
+        let inner = self.lock();
+        for c in &inner.clients {
+            let _ = c.tx.try_send(frame.clone());
+        }
+    }
+
+    /// Subscribes a client: the snapshot and the live queue start at the same point,
+    /// under one lock, so nothing is missed or seen twice.
+    pub fn subscribe(&self) -> Result<Subscription, HubError> {
+        let mut inner = self.lock();
+        if inner.closed.is_some() {
+            return Err(HubError::Closed);
+        }
+        let scan_count = inner.model.len() as u64;
+        let mut snapshot = Vec::with_capacity(2 + 2 * inner.scan_frames.len());
+        snapshot.push(Bytes::from(Message::ModelReset { scan_count }.encode()?));
+        snapshot.extend(inner.scan_frames.iter().cloned());
+        snapshot.extend(inner.revision_frames.iter().flatten().cloned());
+        snapshot.push(Bytes::from(
+            Message::SnapshotComplete { scan_count }.encode()?,
+        ));
+        let (tx, live) = mpsc::channel(self.client_queue);
+        let lagged = Arc::new(AtomicBool::new(false));
+        let client_id = inner.next_client_id;
+        inner.next_client_id += 1;
+        inner.clients.push(ClientSlot {
+            id: client_id,
+            tx,
+            lagged: Arc::clone(&lagged),
+        });
+        Ok(Subscription {
+            client_id,
+            snapshot,
+            live,
+            lagged,
+        })
+    }
+
+    /// Stops a client's feed (it disconnected).
+    pub fn unsubscribe(&self, client_id: u64) {
+        self.lock().clients.retain(|c| c.id != client_id);
+    }
+
+    /// Closes the hub: every live feed ends, and clients are told `reason`.
+    pub fn close(&self, reason: &str) {
+        let mut inner = self.lock();
+        inner.closed = Some(reason.to_string());
+        inner.clients.clear();
+    }
+
+    /// The reason the hub was closed, if it was.
+    pub fn closed_reason(&self) -> Option<String> {
+        self.lock().closed.clone()
+    }
+
+    /// A copy of the model (scans are shared, not copied).
+    pub fn model(&self) -> Model {
+        self.lock().model.clone()
+    }
+
+    pub fn scan_count(&self) -> usize {
+        self.lock().model.len()
+    }
+
+    /// Bytes held by the model's scans and their encoded frames.
+    pub fn memory_bytes(&self) -> (usize, usize) {
+        let inner = self.lock();
+        let scans = inner
+            .model
+            .scans()
+            .iter()
+            .map(|s| s.scan.heap_bytes())
+            .sum();
+        let frames = inner.scan_frames.iter().map(Bytes::len).sum::<usize>()
+            + inner
+                .revision_frames
+                .iter()
+                .flatten()
+                .map(Bytes::len)
+                .sum::<usize>();
+        (scans, frames)
+    }
+}

@@ -1,0 +1,142 @@
+//! `texeld export CAPTURE --format gltf|ply --out PATH` without `--frame`: the whole
+//! registered model in the world frame. Every texel frame is fused and placed by its
+//! `/texel/pose` (the last one of its timestamp, so revisions win); frames without
+//! one were not registered and are left out. A capture with no `/texel/pose` at all is
+//! registered on the fly (as `texeld register` does: the world anchored at the first
+//! frame's `/truth/pose` when there is one), and its final poses are used.
+
+use std::path::Path;
+use std::sync::Arc;
+
+use texel::capture::{TexelItem, open_texel_frames};
+use texel::export::{ExportScan, write_gltf, write_ply};
+use texel::model::ModelEvent;
+use texel::{FuseConfig, Pose, Sensor, SensorModel, TexelScan, fuse};
+
+use crate::export::{ExportCommandError, ExportFormat};
+use crate::pipeline::placement::CapturePoses;
+use crate::register::{Registrar, RegistrationConfig};
+
+/// Where the poses of an exported model came from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PoseSource {
+    /// The capture's `/texel/pose`.
+    Capture,
+    /// Registered during the export.
+    Registered,
+}
+
+/// What was exported.
+#[derive(Debug)]
+pub struct ModelExportSummary {
+    pub frames: usize,
+    pub scans: usize,
+    pub vertices: usize,
+    pub usable_triangles: usize,
+    pub poses: PoseSource,
+    /// Frames left out (no pose: registration failed, or fusion refused them).
+    pub left_out: usize,
+}
+
+/// Exports the registered model of `capture` to `out`.
+pub fn export_model(
+    capture: &Path,
+    format: ExportFormat,
+    out: &Path,
+    registration: &RegistrationConfig,
+) -> Result<ModelExportSummary, ExportCommandError> {
+    let poses = CapturePoses::from_capture(capture)?;
+    let registered = poses.texel_count() > 0;
+    let mut sensor_cache: Option<(Arc<SensorModel>, Sensor)> = None;
+    let mut placed: Vec<(Arc<TexelScan>, Pose)> = Vec::new();
+    let mut registrar: Option<Registrar> = None;
+    let mut scans_by_id: Vec<Arc<TexelScan>> = Vec::new();
+    let mut frames = 0usize;
+    let fuse_config = FuseConfig::default();
+    for item in open_texel_frames(capture)? {
+        let (pair, model) = match item {
+            Err(e) if e.is_fatal() => return Err(e.into()),
+            Ok(TexelItem::Pair { pair, sensor }) => (pair, sensor),
+            _ => continue,
+        };
+        let index = frames;
+        frames += 1;
+        let timestamp_ns = pair.timestamp_ns();
+        if registered && poses.texel_poses().get(&timestamp_ns).is_none() {
+            continue;
+        }
+        if sensor_cache
+            .as_ref()
+            .is_none_or(|(m, _)| !Arc::ptr_eq(m, &model) && **m != *model)
+        {
+            sensor_cache = Some((Arc::clone(&model), Sensor::new((*model).clone())));
+        }
+        let Some((_, sensor)) = &sensor_cache else {
+            continue;
+        };
+        let scan = match fuse(&pair.range, pair.eo, sensor, &fuse_config) {
+            Ok(scan) => Arc::new(scan),
+            Err(e) => {
+                tracing::warn!("frame {index} not fused: {e}");
+                continue;
+            }
+        };
+        if registered {
+            if let Some(&pose) = poses.texel_poses().get(&timestamp_ns) {
+                placed.push((scan, pose));
+            }
+            continue;
+        }
+        let registrar = registrar.get_or_insert_with(|| {
+            let anchor = poses
+                .truth_poses()
+                .get(&timestamp_ns)
+                .copied()
+                .unwrap_or_else(crate::register_cli::default_anchor);
+            Registrar::with_anchor(registration.clone(), anchor)
+        });
+        registrar.register(scan, &sensor.model.lidar);
+        for event in registrar.take_events() {
+            if let ModelEvent::ScanAdded { scan, .. } = event {
+                scans_by_id.push(scan);
+            }
+        }
+        registrar.take_recovered();
+    }
+    if let Some(registrar) = &registrar {
+        // Final poses, after every refinement.
+        placed = scans_by_id
+            .into_iter()
+            .zip(registrar.poses().iter().copied())
+            .collect();
+    }
+    if placed.is_empty() {
+        return Err(ExportCommandError::NothingToExport {
+            path: capture.display().to_string(),
+            frames,
+        });
+    }
+    let scans: Vec<ExportScan<'_>> = placed
+        .iter()
+        .map(|(scan, pose)| ExportScan {
+            scan,
+            world_from_scan: Some(*pose),
+        })
+        .collect();
+    match format {
+        ExportFormat::Ply => write_ply(&scans, out)?,
+        ExportFormat::Gltf => write_gltf(&scans, out)?,
+    }
+    Ok(ModelExportSummary {
+        frames,
+        scans: placed.len(),
+        vertices: placed.iter().map(|(s, _)| s.vertex_count()).sum(),
+        usable_triangles: placed.iter().map(|(s, _)| s.usable_triangle_count()).sum(),
+        poses: if registered {
+            PoseSource::Capture
+        } else {
+            PoseSource::Registered
+        },
+        left_out: frames - placed.len(),
+    })
+}

@@ -1,0 +1,125 @@
+//! The encode stage: a thread that turns the worker's model changes into wire frames
+//! (the texture compressed once per scan) and applies them to the hub, in the order
+//! the worker decided them, so scan ids reach viewers in order and a revision never
+//! precedes its scan. It runs beside registration: a JPEG of a 640x480 texture costs
+//! about as much as registering a scan, and the two now overlap instead of adding up.
+//!
+//! A texture that cannot be compressed is sent as raw RGB instead (which cannot fail
+//! for a scan the worker let through, see `texel::wire::check_sendable`), so one bad
+//! texture never breaks the ids of later scans.
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use bytes::Bytes;
+use texel::model::ScanId;
+use texel::wire::{Message, Texture, TextureFormat, WireScan};
+use texel::{Pose, TexelScan};
+use tokio::sync::mpsc;
+
+use crate::hub::Hub;
+use crate::status::{Counter, Metrics, Stage};
+
+/// One change to publish.
+#[derive(Debug)]
+pub enum Publish {
+    Scan {
+        id: ScanId,
+        scan: Arc<TexelScan>,
+        world_from_scan: Pose,
+        /// When its range frame reached ingest (for the end-to-end latency); `None`
+        /// for a scan a retry placed later.
+        received: Option<Instant>,
+    },
+    Revision {
+        id: ScanId,
+        world_from_scan: Pose,
+    },
+}
+
+pub struct Encoder {
+    pub rx: mpsc::Receiver<Publish>,
+    pub hub: Arc<Hub>,
+    pub metrics: Arc<Metrics>,
+    pub texture: TextureFormat,
+    pub jpeg_quality: u8,
+}
+
+impl Encoder {
+    /// Publishes until the worker closes the queue.
+    pub fn run(mut self) {
+        while let Some(item) = self.rx.blocking_recv() {
+            match item {
+                Publish::Scan {
+                    id,
+                    scan,
+                    world_from_scan,
+                    received,
+                } => self.scan(id, scan, world_from_scan, received),
+                Publish::Revision {
+                    id,
+                    world_from_scan,
+                } => match self.hub.revise_pose(id, world_from_scan) {
+                    Ok(()) => self.metrics.add(Counter::PoseRevisions, 1),
+                    Err(e) => tracing::warn!("pose revision of scan {id} refused: {e}"),
+                },
+            }
+        }
+    }
+
+    fn scan(
+        &self,
+        id: ScanId,
+        scan: Arc<TexelScan>,
+        world_from_scan: Pose,
+        received: Option<Instant>,
+    ) {
+        let started = Instant::now();
+        let frame = match encode_scan(id, &scan, world_from_scan, self.texture, self.jpeg_quality) {
+            Ok(frame) => frame,
+            Err(first) => {
+                self.metrics.add(Counter::EncodeFallbacks, 1);
+                tracing::warn!("scan {id}: {first}; sent with a raw RGB texture instead");
+                match encode_scan(id, &scan, world_from_scan, TextureFormat::Rgb8, 0) {
+                    Ok(frame) => frame,
+                    Err(e) => {
+                        // Only a non-finite pose gets here (the worker checked the rest);
+                        // the model keeps the id so later scans keep theirs.
+                        self.metrics.add(Counter::EncodeFailures, 1);
+                        tracing::error!("scan {id} cannot be streamed: {e}");
+                        Bytes::new()
+                    }
+                }
+            }
+        };
+        self.metrics
+            .record_latency(Stage::Encode, started.elapsed());
+        if let Err(e) = self.hub.add_scan(id, scan, world_from_scan, frame) {
+            tracing::debug!("scan {id} not added: {e}");
+            return;
+        }
+        self.metrics.add(Counter::Scans, 1);
+        if let Some(received) = received {
+            self.metrics
+                .record_latency(Stage::EndToEnd, received.elapsed());
+        }
+    }
+}
+
+/// The `ScanAdded` frame of a scan, its texture in `format`.
+pub fn encode_scan(
+    id: ScanId,
+    scan: &TexelScan,
+    world_from_scan: Pose,
+    format: TextureFormat,
+    jpeg_quality: u8,
+) -> Result<Bytes, String> {
+    let texture: Texture =
+        crate::texture::encode(&scan.texture, format, jpeg_quality).map_err(|e| e.to_string())?;
+    let wire =
+        WireScan::with_texture(id, scan, world_from_scan, texture).map_err(|e| e.to_string())?;
+    let bytes = Message::ScanAdded(Box::new(wire))
+        .encode()
+        .map_err(|e| e.to_string())?;
+    Ok(Bytes::from(bytes))
+}

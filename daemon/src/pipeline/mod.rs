@@ -1,0 +1,512 @@
+//! A daemon session: sources -> ingest (record, sync) -> worker (fuse, register) ->
+//! encode stage -> hub -> server, with a recorder thread, a status task and an
+//! orderly shutdown. Every channel is bounded:
+//!
+//! | channel | capacity | when full |
+//! |---|---|---|
+//! | sources -> ingest | `pipeline.ingest_queue` | sources wait (ingest only records and pairs) |
+//! | ingest -> recorder | `record.queue` | ingest waits: nothing received is dropped |
+//! | ingest -> worker | `pipeline.pair_queue` | `keep-newest`: one newest pair waits, older waiting ones are skipped and counted; `backpressure`: ingest waits |
+//! | worker -> encode | `pipeline.encode_queue` | the worker waits (encoding is faster than registration) |
+//! | hub -> each client | `serve.client_queue` | the client is resynchronised or disconnected |
+//!
+//! Shutdown: the sources stop, ingest drains and passes on what waits, the worker
+//! finishes its queue, the recorder finalises the capture, then the hub closes and
+//! every client is told why.
+
+pub mod encode;
+pub mod ingest;
+pub mod placement;
+pub mod worker;
+
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::Duration;
+
+use bytes::Bytes;
+use texel::SensorModel;
+use texel::sync::FrameSync;
+use texel::wire::Message;
+use thiserror::Error;
+use tokio::net::TcpListener;
+use tokio::sync::mpsc;
+use tokio::task::JoinHandle;
+use tokio_util::sync::CancellationToken;
+
+use crate::config::{RegistrationMode, SessionConfig};
+use crate::hub::Hub;
+use crate::record::{RecordItem, RecordSummary, Recorder};
+use crate::server::{self, ServeOptions};
+use crate::source::replay::{Pace, ReplaySource};
+use crate::source::serial::SerialSource;
+use crate::source::sim::SimSource;
+use crate::source::v4l::V4lSource;
+use crate::source::v4l_convert::PixelFormat;
+use crate::source::{FrameSink, Source, SourceMetrics};
+use crate::status::{Metrics, QueueProbe, status_line};
+use encode::Encoder;
+use ingest::Ingest;
+use placement::{CapturePoses, RegistrarStage, Registration};
+use worker::Worker;
+
+#[derive(Debug, Error)]
+pub enum SessionError {
+    #[error("sensor file: {0}")]
+    Sensor(#[from] texel::sensor::SensorError),
+    /// `message` names the file.
+    #[error("pose capture: {message}")]
+    PoseCapture { path: String, message: String },
+    #[error("recording: {0}")]
+    Record(#[from] texel::capture::CaptureError),
+    #[error("cannot listen on {addr}: {source}")]
+    Bind {
+        addr: SocketAddr,
+        source: std::io::Error,
+    },
+    #[error("config: {0}")]
+    Config(String),
+    #[error("a pipeline thread failed: {0}")]
+    Thread(String),
+}
+
+/// What a finished session did.
+#[derive(Debug, Clone)]
+pub struct SessionSummary {
+    pub scans: usize,
+    pub recording: Option<RecordSummary>,
+    pub status: texel::wire::Status,
+}
+
+/// A running session.
+pub struct Session {
+    pub hub: Arc<Hub>,
+    pub metrics: Arc<Metrics>,
+    /// Where viewers connect (the bound address, so port 0 becomes a real port).
+    pub local_addr: Option<SocketAddr>,
+    /// Cancelled when every source has stopped.
+    pub sources_done: CancellationToken,
+    task: JoinHandle<Result<SessionSummary, SessionError>>,
+}
+
+impl Session {
+    /// Starts a validated session; `shutdown` stops it.
+    pub async fn start(
+        config: SessionConfig,
+        shutdown: CancellationToken,
+    ) -> Result<Self, SessionError> {
+        let registration = build_registration(&config)?;
+        Self::start_with_registration(config, registration, shutdown).await
+    }
+
+    /// Starts a validated session with a given registration stage instead of the one
+    /// `pipeline.registration` names.
+    pub async fn start_with_registration(
+        config: SessionConfig,
+        registration: Box<dyn Registration>,
+        shutdown: CancellationToken,
+    ) -> Result<Self, SessionError> {
+        // Library users get the same checks as the command line (a token off
+        // loopback, bounded queues).
+        config
+            .validate(&format!("session {:?}", config.session.name))
+            .map_err(|e| SessionError::Config(e.to_string()))?;
+        let listener = if config.serve.enabled {
+            let addr = config.serve.bind;
+            Some(
+                TcpListener::bind(addr)
+                    .await
+                    .map_err(|source| SessionError::Bind { addr, source })?,
+            )
+        } else {
+            None
+        };
+        let local_addr = listener.as_ref().and_then(|l| l.local_addr().ok());
+        let sensor = match &config.session.sensor {
+            Some(path) if config.source.replay.is_empty() => {
+                Some(Arc::new(SensorModel::load(path)?))
+            }
+            _ => None,
+        };
+        let recorder = match &config.record.path {
+            Some(path) => Some(Recorder::start(path, &config.record)?),
+            None => None,
+        };
+        let hub = Hub::new(config.serve.client_queue);
+        let metrics = Metrics::new();
+        // Sources are known to the status from the start.
+        let sources: Vec<_> = build_sources(&config)
+            .into_iter()
+            .map(|source| {
+                let m = SourceMetrics::new(source.name(), source.kind());
+                metrics.add_source(Arc::clone(&m));
+                (source, m)
+            })
+            .collect();
+        let sources_done = CancellationToken::new();
+        let task = tokio::spawn(run(
+            config,
+            sources,
+            sensor,
+            registration,
+            recorder,
+            listener,
+            Arc::clone(&hub),
+            Arc::clone(&metrics),
+            shutdown,
+            sources_done.clone(),
+        ));
+        Ok(Self {
+            hub,
+            metrics,
+            local_addr,
+            sources_done,
+            task,
+        })
+    }
+
+    /// Waits for the session to end.
+    pub async fn wait(self) -> Result<SessionSummary, SessionError> {
+        self.task
+            .await
+            .map_err(|e| SessionError::Thread(e.to_string()))?
+    }
+}
+
+/// The sources a session's config names.
+pub fn build_sources(config: &SessionConfig) -> Vec<Box<dyn Source>> {
+    let mut sources: Vec<Box<dyn Source>> = Vec::new();
+    for c in &config.source.serial {
+        sources.push(Box::new(SerialSource {
+            name: c.name.clone(),
+            path: c.path.clone(),
+            baud: c.baud,
+            stall_timeout: Duration::from_millis(c.stall_timeout_ms),
+            backoff_min: Duration::from_millis(c.reopen_backoff_min_ms),
+            backoff_max: Duration::from_millis(c.reopen_backoff_max_ms),
+        }));
+    }
+    for c in &config.source.v4l {
+        sources.push(Box::new(V4lSource {
+            name: c.name.clone(),
+            device: c.device.clone(),
+            format: PixelFormat::from_name(&c.format).unwrap_or(PixelFormat::Yuyv),
+            width: c.width,
+            height: c.height,
+            fps: c.fps,
+            dequeue_timeout: Duration::from_millis(c.dequeue_timeout_ms),
+            buffers: c.buffers,
+        }));
+    }
+    for c in &config.source.replay {
+        sources.push(Box::new(ReplaySource {
+            name: c.name.clone(),
+            capture: c.capture.clone(),
+            pace: if c.fast {
+                Pace::Fast
+            } else {
+                Pace::Speed(c.speed)
+            },
+        }));
+    }
+    for c in &config.source.sim {
+        sources.push(Box::new(SimSource {
+            name: c.name.clone(),
+            setup: c.setup(),
+            pace: if c.fast {
+                Pace::Fast
+            } else {
+                Pace::Speed(c.speed)
+            },
+            prerender: c.prerender,
+            render_threads: c.render_threads,
+            late: c.late,
+            truth: c.truth,
+        }));
+    }
+    sources
+}
+
+/// The registration stage `pipeline.registration` names.
+pub fn build_registration(config: &SessionConfig) -> Result<Box<dyn Registration>, SessionError> {
+    let replayed = config.source.replay.first().map(|r| r.capture.clone());
+    let read_poses = |path: &std::path::Path| {
+        CapturePoses::from_capture(path).map_err(|e| SessionError::PoseCapture {
+            path: path.display().to_string(),
+            message: e.to_string(),
+        })
+    };
+    let register = |truth| {
+        Box::new(RegistrarStage::new(config.registration.clone()).with_truth(truth))
+            as Box<dyn Registration>
+    };
+    let mode = match config.pipeline.registration {
+        // A pose capture named explicitly is the session's choice.
+        RegistrationMode::Auto if config.pipeline.pose_capture.is_some() => {
+            RegistrationMode::CapturePoses
+        }
+        mode => mode,
+    };
+    match mode {
+        RegistrationMode::CapturePoses => {
+            let path = config
+                .pipeline
+                .pose_capture
+                .clone()
+                .or(replayed)
+                .ok_or_else(|| {
+                    SessionError::Config(
+                        "capture-poses needs pipeline.pose_capture or a replay source".into(),
+                    )
+                })?;
+            let poses = read_poses(&path)?;
+            if poses.is_empty() {
+                tracing::warn!(
+                    "{} has no /texel/pose or /truth/pose: no scan can be placed",
+                    path.display()
+                );
+            }
+            Ok(Box::new(poses))
+        }
+        RegistrationMode::Register => {
+            // A replayed capture's truth anchors the world, as `texeld register` does.
+            let truth = match &replayed {
+                Some(path) => read_poses(path)?.into_truth(),
+                None => Default::default(),
+            };
+            Ok(register(truth))
+        }
+        RegistrationMode::Auto => match &replayed {
+            None => Ok(register(Default::default())),
+            Some(path) => {
+                let poses = read_poses(path)?;
+                if poses.texel_count() > 0 {
+                    tracing::info!(
+                        "{} carries /texel/pose: scans are placed there (registration = \"register\" registers them again)",
+                        path.display()
+                    );
+                    Ok(Box::new(poses))
+                } else {
+                    tracing::info!("{} has no /texel/pose: registering", path.display());
+                    Ok(register(poses.into_truth()))
+                }
+            }
+        },
+    }
+}
+
+fn depth_probe<T: Send + 'static>(name: &'static str, tx: &mpsc::Sender<T>) -> QueueProbe {
+    let weak = tx.downgrade();
+    QueueProbe {
+        name,
+        capacity: tx.max_capacity(),
+        depth: Box::new(move || weak.upgrade().map(|tx| tx.max_capacity() - tx.capacity())),
+    }
+}
+
+#[allow(clippy::too_many_arguments)]
+async fn run(
+    config: SessionConfig,
+    sources: Vec<(Box<dyn Source>, Arc<SourceMetrics>)>,
+    sensor: Option<Arc<SensorModel>>,
+    registration: Box<dyn Registration>,
+    recorder: Option<Recorder>,
+    listener: Option<TcpListener>,
+    hub: Arc<Hub>,
+    metrics: Arc<Metrics>,
+    shutdown: CancellationToken,
+    sources_done: CancellationToken,
+) -> Result<SessionSummary, SessionError> {
+    let record_tx = recorder.as_ref().map(|r| r.tx.clone());
+    if let Some(r) = &recorder {
+        *metrics
+            .recording
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner) =
+            Some(crate::status::RecordingProbe {
+                path: r.path.clone(),
+                messages: Arc::clone(&r.messages),
+                errors: Arc::clone(&r.errors),
+            });
+        metrics.add_queue(depth_probe("record", &r.tx));
+    }
+
+    // Sources.
+    let (events_tx, events_rx) = mpsc::channel(config.pipeline.ingest_queue);
+    metrics.add_queue(depth_probe("ingest", &events_tx));
+    let mut source_tasks = tokio::task::JoinSet::new();
+    for (i, (source, m)) in sources.into_iter().enumerate() {
+        let sink = FrameSink::new(i, events_tx.clone(), m);
+        let name = source.name().to_string();
+        let stop = shutdown.clone();
+        source_tasks.spawn(async move {
+            if let Err(e) = source.run(sink, stop).await {
+                tracing::error!(source = %name, "stopped: {e}");
+            }
+        });
+    }
+    drop(events_tx);
+
+    // Ingest, worker.
+    let (pairs_tx, pairs_rx) = mpsc::channel(config.pipeline.pair_queue);
+    metrics.add_queue(depth_probe("pairs", &pairs_tx));
+    let tolerance_ns = (config.sync.tolerance_ms * 1e6).round().max(0.0) as u64;
+    let ingest = Ingest {
+        events: events_rx,
+        record: record_tx.clone(),
+        pairs: pairs_tx,
+        sync: FrameSync::new(tolerance_ns, config.sync.max_pending),
+        policy: config.pipeline.overload,
+        sensor,
+        metrics: Arc::clone(&metrics),
+    };
+    let ingest_task = tokio::spawn(ingest.run());
+    let (publish_tx, publish_rx) = mpsc::channel(config.pipeline.encode_queue);
+    metrics.add_queue(depth_probe("encode", &publish_tx));
+    let worker = Worker {
+        jobs: pairs_rx,
+        registration,
+        record: record_tx.clone(),
+        publish: publish_tx,
+        metrics: Arc::clone(&metrics),
+        fuse: config.pipeline.fuse,
+    };
+    let encoder = Encoder {
+        rx: publish_rx,
+        hub: Arc::clone(&hub),
+        metrics: Arc::clone(&metrics),
+        texture: config.serve.texture,
+        jpeg_quality: config.serve.jpeg_quality,
+    };
+    let encode_thread = std::thread::Builder::new()
+        .name("texel-encode".into())
+        .spawn(move || encoder.run())
+        .map_err(|e| SessionError::Thread(e.to_string()))?;
+    let worker_thread = std::thread::Builder::new()
+        .name("texel-worker".into())
+        .spawn(move || worker.run())
+        .map_err(|e| SessionError::Thread(e.to_string()))?;
+
+    // Recorder ticks, so an idle recorder still flushes on time.
+    let ticks_stop = CancellationToken::new();
+    if let Some(tx) = record_tx.clone() {
+        let period = Duration::from_millis((config.record.flush_interval_ms / 4).max(10));
+        let stop = ticks_stop.clone();
+        tokio::spawn(async move {
+            let mut interval = tokio::time::interval(period);
+            loop {
+                tokio::select! {
+                    _ = interval.tick() => { let _ = tx.try_send(RecordItem::Tick); }
+                    () = stop.cancelled() => break,
+                }
+            }
+        });
+    }
+    drop(record_tx);
+
+    // Status.
+    let status_stop = CancellationToken::new();
+    {
+        let (metrics, hub, stop) = (Arc::clone(&metrics), Arc::clone(&hub), status_stop.clone());
+        let period = Duration::from_millis(config.status.interval_ms);
+        let log = config.status.log;
+        tokio::spawn(async move {
+            let mut interval = tokio::time::interval(period);
+            interval.tick().await;
+            loop {
+                tokio::select! {
+                    _ = interval.tick() => {}
+                    () = stop.cancelled() => break,
+                }
+                let status = metrics.snapshot();
+                if log {
+                    tracing::info!("status: {}", status_line(&status));
+                }
+                if let Ok(frame) = Message::Status(Box::new(status)).encode() {
+                    hub.publish_status(&Bytes::from(frame));
+                }
+            }
+        });
+    }
+
+    // Server.
+    let server_stop = CancellationToken::new();
+    let server_task = listener.map(|listener| {
+        if let Ok(addr) = listener.local_addr() {
+            tracing::info!("serving viewers on {addr}");
+        }
+        let options = ServeOptions::from_config(&config.serve, &config.session.name);
+        tokio::spawn(server::run(
+            listener,
+            Arc::clone(&hub),
+            options,
+            Arc::clone(&metrics),
+            server_stop.clone(),
+        ))
+    });
+
+    // Wait for the sources to end (a replay) or the shutdown.
+    let sources_ended = async { while source_tasks.join_next().await.is_some() {} };
+    tokio::select! {
+        () = sources_ended => {
+            tracing::info!("every source has stopped");
+            sources_done.cancel();
+            if !config.session.exit_when_sources_end {
+                shutdown.cancelled().await;
+            }
+        }
+        () = shutdown.cancelled() => {
+            // Sources watch the same token; give them a moment to stop.
+            let stop = async { while source_tasks.join_next().await.is_some() {} };
+            if tokio::time::timeout(Duration::from_millis(700), stop).await.is_err() {
+                tracing::warn!("a source did not stop in time");
+                source_tasks.abort_all();
+            }
+            sources_done.cancel();
+        }
+    }
+    tracing::info!("draining the pipeline");
+    let _ = ingest_task.await;
+    let worker_result = tokio::task::spawn_blocking(move || worker_thread.join())
+        .await
+        .map_err(|e| SessionError::Thread(e.to_string()))?;
+    if worker_result.is_err() {
+        tracing::error!("the worker thread panicked");
+    }
+    // The worker's end closed the encode queue: the encoder publishes what is left.
+    let encode_result = tokio::task::spawn_blocking(move || encode_thread.join())
+        .await
+        .map_err(|e| SessionError::Thread(e.to_string()))?;
+    if encode_result.is_err() {
+        tracing::error!("the encode thread panicked");
+    }
+    ticks_stop.cancel();
+    let recording = match recorder {
+        Some(r) => Some(
+            tokio::task::spawn_blocking(move || r.finish())
+                .await
+                .map_err(|e| SessionError::Thread(e.to_string()))?,
+        ),
+        None => None,
+    };
+    if let Some(r) = &recording {
+        tracing::info!(
+            "recording finalised: {} ({} messages, {} errors)",
+            r.path.display(),
+            r.messages,
+            r.errors
+        );
+    }
+    status_stop.cancel();
+    let status = metrics.snapshot();
+    tracing::info!("final status: {}", status_line(&status));
+    hub.close("the daemon is shutting down");
+    server_stop.cancel();
+    if let Some(t) = server_task {
+        let _ = t.await;
+    }
+    Ok(SessionSummary {
+        scans: hub.scan_count(),
+        recording,
+        status,
+    })
+}

@@ -1,0 +1,416 @@
+//! The 6x6 normal equations of a step, reduced in a fixed order, and their solution
+//! with degeneracy analysis and solution remapping (Zhang, Kaess & Singh 2016).
+
+use nalgebra::{DMatrix, DVector, Matrix6, SymmetricEigen, Vector6};
+use rayon::prelude::*;
+use serde::Serialize;
+
+/// Items per reduction chunk. Fixed, so the chunk boundaries (and with them every
+/// floating-point sum) do not depend on how many threads run.
+pub const CHUNK: usize = 512;
+
+/// Maps fixed-size chunks of `items` and combines the results in chunk order,
+/// on the rayon pool or on this thread: bit-identical either way.
+pub fn map_chunks<T, A, F>(items: &[T], parallel: bool, map: F) -> Vec<A>
+where
+    T: Sync,
+    A: Send,
+    F: Fn(&[T]) -> A + Sync + Send,
+{
+    if parallel && items.len() > CHUNK {
+        items.par_chunks(CHUNK).map(map).collect()
+    } else {
+        items.chunks(CHUNK).map(map).collect()
+    }
+}
+
+/// Maps every item (chunk results, already fixed in number and order) and returns
+/// the results in item order, on the rayon pool or on this thread.
+pub fn map_each<T, A, F>(items: &[T], parallel: bool, map: F) -> Vec<A>
+where
+    T: Sync,
+    A: Send,
+    F: Fn(&T) -> A + Sync + Send,
+{
+    if parallel && items.len() > 1 {
+        items.par_iter().map(map).collect()
+    } else {
+        items.iter().map(map).collect()
+    }
+}
+
+/// `Σ w JᵀJ` (upper triangle), `Σ w Jᵀr`, and the robust cost, accumulated
+/// sequentially.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct NormalEquations {
+    /// Upper triangle, row by row.
+    pub h: [f64; 21],
+    pub g: [f64; 6],
+    pub cost: f64,
+    pub count: usize,
+}
+
+impl Default for NormalEquations {
+    fn default() -> Self {
+        Self {
+            h: [0.0; 21],
+            g: [0.0; 6],
+            cost: 0.0,
+            count: 0,
+        }
+    }
+}
+
+impl NormalEquations {
+    /// Adds one residual `r` with Jacobian row `j` and weight `w`.
+    #[inline]
+    pub fn add(&mut self, j: &[f64; 6], r: f64, w: f64, cost: f64) {
+        let mut k = 0;
+        for a in 0..6 {
+            let wa = w * j[a];
+            for jb in &j[a..] {
+                self.h[k] += wa * jb;
+                k += 1;
+            }
+            self.g[a] += wa * r;
+        }
+        self.cost += cost;
+        self.count += 1;
+    }
+
+    /// Adds another accumulation (used in chunk order only).
+    pub fn merge(&mut self, other: &Self) {
+        for (a, b) in self.h.iter_mut().zip(other.h.iter()) {
+            *a += b;
+        }
+        for (a, b) in self.g.iter_mut().zip(other.g.iter()) {
+            *a += b;
+        }
+        self.cost += other.cost;
+        self.count += other.count;
+    }
+
+    pub fn hessian(&self) -> Matrix6<f64> {
+        let mut m = Matrix6::zeros();
+        let mut k = 0;
+        for a in 0..6 {
+            for b in a..6 {
+                m[(a, b)] = self.h[k];
+                m[(b, a)] = self.h[k];
+                k += 1;
+            }
+        }
+        m
+    }
+
+    pub fn gradient(&self) -> Vector6<f64> {
+        Vector6::from_column_slice(&self.g)
+    }
+}
+
+/// A direction of the pose the data cannot fix.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct DegenerateDirection {
+    /// Unit vector in scaled tangent coordinates `(ω·L, v)` of the moving scan's
+    /// frame (`L` the scene's length scale, so rotation and translation compare).
+    pub direction: [f64; 6],
+    /// Its eigenvalue over the largest one.
+    pub eigenvalue_ratio: f64,
+    /// What it is, in words: "translation along (0.00, 0.00, 1.00)" and so on.
+    pub description: String,
+}
+
+impl DegenerateDirection {
+    fn new(direction: Vector6<f64>, eigenvalue_ratio: f64) -> Self {
+        let rot = direction.fixed_rows::<3>(0).norm_squared();
+        let trans = direction.fixed_rows::<3>(3).norm_squared();
+        let axis = |offset: usize| {
+            let v = direction.fixed_rows::<3>(offset);
+            let n = v.norm();
+            let u = if n > 0.0 { v / n } else { v.into_owned() };
+            // Sign convention: the largest component is positive.
+            let s = if u
+                .iter()
+                .fold(0.0f64, |m, &c| if c.abs() > m.abs() { c } else { m })
+                < 0.0
+            {
+                -1.0
+            } else {
+                1.0
+            };
+            // Components that print as zero print without a sign.
+            let c = |x: f64| if (s * x).abs() < 0.005 { 0.0 } else { s * x };
+            format!("({:.2}, {:.2}, {:.2})", c(u[0]), c(u[1]), c(u[2]))
+        };
+        let description = if trans >= 0.9 {
+            format!("translation along {}", axis(3))
+        } else if rot >= 0.9 {
+            format!("rotation about {}", axis(0))
+        } else {
+            format!(
+                "rotation about {} with translation along {}",
+                axis(0),
+                axis(3)
+            )
+        };
+        Self {
+            direction: [
+                direction[0],
+                direction[1],
+                direction[2],
+                direction[3],
+                direction[4],
+                direction[5],
+            ],
+            eigenvalue_ratio,
+            description,
+        }
+    }
+}
+
+/// The solution of one step.
+#[derive(Debug, Clone)]
+pub struct Step {
+    /// The update `δ = (ω, v)`, zero along degenerate directions.
+    pub delta: Vector6<f64>,
+    pub degenerate: Vec<DegenerateDirection>,
+    /// Orthonormal bases (scaled coordinates, as columns) of the observable and the
+    /// degenerate subspaces.
+    pub observable: Vec<Vector6<f64>>,
+    pub unobservable: Vec<Vector6<f64>>,
+    /// Scaled weighted normal matrix, for the covariance.
+    pub hessian_scaled: Matrix6<f64>,
+}
+
+/// `D = diag(L, L, L, 1, 1, 1)`: scaled coordinates `δ' = D δ` put rotations in metres
+/// of motion at the scene's scale.
+fn scaling(length_m: f64) -> Vector6<f64> {
+    Vector6::new(length_m, length_m, length_m, 1.0, 1.0, 1.0)
+}
+
+fn scaled(h: &Matrix6<f64>, d_inv: &Vector6<f64>) -> Matrix6<f64> {
+    Matrix6::from_fn(|a, b| h[(a, b)] * d_inv[a] * d_inv[b])
+}
+
+/// Solves `H δ = -g` in the observable subspace only.
+///
+/// Zhang, Kaess & Singh (2016), Sec. IV-V: the eigenvectors of the normal matrix whose
+/// eigenvalues fall below `threshold · λ_max` span directions the constraints do not
+/// fix; the update is confined to the other eigenvectors ("solution remapping",
+/// `δ = V_f⁻¹ V_u δ_u`, for a symmetric matrix the projection onto the
+/// well-conditioned eigenvectors), so the estimate keeps its prior (the initial
+/// guess) there. Observability is a property of the geometry, so it is judged on
+/// `geometry` (every gated pair with weight 1): a robust kernel that has not yet
+/// admitted the few points constraining a weak direction must not make it look
+/// unobservable. The step itself solves the robustly `weighted` system restricted to
+/// the observable subspace, with `damping` (Levenberg-Marquardt) on its diagonal.
+/// The analysis runs in scaled coordinates (`length_m` converts radians to metres)
+/// so that rotation and translation eigenvalues compare.
+pub fn solve_remapped(
+    weighted: &NormalEquations,
+    geometry: &NormalEquations,
+    length_m: f64,
+    threshold: f64,
+    damping: f64,
+) -> Step {
+    let d = scaling(length_m);
+    let d_inv = d.map(|x| 1.0 / x);
+    let h_geometry = scaled(&geometry.hessian(), &d_inv);
+    let eigen = SymmetricEigen::new(h_geometry);
+    let lambda_max = eigen.eigenvalues.max();
+    let mut observable = Vec::new();
+    let mut unobservable = Vec::new();
+    let mut degenerate = Vec::new();
+    for i in 0..6 {
+        let lambda = eigen.eigenvalues[i];
+        let v = eigen.eigenvectors.column(i).into_owned();
+        // A finite, positive largest eigenvalue is needed to compare against; without
+        // one (no constraints at all) every direction is degenerate.
+        let ratio = if lambda_max.is_finite() && lambda_max > 0.0 {
+            (lambda / lambda_max).max(0.0)
+        } else {
+            0.0
+        };
+        if ratio > threshold && lambda > 0.0 {
+            observable.push(v);
+        } else {
+            degenerate.push(DegenerateDirection::new(v, ratio));
+            unobservable.push(v);
+        }
+    }
+    // The weighted system in the observable basis B: (Bᵀ H B) y = -Bᵀ g, δ' = B y.
+    let h_weighted = scaled(&weighted.hessian(), &d_inv);
+    let g_weighted = weighted.gradient().component_mul(&d_inv);
+    let m = observable.len();
+    let mut delta_scaled = Vector6::zeros();
+    if m > 0 {
+        let reduced = DMatrix::from_fn(m, m, |a, b| {
+            observable[a].dot(&(h_weighted * observable[b]))
+        });
+        let rhs = DVector::from_fn(m, |a, _| -observable[a].dot(&g_weighted));
+        let reduced_eigen = SymmetricEigen::new(reduced);
+        let top = reduced_eigen.eigenvalues.max();
+        for k in 0..m {
+            let lambda = reduced_eigen.eigenvalues[k];
+            // Directions the weights left without support are not moved either.
+            if !(lambda > 1.0e-12 * top.max(0.0)) || !lambda.is_finite() {
+                continue;
+            }
+            let u = reduced_eigen.eigenvectors.column(k);
+            let y = u * (u.dot(&rhs) / (lambda + damping));
+            for (a, basis) in observable.iter().enumerate() {
+                delta_scaled += basis * y[a];
+            }
+        }
+    }
+    let delta = delta_scaled.component_mul(&d_inv);
+    let delta = if delta.iter().all(|c| c.is_finite()) {
+        delta
+    } else {
+        Vector6::zeros()
+    };
+    // Ascending eigenvalue order makes reports stable.
+    degenerate.sort_by(|a, b| a.eigenvalue_ratio.total_cmp(&b.eigenvalue_ratio));
+    Step {
+        delta,
+        degenerate,
+        observable,
+        unobservable,
+        hessian_scaled: h_weighted,
+    }
+}
+
+/// The covariance of the solution in `(ω, v)` coordinates: `s²` times the inverse of
+/// the weighted normal matrix within the observable subspace (`s` the residual
+/// scale in noise sigmas), the prior's variance along degenerate directions, never
+/// more than the prior anywhere; and its inverse, the information matrix.
+pub fn covariance_and_information(
+    step: &Step,
+    length_m: f64,
+    residual_scale: f64,
+    prior_sigmas: &Vector6<f64>,
+) -> (Matrix6<f64>, Matrix6<f64>) {
+    let d = scaling(length_m);
+    let prior_scaled = prior_sigmas.component_mul(&d).map(|s| s * s);
+    let prior_var = |v: &Vector6<f64>| -> f64 {
+        v.iter()
+            .zip(prior_scaled.iter())
+            .map(|(c, p)| c * c * p)
+            .sum()
+    };
+    let s2 = residual_scale * residual_scale;
+    let mut cov = Matrix6::zeros();
+    let mut info = Matrix6::zeros();
+    let mut add = |v: Vector6<f64>, var: f64| {
+        let var = if var.is_finite() && var > 0.0 {
+            var
+        } else {
+            1.0
+        };
+        let vv = v * v.transpose();
+        cov += vv * var;
+        info += vv / var;
+    };
+    let m = step.observable.len();
+    if m > 0 {
+        let reduced = DMatrix::from_fn(m, m, |a, b| {
+            step.observable[a].dot(&(step.hessian_scaled * step.observable[b]))
+        });
+        let eigen = SymmetricEigen::new(reduced);
+        for k in 0..m {
+            let u = eigen.eigenvectors.column(k);
+            let mut v = Vector6::zeros();
+            for (a, basis) in step.observable.iter().enumerate() {
+                v += basis * u[a];
+            }
+            let lambda = eigen.eigenvalues[k];
+            let p = prior_var(&v);
+            // Never more certain in a direction than the data, never less than the prior.
+            let var = if lambda > 0.0 {
+                (s2 / lambda).min(p)
+            } else {
+                p
+            };
+            add(v, var);
+        }
+    }
+    for v in &step.unobservable {
+        add(*v, prior_var(v));
+    }
+    let d_inv = d.map(|x| 1.0 / x);
+    let cov = Matrix6::from_fn(|a, b| cov[(a, b)] * d_inv[a] * d_inv[b]);
+    let info = Matrix6::from_fn(|a, b| info[(a, b)] * d[a] * d[b]);
+    (cov, info)
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    #[test]
+    fn a_full_rank_system_is_solved_exactly() {
+        let mut eq = NormalEquations::default();
+        let rows = [
+            [1.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0, 0.0, 0.0, 0.0],
+            [0.0, 0.0, 1.0, 0.0, 0.0, 0.0],
+            [0.0, 0.0, 0.0, 1.0, 0.0, 0.0],
+            [0.0, 0.0, 0.0, 0.0, 1.0, 0.0],
+            [0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
+            [1.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+        ];
+        // Residuals of δ* = (0.1, -0.2, 0.3, 0.01, 0.02, -0.03): r = -J δ*.
+        let truth = Vector6::new(0.1, -0.2, 0.3, 0.01, 0.02, -0.03);
+        for row in rows {
+            let j = Vector6::from_column_slice(&row);
+            eq.add(&row, -j.dot(&truth), 1.0, 0.0);
+        }
+        let step = solve_remapped(&eq, &eq, 1.0, 1e-6, 0.0);
+        assert!(step.degenerate.is_empty());
+        assert!((step.delta - truth).norm() < 1e-12);
+    }
+
+    #[test]
+    fn unconstrained_directions_keep_the_prior() {
+        // Only z translation and rotations about x and y are constrained (a plane).
+        let mut eq = NormalEquations::default();
+        for (x, y) in [(1.0, 0.0), (0.0, 1.0), (-1.0, 0.5), (0.3, -0.7)] {
+            // J = [p × n, n] for p = (x, y, 2), n = (0, 0, -1).
+            let row = [-y, x, 0.0, 0.0, 0.0, -1.0];
+            eq.add(&row, 0.05, 1.0, 0.0);
+        }
+        let step = solve_remapped(&eq, &eq, 2.0, 1e-6, 0.0);
+        assert_eq!(step.degenerate.len(), 3);
+        assert!(step.delta[2].abs() < 1e-12);
+        assert!(step.delta[3].abs() < 1e-12 && step.delta[4].abs() < 1e-12);
+        assert!(step.delta.iter().all(|c| c.is_finite()));
+        let names: Vec<_> = step
+            .degenerate
+            .iter()
+            .map(|d| d.description.clone())
+            .collect();
+        assert!(
+            names.contains(&"rotation about (0.00, 0.00, 1.00)".to_string()),
+            "{names:?}"
+        );
+        let sig = Vector6::new(0.1, 0.1, 0.1, 0.2, 0.2, 0.2);
+        let (cov, info) = covariance_and_information(&step, 2.0, 1.0, &sig);
+        assert!((cov[(3, 3)] - 0.04).abs() < 1e-9);
+        assert!(cov.iter().chain(info.iter()).all(|c| c.is_finite()));
+        assert!(((cov * info) - Matrix6::identity()).norm() < 1e-6);
+    }
+
+    #[test]
+    fn no_equations_mean_no_step() {
+        let step = solve_remapped(
+            &NormalEquations::default(),
+            &NormalEquations::default(),
+            1.0,
+            0.01,
+            0.0,
+        );
+        assert_eq!(step.delta, Vector6::zeros());
+        assert_eq!(step.degenerate.len(), 6);
+    }
+}

@@ -1,0 +1,686 @@
+//! Range-image pyramids of a scan: per lidar pixel, the point, its normal from the
+//! range grid, its EO intensity and that intensity's gradient in the tangent plane,
+//! at full resolution and at successive halvings (KinectFusion, Newcombe et al. 2011,
+//! Sec. 3.2). Built once per scan; used as the moving scan (source) and, later, as a
+//! model-side keyframe (target) that others are projected into.
+
+use std::sync::Arc;
+
+use nalgebra::{Matrix3, Vector2, Vector3};
+use texel::{PinholeCamera, Pose, TexelScan};
+
+/// Steepest incidence (ray to surface normal) at which neighbouring pixels are still
+/// taken as one surface when downsampling and when differencing for normals.
+const MAX_INCIDENCE_TAN: f64 = 5.67; // tan(80°)
+/// Range-noise allowance of the same rule, in standard deviations.
+const NOISE_ALLOWANCE_SIGMAS: f64 = 3.0;
+/// Collinear tangents (sine of their angle below this) give no normal.
+const MIN_NORMAL_SINE: f64 = 1.0e-6;
+
+/// Flags of a pyramid pixel.
+pub const HAS_POINT: u8 = 1;
+pub const HAS_NORMAL: u8 = 2;
+pub const HAS_INTENSITY: u8 = 4;
+
+/// What a pyramid is built with.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PyramidOptions {
+    /// Levels (at least one; fewer if the grid becomes smaller than 4 pixels).
+    pub levels: u32,
+    /// Intensity gradients in the tangent plane, needed only by the photometric term.
+    pub gradients: bool,
+}
+
+/// Projects scan-frame points into the scan's lidar grid (full-resolution pixels).
+#[derive(Debug, Clone)]
+pub struct GridProjector {
+    lidar_from_scan: Pose,
+    camera: PinholeCamera,
+    max_r2: Option<f64>,
+}
+
+impl GridProjector {
+    pub fn new(camera: &PinholeCamera, scan_from_lidar: &Pose) -> Self {
+        Self {
+            lidar_from_scan: scan_from_lidar.inverse(),
+            camera: camera.clone(),
+            max_r2: camera.max_radius_squared(),
+        }
+    }
+
+    pub fn lidar_from_scan(&self) -> &Pose {
+        &self.lidar_from_scan
+    }
+
+    pub fn camera(&self) -> &PinholeCamera {
+        &self.camera
+    }
+
+    /// The distortion model's domain bound (normalised radius squared), if any.
+    pub fn max_radius_squared(&self) -> Option<f64> {
+        self.max_r2
+    }
+
+    /// The full-resolution pixel of a point given in the lidar frame; `None` behind
+    /// the sensor or outside the distortion model's domain.
+    #[inline]
+    pub fn project_lidar(&self, p: &Vector3<f64>) -> Option<Vector2<f64>> {
+        self.camera.project_with_domain(p, self.max_r2).ok()
+    }
+
+    /// Angle between neighbouring full-resolution pixels, radians (`1 / f`).
+    pub fn pixel_pitch_rad(&self) -> f64 {
+        1.0 / self.camera.fx.max(self.camera.fy)
+    }
+}
+
+/// What association reads of one pyramid pixel, packed in 32 bytes so that a lookup
+/// touches one cache line: the point, its unit normal (facing the sensor; zero where
+/// there is none), its range-noise sigma and EO luminance. Coordinates are in the
+/// scan frame (the scan's EO optical frame).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Surfel {
+    pub point: [f32; 3],
+    pub normal: [f32; 3],
+    /// Range noise sigma at the point, metres.
+    pub sigma_m: f32,
+    /// EO luminance in [0, 1].
+    pub intensity: f32,
+}
+
+/// One pyramid level. Arrays are row-major over `width x height`.
+#[derive(Debug, Clone, Default)]
+pub struct Level {
+    pub width: usize,
+    pub height: usize,
+    /// `2^level`: full-resolution pixels per level pixel along each axis.
+    pub scale: f64,
+    pub flags: Vec<u8>,
+    pub surfels: Vec<Surfel>,
+    /// Range from the lidar centre, metres.
+    pub ranges_m: Vec<f32>,
+    /// Gradient of the intensity along the surface (perpendicular to the normal),
+    /// per metre (Park, Zhou & Koltun 2017, Sec. 3); empty when the pyramid was built
+    /// without gradients.
+    pub gradient: Vec<[f32; 3]>,
+}
+
+impl Level {
+    fn empty(width: usize, height: usize, scale: f64) -> Self {
+        let n = width * height;
+        Self {
+            width,
+            height,
+            scale,
+            flags: vec![0; n],
+            surfels: vec![Surfel::default(); n],
+            ranges_m: vec![0.0; n],
+            gradient: Vec::new(),
+        }
+    }
+
+    #[inline]
+    pub fn has(&self, index: usize, flag: u8) -> bool {
+        self.flags.get(index).is_some_and(|f| f & flag == flag)
+    }
+
+    #[inline]
+    pub fn point(&self, index: usize) -> Vector3<f64> {
+        let p = self.surfels[index].point;
+        Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]))
+    }
+
+    #[inline]
+    pub fn normal(&self, index: usize) -> Vector3<f64> {
+        let p = self.surfels[index].normal;
+        Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]))
+    }
+
+    #[inline]
+    pub fn sigma_m(&self, index: usize) -> f32 {
+        self.surfels[index].sigma_m
+    }
+
+    #[inline]
+    pub fn intensity(&self, index: usize) -> f32 {
+        self.surfels[index].intensity
+    }
+
+    /// The intensity gradient, where the level has gradients.
+    #[inline]
+    pub fn gradient(&self, index: usize) -> Option<Vector3<f64>> {
+        let p = self.gradient.get(index)?;
+        Some(Vector3::new(
+            f64::from(p[0]),
+            f64::from(p[1]),
+            f64::from(p[2]),
+        ))
+    }
+
+    pub fn has_gradients(&self) -> bool {
+        !self.gradient.is_empty()
+    }
+
+    /// Pixels with a point and a normal, every `stride`-th in each direction.
+    pub fn samples(&self, stride: usize) -> Vec<u32> {
+        let stride = stride.max(1);
+        let mut out = Vec::with_capacity(self.width * self.height / (stride * stride) + 1);
+        for v in (0..self.height).step_by(stride) {
+            for u in (0..self.width).step_by(stride) {
+                let i = v * self.width + u;
+                if self.has(i, HAS_POINT | HAS_NORMAL) {
+                    out.push(i as u32);
+                }
+            }
+        }
+        out
+    }
+
+    /// Pixels with a point.
+    pub fn point_count(&self) -> usize {
+        self.flags.iter().filter(|&&f| f & HAS_POINT != 0).count()
+    }
+}
+
+/// A scan with its range-image pyramid.
+#[derive(Debug, Clone)]
+pub struct ScanPyramid {
+    pub scan: Arc<TexelScan>,
+    pub projector: GridProjector,
+    /// Finest first.
+    pub levels: Vec<Level>,
+}
+
+impl ScanPyramid {
+    /// Builds `levels` levels with intensity gradients. `lidar` is the camera model
+    /// the scan's range grid was taken with.
+    pub fn build(scan: Arc<TexelScan>, lidar: &PinholeCamera, levels: u32) -> Self {
+        Self::build_with(
+            scan,
+            lidar,
+            PyramidOptions {
+                levels,
+                gradients: true,
+            },
+        )
+    }
+
+    /// Builds the pyramid as `options` say.
+    pub fn build_with(
+        scan: Arc<TexelScan>,
+        lidar: &PinholeCamera,
+        options: PyramidOptions,
+    ) -> Self {
+        let projector = GridProjector::new(lidar, &scan.scan_from_lidar);
+        let pitch = projector.pixel_pitch_rad();
+        let levels = options.levels.max(1) as usize;
+        let mut out = Vec::with_capacity(levels);
+        // Sec. 3.2 of KinectFusion: the finest level from the measurements...
+        let mut level = finest_level(&scan, &projector);
+        compute_normals(&mut level, scan.cop_m, normal_radius(0));
+        if options.gradients {
+            compute_gradients(&mut level, pitch);
+        }
+        out.push(level);
+        // ... each coarser one by averaging 2x2 blocks within one surface.
+        while out.len() < levels {
+            let Some(finer) = out.last() else { break };
+            if finer.width < 8 || finer.height < 8 {
+                break;
+            }
+            let mut coarser = downsample(finer, pitch * finer.scale);
+            let coarse_pitch = pitch * coarser.scale;
+            compute_normals(&mut coarser, scan.cop_m, normal_radius(out.len()));
+            if options.gradients {
+                compute_gradients(&mut coarser, coarse_pitch);
+            }
+            out.push(coarser);
+        }
+        Self {
+            scan,
+            projector,
+            levels: out,
+        }
+    }
+
+    pub fn level_count(&self) -> usize {
+        self.levels.len()
+    }
+}
+
+/// Half-width of the normal-fit window at a level: 3 at full resolution (a 7x7
+/// window), one less per coarser level, at least 1.
+fn normal_radius(level: usize) -> usize {
+    3usize.saturating_sub(level).max(1)
+}
+
+/// Luminance of an sRGB-coded colour in [0, 1] (Rec. 709 weights on the coded values:
+/// what matters is that both scans use the same rule).
+fn luminance(rgb: [u8; 3]) -> f32 {
+    (0.2126 * f32::from(rgb[0]) + 0.7152 * f32::from(rgb[1]) + 0.0722 * f32::from(rgb[2])) / 255.0
+}
+
+/// The luminance of a vertex's texel: `TexelScan::vertex_colour` (nearest EO pixel
+/// to the texture coordinate) written for this loop. Its `round(x - 0.5)` clamped at
+/// 0 is `floor(x)` for the coordinates that occur, and a float-to-integer cast
+/// floors non-negative values (and saturates negative and NaN ones to 0).
+#[inline]
+fn vertex_luminance(scan: &TexelScan, vertex: usize) -> Option<f32> {
+    if !*scan.vertex_textured.get(vertex)? {
+        return None;
+    }
+    let [u, v] = *scan.tex_coords.get(vertex)?;
+    let texture = &scan.texture;
+    let x = ((u * texture.width as f32) as u32).min(texture.width.saturating_sub(1));
+    let y = ((v * texture.height as f32) as u32).min(texture.height.saturating_sub(1));
+    let i = 3 * (y as usize * texture.width as usize + x as usize);
+    let rgb = texture.rgb.get(i..i + 3)?;
+    Some(luminance([rgb[0], rgb[1], rgb[2]]))
+}
+
+fn finest_level(scan: &TexelScan, projector: &GridProjector) -> Level {
+    let (w, h) = (scan.grid_width as usize, scan.grid_height as usize);
+    let mut level = Level::empty(w, h, 1.0);
+    let lidar_origin = projector.lidar_from_scan.inverse().translation.vector;
+    for (pixel, &vertex) in scan.pixel_vertex.iter().enumerate().take(w * h) {
+        let Some(p) = scan.vertices.get(vertex as usize) else {
+            continue;
+        };
+        if !p.iter().all(|c| c.is_finite()) {
+            continue;
+        }
+        let pv = Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
+        let range = (pv - lidar_origin).norm();
+        level.flags[pixel] = HAS_POINT;
+        level.ranges_m[pixel] = range as f32;
+        let surfel = &mut level.surfels[pixel];
+        surfel.point = *p;
+        surfel.sigma_m = scan.range_noise.sigma_at(range) as f32;
+        if let Some(intensity) = vertex_luminance(scan, vertex as usize) {
+            surfel.intensity = intensity;
+            level.flags[pixel] |= HAS_INTENSITY;
+        }
+    }
+    level
+}
+
+/// Two ranges belong to one surface when they differ by less than a surface at the
+/// steepest accepted incidence would make them, plus the noise allowance.
+#[inline]
+fn same_surface(r_a: f32, r_b: f32, sigma_a: f32, sigma_b: f32, pitch_rad: f64) -> bool {
+    let (a, b) = (f64::from(r_a), f64::from(r_b));
+    let sigma = f64::from(sigma_a.max(sigma_b));
+    (a - b).abs() <= a.min(b) * pitch_rad * MAX_INCIDENCE_TAN + NOISE_ALLOWANCE_SIGMAS * sigma * 2.0
+}
+
+/// Halves the resolution: each coarse pixel averages the block's points that lie on
+/// the same surface as the block's nearest one (so depth edges are not blurred
+/// into points floating between surfaces).
+fn downsample(finer: &Level, pitch_rad: f64) -> Level {
+    let (w, h) = (finer.width / 2, finer.height / 2);
+    let mut out = Level::empty(w, h, finer.scale * 2.0);
+    for v in 0..h {
+        for u in 0..w {
+            let block = [
+                (2 * v) * finer.width + 2 * u,
+                (2 * v) * finer.width + 2 * u + 1,
+                (2 * v + 1) * finer.width + 2 * u,
+                (2 * v + 1) * finer.width + 2 * u + 1,
+            ];
+            let nearest = block
+                .iter()
+                .copied()
+                .filter(|&i| finer.has(i, HAS_POINT))
+                .min_by(|&a, &b| finer.ranges_m[a].total_cmp(&finer.ranges_m[b]));
+            let Some(nearest) = nearest else { continue };
+            let mut sum = Vector3::zeros();
+            let (mut range, mut sigma, mut count) = (0.0f64, 0.0f64, 0.0f64);
+            let (mut intensity, mut intensity_count) = (0.0f64, 0.0f64);
+            for &i in &block {
+                if !finer.has(i, HAS_POINT)
+                    || !same_surface(
+                        finer.ranges_m[nearest],
+                        finer.ranges_m[i],
+                        finer.sigma_m(nearest),
+                        finer.sigma_m(i),
+                        pitch_rad,
+                    )
+                {
+                    continue;
+                }
+                sum += finer.point(i);
+                range += f64::from(finer.ranges_m[i]);
+                sigma += f64::from(finer.sigma_m(i));
+                count += 1.0;
+                if finer.has(i, HAS_INTENSITY) {
+                    intensity += f64::from(finer.intensity(i));
+                    intensity_count += 1.0;
+                }
+            }
+            // count >= 1: the nearest point always passes its own test.
+            let k = v * w + u;
+            let p = sum / count;
+            out.flags[k] = HAS_POINT;
+            out.ranges_m[k] = (range / count) as f32;
+            let surfel = &mut out.surfels[k];
+            surfel.point = [p.x as f32, p.y as f32, p.z as f32];
+            surfel.sigma_m = (sigma / count) as f32;
+            if intensity_count > 0.0 {
+                surfel.intensity = (intensity / intensity_count) as f32;
+                out.flags[k] |= HAS_INTENSITY;
+            }
+        }
+    }
+    out
+}
+
+/// A difference vector across pixel `c` along one grid axis (central where both
+/// neighbours are on `c`'s surface, one-sided otherwise) and the intensity
+/// difference along it, when both ends have intensity.
+fn tangent(
+    level: &Level,
+    c: usize,
+    minus: Option<usize>,
+    plus: Option<usize>,
+    pitch_rad: f64,
+) -> Option<(Vector3<f64>, Option<f64>)> {
+    let on_surface = |i: Option<usize>| {
+        i.filter(|&i| {
+            level.has(i, HAS_POINT)
+                && same_surface(
+                    level.ranges_m[c],
+                    level.ranges_m[i],
+                    level.sigma_m(c),
+                    level.sigma_m(i),
+                    pitch_rad,
+                )
+        })
+    };
+    let (a, b) = match (on_surface(minus), on_surface(plus)) {
+        (Some(m), Some(p)) => (m, p),
+        (Some(m), None) => (m, c),
+        (None, Some(p)) => (c, p),
+        (None, None) => return None,
+    };
+    let d = level.point(b) - level.point(a);
+    let di = (level.has(a, HAS_INTENSITY) && level.has(b, HAS_INTENSITY))
+        .then(|| f64::from(level.intensity(b)) - f64::from(level.intensity(a)));
+    Some((d, di))
+}
+
+/// Summed-area tables of `[1, x, y, z, xx, xy, xz, yy, yz, zz]` over a level's
+/// points, `(w + 1) x (h + 1)` entries of 10 sums each. Coordinates are taken
+/// relative to `origin` (a point of the level) so the sums stay small and the
+/// window covariances keep their precision.
+fn moment_tables(level: &Level, origin: &[f64; 3]) -> Vec<[f64; 10]> {
+    let (w, h) = (level.width, level.height);
+    let mut table = vec![[0.0f64; 10]; (w + 1) * (h + 1)];
+    for v in 0..h {
+        let mut row = [0.0f64; 10];
+        for u in 0..w {
+            let c = v * w + u;
+            if level.flags[c] & HAS_POINT != 0 {
+                let p = level.surfels[c].point;
+                let x = f64::from(p[0]) - origin[0];
+                let y = f64::from(p[1]) - origin[1];
+                let z = f64::from(p[2]) - origin[2];
+                let m = [1.0, x, y, z, x * x, x * y, x * z, y * y, y * z, z * z];
+                for (r, x) in row.iter_mut().zip(m) {
+                    *r += x;
+                }
+            }
+            let above = table[v * (w + 1) + u + 1];
+            let out = &mut table[(v + 1) * (w + 1) + u + 1];
+            for k in 0..10 {
+                out[k] = above[k] + row[k];
+            }
+        }
+    }
+    table
+}
+
+/// Normals from the range grid: a least-squares plane through the points of a
+/// `(2r + 1)²` window, fitted as depth along the viewing ray, from summed-area
+/// tables in O(1) per pixel (normal estimation on organised clouds with integral
+/// images, Holzer et al. 2012). A window whose points do not lie on one plane within
+/// the noise (a depth edge) gives no normal. Normals face the centre of projection
+/// (KinectFusion, Sec. 3.2).
+fn compute_normals(level: &mut Level, cop: [f64; 3], radius: usize) {
+    let (w, h) = (level.width, level.height);
+    let origin = level
+        .flags
+        .iter()
+        .position(|f| f & HAS_POINT != 0)
+        .map_or([0.0; 3], |i| level.surfels[i].point.map(f64::from));
+    let table = moment_tables(level, &origin);
+    let cop = Vector3::new(cop[0] - origin[0], cop[1] - origin[1], cop[2] - origin[2]);
+    // Fewest points for a plane fit: over half the window, and at least 5.
+    let min_points = (((2 * radius + 1) * (2 * radius + 1)) / 2).max(5) as f64;
+    let stride = w + 1;
+    for v in 0..h {
+        let (v0, v1) = (v.saturating_sub(radius), (v + radius + 1).min(h));
+        for u in 0..w {
+            let c = v * w + u;
+            if level.flags[c] & HAS_POINT == 0 {
+                continue;
+            }
+            let (u0, u1) = (u.saturating_sub(radius), (u + radius + 1).min(w));
+            let (a, b) = (&table[v0 * stride + u0], &table[v0 * stride + u1]);
+            let (cc, d) = (&table[v1 * stride + u0], &table[v1 * stride + u1]);
+            let sum: [f64; 10] = std::array::from_fn(|k| d[k] - b[k] - cc[k] + a[k]);
+            if sum[0] < min_points {
+                continue;
+            }
+            let surfel = level.surfels[c];
+            let point = Vector3::new(
+                f64::from(surfel.point[0]) - origin[0],
+                f64::from(surfel.point[1]) - origin[1],
+                f64::from(surfel.point[2]) - origin[2],
+            );
+            let Some(normal) = fit_plane_normal(&sum, &point, &cop, f64::from(surfel.sigma_m))
+            else {
+                continue;
+            };
+            level.surfels[c].normal = [normal.x as f32, normal.y as f32, normal.z as f32];
+            level.flags[c] |= HAS_NORMAL;
+        }
+    }
+}
+
+/// Intensity gradients: the vector `d` in the tangent plane with `d·t_u = ΔI_u` and
+/// `d·t_v = ΔI_v` over the grid neighbours (Park, Zhou & Koltun 2017, Eq. 11-12
+/// solved on the grid). Only where a pixel has a normal and both grid-axis tangents
+/// have intensities.
+fn compute_gradients(level: &mut Level, pitch_rad: f64) {
+    let (w, h) = (level.width, level.height);
+    let mut gradient = vec![[0.0f32; 3]; w * h];
+    for v in 0..h {
+        for u in 0..w {
+            let c = v * w + u;
+            if !level.has(c, HAS_NORMAL) {
+                continue;
+            }
+            let normal = level.normal(c);
+            let left = (u > 0).then(|| c - 1);
+            let right = (u + 1 < w).then_some(c + 1);
+            let up = (v > 0).then(|| c - w);
+            let down = (v + 1 < h).then_some(c + w);
+            if let (Some((tu, Some(du))), Some((tv, Some(dv)))) = (
+                tangent(level, c, left, right, pitch_rad),
+                tangent(level, c, up, down, pitch_rad),
+            ) && let Some(g) = tangent_gradient(&normal, &tu, &tv, du, dv)
+            {
+                gradient[c] = [g.x as f32, g.y as f32, g.z as f32];
+            }
+        }
+    }
+    level.gradient = gradient;
+}
+
+/// Steepest plane the fit accepts: slope of depth across the ray, tan 85°.
+const MAX_FIT_SLOPE: f64 = 11.4;
+
+/// The normal of the plane fitted to window moments `sum` as depth along the ray
+/// axis `a` (from `point` to `cop`): with `C` the window covariance, the plane
+/// `n·(x - mean) = 0` with `n·a = 1` that minimises the depth residuals
+/// `Σ (n·(x - mean))² = nᵀ C n` is `n = C⁻¹a / (aᵀC⁻¹a)` (a Lagrange multiplier).
+/// Using the adjugate (`adj C = det C · C⁻¹`) keeps it defined for exactly planar
+/// windows: `y = adj(C) a`, whose `a·y` is the determinant of the covariance across
+/// the ray (zero when the points are collinear), and whose residual variance is
+/// `det C / a·y` (the Schur complement). `None` for too steep a plane, a singular
+/// fit, or points off the plane by more than the noise allows.
+fn fit_plane_normal(
+    sum: &[f64; 10],
+    point: &Vector3<f64>,
+    cop: &Vector3<f64>,
+    sigma_m: f64,
+) -> Option<Vector3<f64>> {
+    let n = sum[0];
+    if !(n > 0.0) {
+        return None;
+    }
+    let inv = 1.0 / n;
+    let (mx, my, mz) = (sum[1] * inv, sum[2] * inv, sum[3] * inv);
+    let cxx = sum[4] * inv - mx * mx;
+    let cxy = sum[5] * inv - mx * my;
+    let cxz = sum[6] * inv - mx * mz;
+    let cyy = sum[7] * inv - my * my;
+    let cyz = sum[8] * inv - my * mz;
+    let czz = sum[9] * inv - mz * mz;
+    let to_cop = cop - point;
+    let len = to_cop.norm();
+    if !(len > 0.0) || !len.is_finite() {
+        return None;
+    }
+    let a = to_cop / len;
+    // The adjugate of the symmetric covariance.
+    let axx = cyy * czz - cyz * cyz;
+    let axy = cxz * cyz - cxy * czz;
+    let axz = cxy * cyz - cxz * cyy;
+    let ayy = cxx * czz - cxz * cxz;
+    let ayz = cxy * cxz - cxx * cyz;
+    let azz = cxx * cyy - cxy * cxy;
+    let y = Vector3::new(
+        axx * a.x + axy * a.y + axz * a.z,
+        axy * a.x + ayy * a.y + ayz * a.z,
+        axz * a.x + ayz * a.y + azz * a.z,
+    );
+    let det_across = a.dot(&y);
+    let c_aa = a.x * (cxx * a.x + cxy * a.y + cxz * a.z)
+        + a.y * (cxy * a.x + cyy * a.y + cyz * a.z)
+        + a.z * (cxz * a.x + cyz * a.y + czz * a.z);
+    let trace_across = cxx + cyy + czz - c_aa;
+    if !(trace_across > 0.0) || !(det_across > 1.0e-9 * trace_across * trace_across) {
+        return None;
+    }
+    // n with n·a = 1: its length² is 1 + slope².
+    let scaled = y / det_across;
+    let len2 = scaled.norm_squared();
+    if !(len2 < 1.0 + MAX_FIT_SLOPE * MAX_FIT_SLOPE) {
+        return None;
+    }
+    let det_c = cxx * axx + cxy * axy + cxz * axz;
+    let residual = (det_c / det_across).max(0.0);
+    let allowed = NOISE_ALLOWANCE_SIGMAS * sigma_m;
+    if residual > allowed * allowed * len2 {
+        return None;
+    }
+    // len2 >= 1: the axis component is 1.
+    let normal = scaled / len2.sqrt();
+    normal.iter().all(|c| c.is_finite()).then_some(normal)
+}
+
+/// Solves `d = a t_u' + b t_v'` (`t'` the tangents projected onto the plane normal
+/// to `n`) with `d·t_u' = du`, `d·t_v' = dv`; `None` when the tangents are parallel.
+fn tangent_gradient(
+    n: &Vector3<f64>,
+    tu: &Vector3<f64>,
+    tv: &Vector3<f64>,
+    du: f64,
+    dv: f64,
+) -> Option<Vector3<f64>> {
+    let project = Matrix3::identity() - n * n.transpose();
+    let (eu, ev) = (project * tu, project * tv);
+    let (a11, a12, a22) = (eu.dot(&eu), eu.dot(&ev), ev.dot(&ev));
+    let det = a11 * a22 - a12 * a12;
+    if !(det > MIN_NORMAL_SINE * a11 * a22) {
+        return None;
+    }
+    let a = (a22 * du - a12 * dv) / det;
+    let b = (a11 * dv - a12 * du) / det;
+    let d = eu * a + ev * b;
+    d.iter().all(|c| c.is_finite()).then_some(d)
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    #[test]
+    fn plane_fits_recover_the_normal_and_refuse_edges() {
+        // A 7x7 window on the plane z = 2 + 0.3 x seen from the origin.
+        let mut sum = [0.0f64; 10];
+        let mut add = |p: Vector3<f64>| {
+            let m = [
+                1.0,
+                p.x,
+                p.y,
+                p.z,
+                p.x * p.x,
+                p.x * p.y,
+                p.x * p.z,
+                p.y * p.y,
+                p.y * p.z,
+                p.z * p.z,
+            ];
+            for (s, x) in sum.iter_mut().zip(m) {
+                *s += x;
+            }
+        };
+        for i in -3..=3 {
+            for j in -3..=3 {
+                let (x, y) = (0.02 * f64::from(i), 0.02 * f64::from(j));
+                add(Vector3::new(x, y, 2.0 + 0.3 * x));
+            }
+        }
+        let centre = Vector3::new(0.0, 0.0, 2.0);
+        let n = fit_plane_normal(&sum, &centre, &Vector3::zeros(), 0.005).unwrap();
+        let truth = Vector3::new(0.3, 0.0, -1.0).normalize();
+        assert!((n - truth).norm() < 1e-9, "{n:?}");
+        // A depth edge in the window: half the points 20 cm behind.
+        let mut edge = [0.0f64; 10];
+        for i in -3..=3 {
+            for j in -3..=3 {
+                let (x, y) = (0.02 * f64::from(i), 0.02 * f64::from(j));
+                let z = if i > 0 { 2.2 } else { 2.0 };
+                let m = [1.0, x, y, z, x * x, x * y, x * z, y * y, y * z, z * z];
+                for (s, v) in edge.iter_mut().zip(m) {
+                    *s += v;
+                }
+            }
+        }
+        assert!(fit_plane_normal(&edge, &centre, &Vector3::zeros(), 0.005).is_none());
+        // Collinear points: no plane.
+        let mut line = [0.0f64; 10];
+        for i in -3..=3 {
+            let x = 0.02 * f64::from(i);
+            let m = [1.0, x, 0.0, 2.0, x * x, 0.0, 2.0 * x, 0.0, 0.0, 4.0];
+            for (s, v) in line.iter_mut().zip(m) {
+                *s += v;
+            }
+        }
+        assert!(fit_plane_normal(&line, &centre, &Vector3::zeros(), 0.005).is_none());
+    }
+
+    #[test]
+    fn tangent_gradient_recovers_a_linear_ramp() {
+        // I = 0.5 x on the plane z = 2 seen along z.
+        let n = Vector3::new(0.0, 0.0, -1.0);
+        let tu = Vector3::new(0.02, 0.0, 0.0);
+        let tv = Vector3::new(0.0, 0.02, 0.0);
+        let g = tangent_gradient(&n, &tu, &tv, 0.5 * 0.02, 0.0).unwrap();
+        assert!((g - Vector3::new(0.5, 0.0, 0.0)).norm() < 1e-12);
+        assert!(tangent_gradient(&n, &tu, &tu, 0.1, 0.1).is_none());
+    }
+}

@@ -1,0 +1,243 @@
+//! The replay source: a recorded capture's raw frames, sensor model and poses, paced
+//! at real time (x1), N times real time, or as fast as the pipeline takes them.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use texel::capture::{CaptureEvent, CaptureReader};
+use texel::{PinholeCamera, Pose, RangeFrame, SensorInfo, SensorModel};
+use tokio_util::sync::CancellationToken;
+
+use super::{FrameSink, Source, SourceError, SourceEvent, SourceFuture, SourceState};
+
+/// How fast a capture replays.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Pace {
+    /// `speed` times real time (1.0 = as recorded).
+    Speed(f64),
+    /// As fast as the pipeline accepts frames.
+    Fast,
+}
+
+/// Replays one capture.
+#[derive(Debug, Clone)]
+pub struct ReplaySource {
+    pub name: String,
+    pub capture: PathBuf,
+    pub pace: Pace,
+}
+
+/// The longest single sleep, so shutdown is noticed promptly.
+const SLEEP_SLICE: Duration = Duration::from_millis(50);
+
+impl Source for ReplaySource {
+    fn name(&self) -> &str {
+        &self.name
+    }
+
+    fn kind(&self) -> &'static str {
+        "replay"
+    }
+
+    fn run(self: Box<Self>, sink: FrameSink, shutdown: CancellationToken) -> SourceFuture {
+        Box::pin(async move {
+            let name = self.name.clone();
+            let joined = tokio::task::spawn_blocking(move || self.replay(&sink, &shutdown)).await;
+            match joined {
+                Ok(result) => result,
+                Err(e) => Err(SourceError::Fatal {
+                    source_name: name,
+                    message: format!("replay thread failed: {e}"),
+                }),
+            }
+        })
+    }
+}
+
+/// Assembles the sensor model from the capture's calibration messages.
+#[derive(Default)]
+struct SensorParts {
+    lidar: Option<PinholeCamera>,
+    eo: Option<PinholeCamera>,
+    eo_from_lidar: Option<Pose>,
+    info: SensorInfo,
+    current: Option<Arc<SensorModel>>,
+}
+
+impl SensorParts {
+    /// The model if it is complete and differs from the last one sent.
+    fn changed(&mut self) -> Option<Arc<SensorModel>> {
+        let (lidar, eo) = (self.lidar.clone()?, self.eo.clone()?);
+        let model = SensorModel::from_capture_parts(
+            lidar,
+            eo,
+            self.eo_from_lidar.unwrap_or_else(Pose::identity),
+            &self.info,
+        );
+        if self.current.as_deref() == Some(&model) {
+            return None;
+        }
+        let model = Arc::new(model);
+        self.current = Some(Arc::clone(&model));
+        Some(model)
+    }
+}
+
+/// Wall-clock pacing against the capture's timestamps.
+struct Pacer<'a> {
+    pace: Pace,
+    origin: Option<(u64, Instant)>,
+    metrics: &'a super::SourceMetrics,
+}
+
+impl Pacer<'_> {
+    /// Waits until the frame at `timestamp_ns` is due; true if shut down meanwhile.
+    fn wait_for(&mut self, timestamp_ns: u64, shutdown: &CancellationToken) -> bool {
+        let Pace::Speed(speed) = self.pace else {
+            return shutdown.is_cancelled();
+        };
+        let (t0, wall0) = match self.origin {
+            Some(o) => o,
+            None => {
+                let o = (timestamp_ns, Instant::now());
+                self.origin = Some(o);
+                self.metrics.set_clock_origin(o.0, o.1);
+                o
+            }
+        };
+        // Timestamps that go backwards are not waited for.
+        let offset_s = timestamp_ns.saturating_sub(t0) as f64 * 1e-9 / speed;
+        let due = wall0 + Duration::from_secs_f64(offset_s.min(1e9));
+        loop {
+            if shutdown.is_cancelled() {
+                return true;
+            }
+            let now = Instant::now();
+            if now >= due {
+                return false;
+            }
+            std::thread::sleep((due - now).min(SLEEP_SLICE));
+        }
+    }
+}
+
+impl ReplaySource {
+    fn fatal(&self, message: String) -> SourceError {
+        SourceError::Fatal {
+            source_name: self.name.clone(),
+            message,
+        }
+    }
+
+    fn replay(&self, sink: &FrameSink, shutdown: &CancellationToken) -> Result<(), SourceError> {
+        let metrics = sink.metrics();
+        let mut reader = CaptureReader::open(&self.capture).map_err(|e| {
+            metrics.set_state(SourceState::Failed);
+            metrics.report_error(e.to_string());
+            self.fatal(e.to_string())
+        })?;
+        metrics.set_state(SourceState::Running);
+        tracing::info!(source = %self.name, capture = %self.capture.display(), pace = ?self.pace, "replay started");
+        let mut parts = SensorParts::default();
+        let mut pacer = Pacer {
+            pace: self.pace,
+            origin: None,
+            metrics,
+        };
+        // A range frame waits for its intensity (same timestamp, next message).
+        let mut held: Option<RangeFrame> = None;
+        let send = |event: SourceEvent| sink.blocking_send(event).is_ok();
+        let flush_held = |held: &mut Option<RangeFrame>, pacer: &mut Pacer| -> Option<bool> {
+            let frame = held.take()?;
+            if pacer.wait_for(frame.timestamp_ns, shutdown) {
+                return Some(false);
+            }
+            Some(send(SourceEvent::Range(frame)))
+        };
+        for next in reader.by_ref() {
+            let event = match next {
+                Ok(event) => event,
+                Err(e) if e.is_fatal() => {
+                    // Everything complete before the damage was replayed.
+                    flush_held(&mut held, &mut pacer);
+                    metrics.report_error(e.to_string());
+                    metrics.set_state(SourceState::Failed);
+                    tracing::warn!(source = %self.name, "capture ends early: {e}");
+                    return Err(self.fatal(e.to_string()));
+                }
+                Err(e) => {
+                    metrics.add_counter("capture_errors", 1);
+                    metrics.report_error(e.to_string());
+                    continue;
+                }
+            };
+            let is_intensity_for_held = matches!(
+                (&event, &held),
+                (CaptureEvent::Intensity { timestamp_ns, .. }, Some(h)) if *timestamp_ns == h.timestamp_ns
+            );
+            if !is_intensity_for_held && flush_held(&mut held, &mut pacer) == Some(false) {
+                break;
+            }
+            let keep_going = match event {
+                CaptureEvent::LidarCalibration { camera, .. } => {
+                    parts.lidar = Some(camera);
+                    true
+                }
+                CaptureEvent::EoCalibration { camera, .. } => {
+                    parts.eo = Some(camera);
+                    true
+                }
+                CaptureEvent::EoFromLidar { pose, .. } => {
+                    parts.eo_from_lidar = Some(pose);
+                    true
+                }
+                CaptureEvent::Sensor { info, .. } => {
+                    parts.info = info;
+                    true
+                }
+                CaptureEvent::Range(frame) => {
+                    held = Some(frame);
+                    // The model is sent once complete, before the frames taken with
+                    // it (calibration messages come one by one).
+                    parts.changed().is_none_or(|m| send(SourceEvent::Sensor(m)))
+                }
+                CaptureEvent::Intensity {
+                    timestamp_ns,
+                    values,
+                    ..
+                } => {
+                    if let Some(h) = held.as_mut()
+                        && h.timestamp_ns == timestamp_ns
+                        && h.pixel_count() == values.len()
+                    {
+                        h.intensity = Some(values);
+                    }
+                    flush_held(&mut held, &mut pacer) != Some(false)
+                }
+                CaptureEvent::Eo(frame) => {
+                    parts.changed().is_none_or(|m| send(SourceEvent::Sensor(m)))
+                        && !pacer.wait_for(frame.timestamp_ns, shutdown)
+                        && send(SourceEvent::Eo(frame))
+                }
+                CaptureEvent::Pose {
+                    topic,
+                    timestamp_ns,
+                    world_from_eo,
+                } => send(SourceEvent::Pose {
+                    topic,
+                    timestamp_ns,
+                    world_from_eo,
+                }),
+                CaptureEvent::Other { .. } => true,
+            };
+            if !keep_going {
+                break;
+            }
+        }
+        flush_held(&mut held, &mut pacer);
+        metrics.set_state(SourceState::Ended);
+        tracing::info!(source = %self.name, "replay finished");
+        Ok(())
+    }
+}

@@ -1,0 +1,158 @@
+//! `texeld register` on simulator captures: poses land in the output capture, the
+//! report's errors against `/truth/pose` are small, bad configs are named.
+#![allow(clippy::unwrap_used, clippy::expect_used)] // tests panic on failure by design
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use serde_json::Value;
+use texel::capture::{PoseTopic, TexelItem, open_texel_frames};
+
+fn capture(dir: &Path, scene: &str, frames: usize) -> PathBuf {
+    let path =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("../configs/scenes/{scene}.toml"));
+    let scene = sims::Scene::load(&path).unwrap();
+    let options = sims::SimOptions {
+        seed: 5,
+        frames: Some(frames),
+        lidar_size: Some([64, 64]),
+        eo_size: Some([160, 120]),
+        ..Default::default()
+    };
+    let sim = sims::Simulator::with_options(scene, &options).unwrap();
+    let out = dir.join("in.mcap");
+    sims::render_capture(&sim, &out, &Default::default(), &mut |_, _| {}).unwrap();
+    out
+}
+
+fn texeld(args: &[&str]) -> (bool, String, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_texeld"))
+        .args(args)
+        .output()
+        .unwrap();
+    (
+        out.status.success(),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+fn poses(path: &Path, topic: PoseTopic) -> Vec<(u64, texel::Pose)> {
+    open_texel_frames(path)
+        .unwrap()
+        .filter_map(|i| match i.unwrap() {
+            TexelItem::Pose {
+                topic: t,
+                timestamp_ns,
+                world_from_eo,
+            } if t == topic => Some((timestamp_ns, world_from_eo)),
+            _ => None,
+        })
+        .collect()
+}
+
+#[test]
+fn lab_capture_is_registered_with_poses_and_a_report() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = capture(dir.path(), "lab", 8);
+    let out = dir.path().join("out.mcap");
+    let report = dir.path().join("report.json");
+    let (ok, stdout, stderr) = texeld(&[
+        "register",
+        input.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--report",
+        report.to_str().unwrap(),
+    ]);
+    assert!(ok, "{stdout}\n{stderr}");
+    assert!(stdout.contains("registered 8 of 8 frames"), "{stdout}");
+    // Every frame has a /texel/pose at its timestamp, and the truth is still there.
+    let texel = poses(&out, PoseTopic::Texel);
+    let truth = poses(&out, PoseTopic::Truth);
+    assert_eq!(texel.len(), 8);
+    assert_eq!(truth.len(), 8);
+    for ((t_est, est), (t_true, tr)) in texel.iter().zip(&truth) {
+        assert_eq!(t_est, t_true);
+        // Anchored at the first truth pose: errors are small in the world frame too.
+        let (angle, dist) = texel::pose::pose_difference(est, tr);
+        assert!(
+            angle.to_degrees() < 0.5 && dist < 0.02,
+            "{angle} rad {dist} m"
+        );
+    }
+    let json: Value = serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    assert_eq!(json["frames"], 8);
+    assert_eq!(json["per_frame"][0]["status"], "anchor");
+    assert_eq!(json["per_frame"][1]["status"], "registered");
+    let ate = json["ate_rmse_mm"].as_f64().unwrap();
+    assert!(ate < 20.0, "ATE {ate} mm");
+    for f in json["per_frame"].as_array().unwrap() {
+        assert!(f["translation_error_mm"].as_f64().unwrap() < 20.0, "{f}");
+        assert!(f["time_ms"].as_f64().unwrap() >= 0.0);
+    }
+    // Registering the output again replaces its /texel/pose rather than adding more.
+    let again = dir.path().join("again.mcap");
+    let (ok, _, stderr) = texeld(&[
+        "register",
+        out.to_str().unwrap(),
+        "--out",
+        again.to_str().unwrap(),
+    ]);
+    assert!(ok, "{stderr}");
+    assert_eq!(poses(&again, PoseTopic::Texel).len(), 8);
+}
+
+#[test]
+fn plane_capture_reports_its_unobservable_directions() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = capture(dir.path(), "plane", 4);
+    let out = dir.path().join("out.mcap");
+    let report = dir.path().join("report.json");
+    let (ok, stdout, stderr) = texeld(&[
+        "register",
+        input.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--report",
+        report.to_str().unwrap(),
+    ]);
+    assert!(ok, "{stdout}\n{stderr}");
+    let json: Value = serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    for f in &json["per_frame"].as_array().unwrap()[1..] {
+        let n = f["degenerate"].as_array().map_or(0, Vec::len);
+        assert!(f["status"] == "failed" || n == 3, "{f}");
+    }
+}
+
+#[test]
+fn bad_configs_and_inputs_are_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = dir.path().join("reg.toml");
+    std::fs::write(&config, "[align]\npyramid_levles = 2\n").unwrap();
+    let out = dir.path().join("out.mcap");
+    let (ok, _, stderr) = texeld(&[
+        "register",
+        "missing.mcap",
+        "--out",
+        out.to_str().unwrap(),
+        "--config",
+        config.to_str().unwrap(),
+    ]);
+    assert!(!ok);
+    assert!(
+        stderr.contains("pyramid_levles") && stderr.contains("reg.toml"),
+        "{stderr}"
+    );
+    std::fs::write(&config, "[align]\npyramid_levels = 2\n").unwrap();
+    let (ok, _, stderr) = texeld(&[
+        "register",
+        "missing.mcap",
+        "--out",
+        out.to_str().unwrap(),
+        "--config",
+        config.to_str().unwrap(),
+    ]);
+    assert!(!ok);
+    assert!(stderr.contains("missing.mcap"), "{stderr}");
+}

@@ -1,0 +1,70 @@
+//! The daemon's status as it travels in a `Status` message (JSON inside the frame, so
+//! fields can be added without a protocol version change; unknown fields are
+//! ignored, missing ones default).
+
+use std::collections::BTreeMap;
+
+use serde::{Deserialize, Serialize};
+
+/// One source's health.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct SourceStatus {
+    pub name: String,
+    /// `serial`, `v4l`, `replay`, ...
+    pub kind: String,
+    /// `starting`, `running`, `reopening`, `ended`, `failed`.
+    pub state: String,
+    /// Frames per second over the last status interval.
+    pub range_fps: f64,
+    pub eo_fps: f64,
+    /// Source-specific counters (`bytes_skipped`, `crc_errors`, `lost_frames`, ...).
+    pub counters: BTreeMap<String, u64>,
+    pub last_error: Option<String>,
+}
+
+/// Latency of one pipeline stage over a recent window.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct StageLatency {
+    pub stage: String,
+    pub samples: u64,
+    pub p50_ms: f64,
+    pub p99_ms: f64,
+}
+
+/// A bounded queue's fill.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct QueueStatus {
+    pub name: String,
+    pub depth: u64,
+    pub capacity: u64,
+}
+
+/// The recording's progress.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct RecordingStatus {
+    pub path: String,
+    pub bytes: u64,
+    pub messages: u64,
+    /// Writes that failed (a full disk, say); the first is logged.
+    pub errors: u64,
+}
+
+/// Everything the periodic status reports.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct Status {
+    pub uptime_s: f64,
+    pub sources: Vec<SourceStatus>,
+    pub stages: Vec<StageLatency>,
+    pub queues: Vec<QueueStatus>,
+    /// Pipeline counters: `paired`, `unpaired_range`, `unpaired_eo`, `late_range`,
+    /// `late_eo`, `fuse_failures`, `registration_failures`,
+    /// `registration_degenerate`, `skipped_by_overload`, `scans`, `pose_revisions`.
+    pub counters: BTreeMap<String, u64>,
+    pub recording: Option<RecordingStatus>,
+    pub clients: u64,
+}

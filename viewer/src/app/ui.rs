@@ -1,0 +1,170 @@
+//! The egui overlay: the connection, the daemon's status and the stream latency;
+//! mode, blending, stretched triangles, frame statistics, the scan list with
+//! visibility toggles and jumps to acquisition views.
+
+use super::ViewerState;
+use crate::composite::{MAX_K, Mode};
+use crate::gpu::Strategy;
+use crate::live::ConnectionState;
+
+/// `roomy`: the window is wide enough to show the panel open at first (in a small
+/// window it starts folded, so the model stays visible).
+pub(super) fn panel(ctx: &egui::Context, v: &mut ViewerState, roomy: bool) {
+    egui::Window::new("texel")
+        .default_width(240.0)
+        .default_pos([8.0, 8.0])
+        .default_open(roomy)
+        .show(ctx, |ui| {
+            source_section(ui, v);
+            ui.separator();
+            ui.label(format!("{:.1} frames/s", v.fps));
+            ui.label(format!(
+                "scans {}: drawn {}, outside view {}, facing away {}, hidden {}",
+                v.stats.scans,
+                v.stats.drawn,
+                v.stats.culled_frustum,
+                v.stats.culled_facing,
+                v.stats.hidden
+            ));
+            ui.label(format!(
+                "targets {:.1} MiB, scans {:.1} MiB",
+                v.stats.target_memory.total() as f64 / 1048576.0,
+                v.stats.scan_bytes as f64 / 1048576.0
+            ));
+            ui.separator();
+            egui::ComboBox::from_label("mode")
+                .selected_text(v.settings.composite.mode.name())
+                .show_ui(ui, |ui| {
+                    for m in Mode::ALL {
+                        ui.selectable_value(&mut v.settings.composite.mode, m, m.name());
+                    }
+                });
+            ui.add(
+                egui::Slider::new(&mut v.settings.composite.blend_threshold, 0.0..=1.0)
+                    .text("blend threshold"),
+            );
+            ui.add(egui::Slider::new(&mut v.settings.composite.k, 1..=MAX_K).text("k"));
+            ui.add(egui::Slider::new(&mut v.settings.range_gamma, 0.25..=4.0).text("range gamma"));
+            ui.checkbox(&mut v.settings.keep_stretched, "keep stretched triangles");
+            let mut naive = v.settings.strategy == Strategy::NaiveLayers;
+            if ui.checkbox(&mut naive, "naive layers (baseline)").changed() {
+                v.settings.strategy = if naive {
+                    Strategy::NaiveLayers
+                } else {
+                    Strategy::default()
+                };
+            }
+            ui.add(egui::Slider::new(&mut v.fov_deg, 10.0..=120.0).text("field of view"));
+            ui.checkbox(&mut v.follow_newest, "follow the newest scan");
+            ui.label("drag: orbit, right-drag: pan, wheel: zoom, WASD QE: fly");
+            ui.separator();
+            egui::ScrollArea::vertical()
+                .max_height(240.0)
+                .show(ui, |ui| {
+                    let ids: Vec<u64> = v.model.scans().iter().map(|s| s.id).collect();
+                    for id in ids {
+                        ui.horizontal(|ui| {
+                            let mut shown = !v.settings.hidden.contains(&id);
+                            if ui.checkbox(&mut shown, format!("scan {id}")).changed() {
+                                if shown {
+                                    v.settings.hidden.remove(&id);
+                                } else {
+                                    v.settings.hidden.insert(id);
+                                }
+                            }
+                            if ui.button("view").clicked() {
+                                v.jump_to = Some(id);
+                            }
+                        });
+                    }
+                });
+        });
+}
+
+/// The model's source: connection state, the daemon's status (sources, counters,
+/// stage latencies) and the stream latency.
+fn source_section(ui: &mut egui::Ui, v: &ViewerState) {
+    if let Some(state) = &v.connection {
+        let colour = match state {
+            ConnectionState::Connected { .. } => egui::Color32::from_rgb(90, 200, 90),
+            ConnectionState::Connecting { .. } => egui::Color32::from_rgb(220, 200, 80),
+            ConnectionState::Retrying { .. } | ConnectionState::Ended { .. } => {
+                egui::Color32::from_rgb(230, 110, 90)
+            }
+        };
+        ui.colored_label(colour, state.describe());
+    }
+    ui.label(format!(
+        "model: {} scans{}",
+        v.model.len(),
+        if v.snapshot_complete {
+            ""
+        } else {
+            " (snapshot arriving)"
+        }
+    ));
+    if let Some((p50, max)) = v.latency.summary() {
+        ui.label(format!(
+            "stream latency (received -> drawn): p50 {p50:.0} ms, max {max:.0} ms"
+        ));
+    }
+    let Some((status, at)) = &v.status else {
+        return;
+    };
+    ui.label(format!(
+        "daemon up {:.0} s, {} viewers (status {:.1} s old)",
+        status.uptime_s,
+        status.clients,
+        at.elapsed().as_secs_f64()
+    ));
+    if let Some(e2e) = status.stages.iter().find(|s| s.stage == "end_to_end") {
+        ui.label(format!(
+            "daemon frame -> published: p50 {:.0} ms, p99 {:.0} ms",
+            e2e.p50_ms, e2e.p99_ms
+        ));
+    }
+    egui::CollapsingHeader::new("daemon status")
+        .default_open(false)
+        .show(ui, |ui| {
+            for s in &status.sources {
+                ui.label(format!(
+                    "{} ({}): {}, range {:.1} fps, EO {:.1} fps{}",
+                    s.name,
+                    s.kind,
+                    s.state,
+                    s.range_fps,
+                    s.eo_fps,
+                    s.last_error
+                        .as_ref()
+                        .map_or(String::new(), |e| format!(", last error: {e}"))
+                ));
+            }
+            for st in &status.stages {
+                ui.label(format!(
+                    "{}: p50 {:.1} ms, p99 {:.1} ms ({} samples)",
+                    st.stage, st.p50_ms, st.p99_ms, st.samples
+                ));
+            }
+            for q in &status.queues {
+                ui.label(format!("queue {}: {}/{}", q.name, q.depth, q.capacity));
+            }
+            let nonzero: Vec<String> = status
+                .counters
+                .iter()
+                .filter(|(_, n)| **n > 0)
+                .map(|(k, n)| format!("{k} {n}"))
+                .collect();
+            if !nonzero.is_empty() {
+                ui.label(nonzero.join(", "));
+            }
+            if let Some(r) = &status.recording {
+                ui.label(format!(
+                    "recording {}: {:.1} MiB, {} messages, {} errors",
+                    r.path,
+                    r.bytes as f64 / 1048576.0,
+                    r.messages,
+                    r.errors
+                ));
+            }
+        });
+}

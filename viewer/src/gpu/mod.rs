@@ -1,0 +1,130 @@
+//! The wgpu side of the viewer: device set-up, per-scan GPU data, long-lived
+//! pipelines, size-dependent targets and the renderer that records every pass into a
+//! given target (window and headless share all of it).
+
+mod pipelines;
+mod readback;
+mod renderer;
+mod scan_data;
+pub mod shaders;
+mod targets;
+
+pub use readback::LayerReadback;
+pub use renderer::{FrameStats, RenderSettings, RenderTarget, Renderer, Strategy};
+pub use targets::TargetMemory;
+
+/// Formats of the per-scan layers and the pre-pass target. Integer formats hold
+/// floats bit-exactly and are colour-renderable on every backend (32-bit float
+/// formats are not on GL).
+pub const LAYER_COLOUR_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Unorm;
+pub const LAYER_DATA_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba32Uint;
+pub const NEAREST_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rg32Uint;
+pub const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
+/// The EO texture: display (sRGB-encoded) values, sampled bilinearly as they are.
+pub const EO_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Unorm;
+/// Headless renders go to this format (PNG-ready).
+pub const IMAGE_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Unorm;
+
+#[derive(Debug, thiserror::Error)]
+pub enum GpuError {
+    #[error(
+        "no GPU adapter: wgpu found no Vulkan or GL device (install Mesa's lavapipe, \
+         Debian package mesa-vulkan-drivers, for a software one): {0}"
+    )]
+    NoAdapter(String),
+    #[error("cannot open the GPU device {adapter}: {message}")]
+    Device { adapter: String, message: String },
+    #[error("scan {id}: EO texture {width}x{height} exceeds the device limit {limit}")]
+    TextureTooLarge {
+        id: u64,
+        width: u32,
+        height: u32,
+        limit: u32,
+    },
+    #[error("scan {id}: EO texture size {width}x{height} does not match its {bytes} bytes")]
+    BadTexture {
+        id: u64,
+        width: u32,
+        height: u32,
+        bytes: usize,
+    },
+    #[error("target {width}x{height} is empty or exceeds the device limit {limit}")]
+    TargetSize { width: u32, height: u32, limit: u32 },
+    #[error("{what} needs {bytes} bytes, over the device limit {limit}")]
+    TooLarge {
+        what: &'static str,
+        bytes: u64,
+        limit: u64,
+    },
+    #[error(
+        "{visible} visible scans need {visible} layers, over the device limit {limit} (use the k-buffer)"
+    )]
+    TooManyLayers { visible: usize, limit: u32 },
+    #[error("reading back from the GPU failed: {0}")]
+    Readback(String),
+}
+
+/// A device and queue with the adapter they came from.
+#[derive(Debug, Clone)]
+pub struct GpuContext {
+    pub instance: wgpu::Instance,
+    pub adapter: wgpu::Adapter,
+    pub device: wgpu::Device,
+    pub queue: wgpu::Queue,
+}
+
+impl GpuContext {
+    /// A device without a window. Fails (never falls back silently) when no adapter
+    /// exists.
+    pub fn headless() -> Result<Self, GpuError> {
+        let instance =
+            wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+        Self::with_instance(instance, None)
+    }
+
+    /// A device that can present to `surface` (made from `instance`).
+    pub fn with_instance(
+        instance: wgpu::Instance,
+        surface: Option<&wgpu::Surface<'_>>,
+    ) -> Result<Self, GpuError> {
+        let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
+            power_preference: wgpu::PowerPreference::HighPerformance,
+            force_fallback_adapter: false,
+            compatible_surface: surface,
+            apply_limit_buckets: false,
+        }))
+        .map_err(|e| GpuError::NoAdapter(e.to_string()))?;
+        let info = adapter.get_info();
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("texel-viewer"),
+            required_features: wgpu::Features::empty(),
+            // The k-buffer and naive layers can be large: take what the adapter offers.
+            required_limits: adapter.limits(),
+            ..Default::default()
+        }))
+        .map_err(|e| GpuError::Device {
+            adapter: format!("{} ({:?})", info.name, info.backend),
+            message: e.to_string(),
+        })?;
+        Ok(Self {
+            instance,
+            adapter,
+            device,
+            queue,
+        })
+    }
+
+    /// "name (backend)" of the adapter.
+    pub fn adapter_name(&self) -> String {
+        let info = self.adapter.get_info();
+        format!("{} ({:?})", info.name, info.backend)
+    }
+
+    /// Blocks until the GPU has finished all submitted work.
+    pub fn wait_idle(&self) -> Result<(), GpuError> {
+        self.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map(|_| ())
+            .map_err(|e| GpuError::Readback(e.to_string()))
+    }
+}

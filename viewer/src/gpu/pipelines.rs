@@ -1,0 +1,368 @@
+//! Long-lived GPU state: shader modules, bind group layouts, the sampler and every
+//! pipeline. Built once per device; pipelines that write the caller's target are
+//! built once per target format.
+
+use std::collections::HashMap;
+
+use super::scan_data::{VERTEX_ATTRIBUTES, Vertex};
+use super::{DEPTH_FORMAT, LAYER_COLOUR_FORMAT, LAYER_DATA_FORMAT, NEAREST_FORMAT, shaders};
+
+/// Pipelines writing into the caller's target.
+pub(crate) struct OutputPipelines {
+    pub painter: wgpu::RenderPipeline,
+    pub composite_kbuffer: wgpu::RenderPipeline,
+    pub composite_naive: wgpu::RenderPipeline,
+}
+
+pub(crate) struct Pipelines {
+    pub frame_layout: wgpu::BindGroupLayout,
+    pub scan_layout: wgpu::BindGroupLayout,
+    pub merge_layout: wgpu::BindGroupLayout,
+    pub kbuffer_layout: wgpu::BindGroupLayout,
+    pub naive_layout: wgpu::BindGroupLayout,
+    pub sampler: wgpu::Sampler,
+    scan_module: wgpu::ShaderModule,
+    kbuffer_module: wgpu::ShaderModule,
+    naive_module: wgpu::ShaderModule,
+    scan_pipeline_layout: wgpu::PipelineLayout,
+    kbuffer_pipeline_layout: wgpu::PipelineLayout,
+    naive_pipeline_layout: wgpu::PipelineLayout,
+    pub prepass: wgpu::RenderPipeline,
+    pub layer: wgpu::RenderPipeline,
+    pub merge: wgpu::RenderPipeline,
+    outputs: HashMap<wgpu::TextureFormat, OutputPipelines>,
+}
+
+fn uniform_entry(
+    binding: u32,
+    visibility: wgpu::ShaderStages,
+    dynamic: bool,
+) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility,
+        ty: wgpu::BindingType::Buffer {
+            ty: wgpu::BufferBindingType::Uniform,
+            has_dynamic_offset: dynamic,
+            min_binding_size: None,
+        },
+        count: None,
+    }
+}
+
+fn texture_entry(
+    binding: u32,
+    visibility: wgpu::ShaderStages,
+    sample_type: wgpu::TextureSampleType,
+    view_dimension: wgpu::TextureViewDimension,
+) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility,
+        ty: wgpu::BindingType::Texture {
+            sample_type,
+            view_dimension,
+            multisampled: false,
+        },
+        count: None,
+    }
+}
+
+fn storage_entry(
+    binding: u32,
+    visibility: wgpu::ShaderStages,
+    read_only: bool,
+) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility,
+        ty: wgpu::BindingType::Buffer {
+            ty: wgpu::BufferBindingType::Storage { read_only },
+            has_dynamic_offset: false,
+            min_binding_size: None,
+        },
+        count: None,
+    }
+}
+
+const UNFILTERED: wgpu::TextureSampleType = wgpu::TextureSampleType::Float { filterable: false };
+const UINT: wgpu::TextureSampleType = wgpu::TextureSampleType::Uint;
+const D2: wgpu::TextureViewDimension = wgpu::TextureViewDimension::D2;
+const D2_ARRAY: wgpu::TextureViewDimension = wgpu::TextureViewDimension::D2Array;
+
+fn primitive() -> wgpu::PrimitiveState {
+    wgpu::PrimitiveState {
+        topology: wgpu::PrimitiveTopology::TriangleList,
+        // Fusion winds triangles with their normal towards the acquisition COP; with
+        // the projection's y flip that is counter-clockwise on screen.
+        front_face: wgpu::FrontFace::Ccw,
+        cull_mode: Some(wgpu::Face::Back),
+        ..Default::default()
+    }
+}
+
+/// Reverse z: nearer is greater; on equal depth the first drawn (lower scan id) stays.
+fn depth_state() -> Option<wgpu::DepthStencilState> {
+    Some(wgpu::DepthStencilState {
+        format: DEPTH_FORMAT,
+        depth_write_enabled: Some(true),
+        depth_compare: Some(wgpu::CompareFunction::Greater),
+        stencil: wgpu::StencilState::default(),
+        bias: wgpu::DepthBiasState::default(),
+    })
+}
+
+fn replace(format: wgpu::TextureFormat) -> Option<wgpu::ColorTargetState> {
+    Some(wgpu::ColorTargetState {
+        format,
+        blend: None,
+        write_mask: wgpu::ColorWrites::ALL,
+    })
+}
+
+fn module(device: &wgpu::Device, name: &str, own: &str) -> wgpu::ShaderModule {
+    device.create_shader_module(wgpu::ShaderModuleDescriptor {
+        label: Some(name),
+        source: wgpu::ShaderSource::Wgsl(shaders::source(own).into()),
+    })
+}
+
+impl Pipelines {
+    pub fn new(device: &wgpu::Device) -> Self {
+        let vf = wgpu::ShaderStages::VERTEX | wgpu::ShaderStages::FRAGMENT;
+        let fs = wgpu::ShaderStages::FRAGMENT;
+        let frame_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("frame"),
+            entries: &[uniform_entry(0, vf, false)],
+        });
+        let scan_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("scan"),
+            entries: &[
+                uniform_entry(0, vf, false),
+                texture_entry(
+                    1,
+                    fs,
+                    wgpu::TextureSampleType::Float { filterable: true },
+                    D2,
+                ),
+                wgpu::BindGroupLayoutEntry {
+                    binding: 2,
+                    visibility: fs,
+                    ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
+                    count: None,
+                },
+            ],
+        });
+        let mf = fs;
+        let merge_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("merge"),
+            entries: &[
+                uniform_entry(0, mf, false),
+                texture_entry(1, mf, UINT, D2),
+                texture_entry(2, mf, UNFILTERED, D2_ARRAY),
+                texture_entry(3, mf, UINT, D2_ARRAY),
+                storage_entry(4, mf, false),
+                uniform_entry(5, mf, true),
+            ],
+        });
+        let kbuffer_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("composite k-buffer"),
+            entries: &[uniform_entry(0, fs, false), storage_entry(1, fs, true)],
+        });
+        let naive_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("composite naive"),
+            entries: &[
+                uniform_entry(0, fs, false),
+                texture_entry(1, fs, UNFILTERED, D2_ARRAY),
+                texture_entry(2, fs, UINT, D2_ARRAY),
+            ],
+        });
+        let sampler = device.create_sampler(&wgpu::SamplerDescriptor {
+            label: Some("EO bilinear"),
+            address_mode_u: wgpu::AddressMode::ClampToEdge,
+            address_mode_v: wgpu::AddressMode::ClampToEdge,
+            mag_filter: wgpu::FilterMode::Linear,
+            min_filter: wgpu::FilterMode::Linear,
+            ..Default::default()
+        });
+        let layout = |label: &str, groups: &[Option<&wgpu::BindGroupLayout>]| {
+            device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+                label: Some(label),
+                bind_group_layouts: groups,
+                immediate_size: 0,
+            })
+        };
+        let scan_pipeline_layout = layout("scan", &[Some(&frame_layout), Some(&scan_layout)]);
+        let merge_pipeline_layout = layout("merge", &[Some(&merge_layout)]);
+        let kbuffer_pipeline_layout = layout("composite k-buffer", &[Some(&kbuffer_layout)]);
+        let naive_pipeline_layout = layout("composite naive", &[Some(&naive_layout)]);
+        let scan_module = module(device, "scan.wgsl", shaders::SCAN);
+        let merge_module = module(device, "merge.wgsl", shaders::MERGE);
+        let kbuffer_module = module(device, "composite_kbuffer.wgsl", shaders::COMPOSITE_KBUFFER);
+        let naive_module = module(device, "composite_naive.wgsl", shaders::COMPOSITE_NAIVE);
+        let scan_pipeline =
+            |label: &str, entry: &str, targets: &[Option<wgpu::ColorTargetState>]| {
+                scan_render_pipeline(
+                    device,
+                    &scan_pipeline_layout,
+                    &scan_module,
+                    label,
+                    entry,
+                    targets,
+                )
+            };
+        let prepass = scan_pipeline("prepass", "fs_prepass", &[replace(NEAREST_FORMAT)]);
+        let layer = scan_pipeline(
+            "layer",
+            "fs_layer",
+            &[replace(LAYER_COLOUR_FORMAT), replace(LAYER_DATA_FORMAT)],
+        );
+        let merge = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+            label: Some("merge (fragment)"),
+            layout: Some(&merge_pipeline_layout),
+            vertex: wgpu::VertexState {
+                module: &merge_module,
+                entry_point: Some("vs_fullscreen"),
+                compilation_options: Default::default(),
+                buffers: &[],
+            },
+            primitive: wgpu::PrimitiveState::default(),
+            // No colour output: the pass needs an attachment, so it takes the depth
+            // buffer without testing or writing it.
+            depth_stencil: Some(wgpu::DepthStencilState {
+                format: DEPTH_FORMAT,
+                depth_write_enabled: Some(false),
+                depth_compare: Some(wgpu::CompareFunction::Always),
+                stencil: wgpu::StencilState::default(),
+                bias: wgpu::DepthBiasState::default(),
+            }),
+            multisample: wgpu::MultisampleState::default(),
+            fragment: Some(wgpu::FragmentState {
+                module: &merge_module,
+                entry_point: Some("fs_merge"),
+                compilation_options: Default::default(),
+                targets: &[],
+            }),
+            multiview_mask: None,
+            cache: None,
+        });
+        Self {
+            frame_layout,
+            scan_layout,
+            merge_layout,
+            kbuffer_layout,
+            naive_layout,
+            sampler,
+            scan_module,
+            kbuffer_module,
+            naive_module,
+            scan_pipeline_layout,
+            kbuffer_pipeline_layout,
+            naive_pipeline_layout,
+            prepass,
+            layer,
+            merge,
+            outputs: HashMap::new(),
+        }
+    }
+
+    /// The pipelines writing into a target of `format` (see [`Self::ensure_output`]).
+    pub fn outputs_for(&self, format: wgpu::TextureFormat) -> Option<&OutputPipelines> {
+        self.outputs.get(&format)
+    }
+
+    /// Builds the pipelines writing into a target of `format` on first use.
+    pub fn ensure_output(&mut self, device: &wgpu::Device, format: wgpu::TextureFormat) {
+        self.outputs
+            .entry(format)
+            .or_insert_with(|| OutputPipelines {
+                painter: scan_render_pipeline(
+                    device,
+                    &self.scan_pipeline_layout,
+                    &self.scan_module,
+                    "painter",
+                    "fs_painter",
+                    &[replace(format)],
+                ),
+                composite_kbuffer: fullscreen_pipeline(
+                    device,
+                    &self.kbuffer_pipeline_layout,
+                    &self.kbuffer_module,
+                    "composite k-buffer",
+                    format,
+                ),
+                composite_naive: fullscreen_pipeline(
+                    device,
+                    &self.naive_pipeline_layout,
+                    &self.naive_module,
+                    "composite naive",
+                    format,
+                ),
+            });
+    }
+}
+
+fn scan_render_pipeline(
+    device: &wgpu::Device,
+    layout: &wgpu::PipelineLayout,
+    module: &wgpu::ShaderModule,
+    label: &str,
+    fragment_entry: &str,
+    targets: &[Option<wgpu::ColorTargetState>],
+) -> wgpu::RenderPipeline {
+    device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+        label: Some(label),
+        layout: Some(layout),
+        vertex: wgpu::VertexState {
+            module,
+            entry_point: Some("vs_scan"),
+            compilation_options: Default::default(),
+            buffers: &[Some(wgpu::VertexBufferLayout {
+                array_stride: std::mem::size_of::<Vertex>() as u64,
+                step_mode: wgpu::VertexStepMode::Vertex,
+                attributes: &VERTEX_ATTRIBUTES,
+            })],
+        },
+        primitive: primitive(),
+        depth_stencil: depth_state(),
+        multisample: wgpu::MultisampleState::default(),
+        fragment: Some(wgpu::FragmentState {
+            module,
+            entry_point: Some(fragment_entry),
+            compilation_options: Default::default(),
+            targets,
+        }),
+        multiview_mask: None,
+        cache: None,
+    })
+}
+
+fn fullscreen_pipeline(
+    device: &wgpu::Device,
+    layout: &wgpu::PipelineLayout,
+    module: &wgpu::ShaderModule,
+    label: &str,
+    format: wgpu::TextureFormat,
+) -> wgpu::RenderPipeline {
+    device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+        label: Some(label),
+        layout: Some(layout),
+        vertex: wgpu::VertexState {
+            module,
+            entry_point: Some("vs_fullscreen"),
+            compilation_options: Default::default(),
+            buffers: &[],
+        },
+        primitive: wgpu::PrimitiveState::default(),
+        depth_stencil: None,
+        multisample: wgpu::MultisampleState::default(),
+        fragment: Some(wgpu::FragmentState {
+            module,
+            entry_point: Some("fs_composite"),
+            compilation_options: Default::default(),
+            targets: &[replace(format)],
+        }),
+        multiview_mask: None,
+        cache: None,
+    })
+}

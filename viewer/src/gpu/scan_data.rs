@@ -1,0 +1,226 @@
+//! One scan's GPU data, uploaded once when the scan joins the model: vertices (scan
+//! frame, f32, small), two index buffers (usable triangles; with stretched ones), the
+//! EO texture and a uniform that a pose or camera change rewrites.
+
+use bytemuck::{Pod, Zeroable};
+use texel::{RangeNoise, TexelScan};
+use wgpu::util::DeviceExt;
+
+use super::{EO_FORMAT, GpuError};
+use crate::cull::ScanBounds;
+use crate::reliability::{triangle_drawn, vertex_accuracy, vertex_acquisition_range};
+
+/// Vertex layout: position (scan frame), texture coordinate, interpolated normal
+/// accuracy, acquisition range.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+pub(crate) struct Vertex {
+    pub position: [f32; 3],
+    pub uv: [f32; 2],
+    pub accuracy: f32,
+    pub acquisition_range: f32,
+}
+
+pub(crate) const VERTEX_ATTRIBUTES: [wgpu::VertexAttribute; 4] =
+    wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x2, 2 => Float32, 3 => Float32];
+
+/// The per-scan uniform (`Scan` in `scan.wgsl`).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+pub(crate) struct ScanUniform {
+    pub view_from_scan: [[f32; 4]; 4],
+    pub cop_view: [f32; 4],
+    pub noise: [f32; 4],
+    pub ids: [u32; 4],
+}
+
+pub(crate) struct GpuScan {
+    pub vertices: wgpu::Buffer,
+    pub usable: wgpu::Buffer,
+    pub usable_count: u32,
+    pub with_stretched: wgpu::Buffer,
+    pub with_stretched_count: u32,
+    pub uniform: wgpu::Buffer,
+    pub bind_group: wgpu::BindGroup,
+    pub bounds: Option<ScanBounds>,
+    pub cop_scan: [f64; 3],
+    pub noise: RangeNoise,
+    /// GPU bytes held by this scan.
+    pub bytes: u64,
+}
+
+impl GpuScan {
+    pub fn upload(
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        layout: &wgpu::BindGroupLayout,
+        sampler: &wgpu::Sampler,
+        id: u64,
+        scan: &TexelScan,
+    ) -> Result<Self, GpuError> {
+        let tex = &scan.texture;
+        let limit = device.limits().max_texture_dimension_2d;
+        if tex.width == 0 || tex.height == 0 || tex.width > limit || tex.height > limit {
+            return Err(GpuError::TextureTooLarge {
+                id,
+                width: tex.width,
+                height: tex.height,
+                limit,
+            });
+        }
+        if !tex.is_consistent() {
+            return Err(GpuError::BadTexture {
+                id,
+                width: tex.width,
+                height: tex.height,
+                bytes: tex.rgb.len(),
+            });
+        }
+        let vertices = vertex_data(scan);
+        let usable = drawn_indices(scan, false);
+        let with_stretched = drawn_indices(scan, true);
+        let vertex_buffer = buffer(
+            device,
+            "scan vertices",
+            bytemuck::cast_slice(&vertices),
+            wgpu::BufferUsages::VERTEX,
+        );
+        let usable_buffer = buffer(
+            device,
+            "scan triangles",
+            bytemuck::cast_slice(&usable),
+            wgpu::BufferUsages::INDEX,
+        );
+        let stretched_buffer = buffer(
+            device,
+            "scan triangles with stretched",
+            bytemuck::cast_slice(&with_stretched),
+            wgpu::BufferUsages::INDEX,
+        );
+        let uniform = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("scan uniform"),
+            size: std::mem::size_of::<ScanUniform>() as u64,
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let size = wgpu::Extent3d {
+            width: tex.width,
+            height: tex.height,
+            depth_or_array_layers: 1,
+        };
+        let rgba: Vec<u8> = tex
+            .rgb
+            .chunks_exact(3)
+            .flat_map(|p| [p[0], p[1], p[2], 255])
+            .collect();
+        let texture = device.create_texture_with_data(
+            queue,
+            &wgpu::TextureDescriptor {
+                label: Some("scan EO texture"),
+                size,
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D2,
+                format: EO_FORMAT,
+                usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+                view_formats: &[],
+            },
+            wgpu::util::TextureDataOrder::LayerMajor,
+            &rgba,
+        );
+        let view = texture.create_view(&wgpu::TextureViewDescriptor::default());
+        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("scan bind group"),
+            layout,
+            entries: &[
+                wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: uniform.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: wgpu::BindingResource::TextureView(&view),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 2,
+                    resource: wgpu::BindingResource::Sampler(sampler),
+                },
+            ],
+        });
+        let bytes = vertex_buffer.size()
+            + usable_buffer.size()
+            + stretched_buffer.size()
+            + uniform.size()
+            + u64::from(tex.width) * u64::from(tex.height) * 4;
+        Ok(Self {
+            vertices: vertex_buffer,
+            usable: usable_buffer,
+            usable_count: usable.len() as u32,
+            with_stretched: stretched_buffer,
+            with_stretched_count: with_stretched.len() as u32,
+            uniform,
+            bind_group,
+            bounds: ScanBounds::of(scan),
+            cop_scan: scan.cop_m,
+            noise: scan.range_noise,
+            bytes,
+        })
+    }
+
+    /// The index buffer and its length for the stretched-triangle toggle.
+    pub fn indices(&self, keep_stretched: bool) -> (&wgpu::Buffer, u32) {
+        if keep_stretched {
+            (&self.with_stretched, self.with_stretched_count)
+        } else {
+            (&self.usable, self.usable_count)
+        }
+    }
+}
+
+fn buffer(
+    device: &wgpu::Device,
+    label: &str,
+    data: &[u8],
+    usage: wgpu::BufferUsages,
+) -> wgpu::Buffer {
+    // wgpu refuses zero-sized vertex/index buffers in some paths; keep one word.
+    let padded;
+    let contents = if data.is_empty() {
+        padded = [0u8; 4];
+        &padded[..]
+    } else {
+        data
+    };
+    device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+        label: Some(label),
+        contents,
+        usage,
+    })
+}
+
+fn vertex_data(scan: &TexelScan) -> Vec<Vertex> {
+    let accuracy = vertex_accuracy(scan);
+    let range = vertex_acquisition_range(scan);
+    scan.vertices
+        .iter()
+        .enumerate()
+        .map(|(i, &position)| Vertex {
+            position,
+            uv: scan.tex_coords.get(i).copied().unwrap_or([0.0, 0.0]),
+            accuracy: accuracy.get(i).copied().unwrap_or(0.0),
+            acquisition_range: range.get(i).copied().unwrap_or(0.0),
+        })
+        .collect()
+}
+
+/// Indices of the drawn triangles; triangles naming a vertex that does not exist are
+/// skipped (a malformed scan must not make the GPU read out of bounds).
+fn drawn_indices(scan: &TexelScan, keep_stretched: bool) -> Vec<u32> {
+    let n = scan.vertices.len() as u32;
+    scan.triangles
+        .iter()
+        .enumerate()
+        .filter(|(t, tri)| triangle_drawn(scan, *t, keep_stretched) && tri.iter().all(|&v| v < n))
+        .flat_map(|(_, tri)| *tri)
+        .collect()
+}

@@ -1,0 +1,285 @@
+//! A live connection to a daemon on a thread of its own: connect and handshake with
+//! the daemon's client (`texel_daemon::client`), apply every message to a
+//! [`Replica`] and pass the changes on as [`ViewerEvent`]s; when the connection is
+//! lost, say so and reconnect with exponential backoff (the daemon then sends a
+//! fresh snapshot, which starts with a reset). A refusal (wrong token, wrong
+//! version) ends the thread: retrying cannot fix it.
+
+use std::net::{SocketAddr, ToSocketAddrs};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc::SyncSender;
+use std::time::{Duration, Instant};
+
+use texel::model::ModelEvent;
+use texel::wire::Message;
+use texel_daemon::client::{Applied, BlockingClient, ClientError, Replica};
+
+use super::{ConnectionState, ViewerEvent, send};
+
+/// How the connection thread behaves.
+#[derive(Debug, Clone)]
+pub struct ConnectOptions {
+    /// `HOST:PORT`.
+    pub addr: String,
+    /// Empty when the daemon needs none.
+    pub token: String,
+    pub client_name: String,
+    /// Bounds a connection attempt and every read; a read that times out only
+    /// checks for a stop request, so this also sets how quickly the thread stops.
+    pub io_timeout: Duration,
+    /// A connection that delivers nothing for this long is taken as lost (the daemon
+    /// sends a status every second by default).
+    pub silence_limit: Duration,
+    pub backoff_min: Duration,
+    pub backoff_max: Duration,
+    /// Reconnect after the daemon ends the stream (false: end the thread).
+    pub reconnect: bool,
+}
+
+impl ConnectOptions {
+    pub fn new(addr: impl Into<String>, token: impl Into<String>) -> Self {
+        Self {
+            addr: addr.into(),
+            token: token.into(),
+            client_name: format!("texel-viewer {}", env!("CARGO_PKG_VERSION")),
+            io_timeout: Duration::from_millis(500),
+            silence_limit: Duration::from_secs(10),
+            backoff_min: Duration::from_millis(200),
+            backoff_max: Duration::from_secs(5),
+            reconnect: true,
+        }
+    }
+}
+
+/// Stops the connection thread when dropped or asked to.
+pub struct ConnectionHandle {
+    stop: Arc<AtomicBool>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl ConnectionHandle {
+    pub fn stop(&mut self) {
+        self.stop.store(true, Ordering::Release);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+impl Drop for ConnectionHandle {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Release);
+    }
+}
+
+/// Starts the connection thread; events go to `tx`.
+pub fn spawn(options: ConnectOptions, tx: SyncSender<ViewerEvent>) -> ConnectionHandle {
+    let stop = Arc::new(AtomicBool::new(false));
+    let flag = Arc::clone(&stop);
+    let thread = std::thread::Builder::new()
+        .name("texel-viewer-net".into())
+        .spawn(move || run(&options, &tx, &flag))
+        .ok();
+    ConnectionHandle { stop, thread }
+}
+
+/// Why one connection ended.
+pub(super) enum Ended {
+    /// Try again (after backoff).
+    Lost(String),
+    /// Do not try again.
+    Final(String),
+    /// The consumer is gone or a stop was requested.
+    Stopped,
+}
+
+impl Ended {
+    pub(super) fn describe(self) -> String {
+        match self {
+            Self::Lost(r) | Self::Final(r) => r,
+            Self::Stopped => "stopped".into(),
+        }
+    }
+}
+
+fn run(options: &ConnectOptions, tx: &SyncSender<ViewerEvent>, stop: &AtomicBool) {
+    let mut backoff = options.backoff_min;
+    let mut attempt = 0u32;
+    while !stop.load(Ordering::Acquire) {
+        attempt = attempt.saturating_add(1);
+        if !send(
+            tx,
+            ViewerEvent::Connection(ConnectionState::Connecting {
+                addr: options.addr.clone(),
+                attempt,
+            }),
+        ) {
+            return;
+        }
+        let (reason, connected) = match connect_once(options, tx, stop) {
+            (Ended::Stopped, _) => return,
+            (Ended::Final(reason), _) => {
+                let _ = send(
+                    tx,
+                    ViewerEvent::Connection(ConnectionState::Ended { reason }),
+                );
+                return;
+            }
+            (Ended::Lost(reason), connected) => (reason, connected),
+        };
+        if connected {
+            // A connection that worked resets the backoff.
+            backoff = options.backoff_min;
+            attempt = 0;
+            if !options.reconnect {
+                let _ = send(
+                    tx,
+                    ViewerEvent::Connection(ConnectionState::Ended { reason }),
+                );
+                return;
+            }
+        }
+        if !send(
+            tx,
+            ViewerEvent::Connection(ConnectionState::Retrying {
+                addr: options.addr.clone(),
+                reason,
+                retry_in: backoff,
+            }),
+        ) {
+            return;
+        }
+        let until = Instant::now() + backoff;
+        while Instant::now() < until {
+            if stop.load(Ordering::Acquire) {
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(20).min(backoff));
+        }
+        backoff = (backoff * 2).min(options.backoff_max);
+    }
+}
+
+/// Resolves `HOST:PORT` (the first address).
+pub fn resolve(addr: &str) -> Result<SocketAddr, String> {
+    addr.to_socket_addrs()
+        .map_err(|e| format!("cannot resolve {addr}: {e}"))?
+        .next()
+        .ok_or_else(|| format!("{addr} resolves to no address"))
+}
+
+/// One connection, until it ends; the flag says whether the handshake succeeded.
+fn connect_once(
+    options: &ConnectOptions,
+    tx: &SyncSender<ViewerEvent>,
+    stop: &AtomicBool,
+) -> (Ended, bool) {
+    let addr = match resolve(&options.addr) {
+        Ok(a) => a,
+        Err(e) => return (Ended::Lost(e), false),
+    };
+    let mut client = match BlockingClient::connect(
+        addr,
+        &options.token,
+        &options.client_name,
+        options.io_timeout.max(Duration::from_millis(50)),
+    ) {
+        Ok(c) => c,
+        Err(ClientError::Refused(reason)) => {
+            return (Ended::Final(format!("the daemon refused: {reason}")), false);
+        }
+        Err(e) => return (Ended::Lost(e.to_string()), false),
+    };
+    if !send(
+        tx,
+        ViewerEvent::Connection(ConnectionState::Connected {
+            addr: options.addr.clone(),
+            server_name: client.server.server_name.clone(),
+            session_name: client.server.session_name.clone(),
+        }),
+    ) {
+        return (Ended::Stopped, true);
+    }
+    let mut replica = Replica::new();
+    let mut last_heard = Instant::now();
+    loop {
+        if stop.load(Ordering::Acquire) {
+            return (Ended::Stopped, true);
+        }
+        let message = match client.next_message() {
+            Ok(Some(m)) => m,
+            Ok(None) => return (Ended::Lost("the daemon closed the connection".into()), true),
+            Err(ClientError::Timeout(_)) => {
+                if last_heard.elapsed() > options.silence_limit {
+                    return (
+                        Ended::Lost(format!(
+                            "nothing heard for {:.0} s",
+                            options.silence_limit.as_secs_f64()
+                        )),
+                        true,
+                    );
+                }
+                continue;
+            }
+            Err(e) => return (Ended::Lost(e.to_string()), true),
+        };
+        last_heard = Instant::now();
+        match forward(&mut replica, message, tx) {
+            Ok(true) => {}
+            Ok(false) => return (Ended::Stopped, true),
+            Err(ended) => return (ended, true),
+        }
+    }
+}
+
+/// Applies one message and forwards what it changed. `Ok(false)`: the consumer is
+/// gone.
+pub(super) fn forward(
+    replica: &mut Replica,
+    message: Message,
+    tx: &SyncSender<ViewerEvent>,
+) -> Result<bool, Ended> {
+    let received = Instant::now();
+    let applied = replica
+        .apply(message)
+        .map_err(|e| Ended::Lost(format!("bad message from the daemon: {e}")))?;
+    let event = match applied {
+        Applied::Reset { .. } => ViewerEvent::Reset,
+        Applied::SnapshotComplete => ViewerEvent::SnapshotComplete {
+            scans: replica.model.len() as u64,
+        },
+        Applied::ScanAdded(id) | Applied::PoseRevised(id) => {
+            let Some(s) = replica.model.get(id) else {
+                return Ok(true);
+            };
+            let event = if matches!(applied, Applied::ScanAdded(_)) {
+                ModelEvent::ScanAdded {
+                    id,
+                    scan: Arc::clone(&s.scan),
+                    world_from_scan: s.world_from_scan,
+                }
+            } else {
+                ModelEvent::PoseRevised {
+                    id,
+                    world_from_scan: s.world_from_scan,
+                }
+            };
+            ViewerEvent::Model { event, received }
+        }
+        Applied::Status => match &replica.status {
+            Some(status) => ViewerEvent::Status {
+                status: Box::new(status.clone()),
+                received,
+            },
+            None => return Ok(true),
+        },
+        Applied::Goodbye(reason) => {
+            return Err(Ended::Lost(format!(
+                "the daemon ended the stream: {reason}"
+            )));
+        }
+        Applied::Ignored => return Ok(true),
+    };
+    Ok(send(tx, event))
+}

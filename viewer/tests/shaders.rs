@@ -1,0 +1,30 @@
+//! Every WGSL module parses and validates with naga (no GPU needed).
+#![allow(clippy::unwrap_used, clippy::expect_used)] // tests panic on failure by design
+
+use texel_viewer::gpu::shaders;
+
+#[test]
+fn wgsl_modules_validate() {
+    for (name, source) in shaders::modules() {
+        let module = naga::front::wgsl::parse_str(&source)
+            .unwrap_or_else(|e| panic!("{name}.wgsl: {}", e.emit_to_string(&source)));
+        naga::valid::Validator::new(
+            naga::valid::ValidationFlags::all(),
+            naga::valid::Capabilities::default(),
+        )
+        .validate(&module)
+        .unwrap_or_else(|e| panic!("{name}.wgsl: {}", e.emit_to_string(&source)));
+        let entry_points: Vec<&str> = module
+            .entry_points
+            .iter()
+            .map(|e| e.name.as_str())
+            .collect();
+        assert!(!entry_points.is_empty(), "{name}");
+    }
+    // The entry points the pipelines use exist.
+    let scan = naga::front::wgsl::parse_str(&shaders::source(shaders::SCAN)).unwrap();
+    let names: Vec<&str> = scan.entry_points.iter().map(|e| e.name.as_str()).collect();
+    for want in ["vs_scan", "fs_painter", "fs_prepass", "fs_layer"] {
+        assert!(names.contains(&want), "{want} in {names:?}");
+    }
+}

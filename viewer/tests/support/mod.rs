@@ -1,0 +1,144 @@
+//! Shared helpers of the viewer's GPU tests: one device per test binary (lavapipe in
+//! CI; a missing adapter fails the test loudly), image comparison and golden files.
+#![allow(dead_code, clippy::unwrap_used, clippy::expect_used)]
+
+use std::path::PathBuf;
+use std::sync::OnceLock;
+
+use texel::Pose;
+use texel_viewer::camera::VirtualCamera;
+use texel_viewer::gpu::{GpuContext, Renderer};
+use texel_viewer::scenes;
+
+pub fn gpu() -> &'static GpuContext {
+    static GPU: OnceLock<GpuContext> = OnceLock::new();
+    GPU.get_or_init(|| match GpuContext::headless() {
+        Ok(g) => g,
+        Err(e) => panic!("GPU tests need an adapter (CI installs lavapipe): {e}"),
+    })
+}
+
+/// A renderer holding the box scene (3 scans), placed under `offset`.
+pub fn box_renderer(offset: &Pose) -> Renderer {
+    let sensor = scenes::test_sensor();
+    let model = scenes::model_of(
+        &scenes::box_scene(),
+        &sensor,
+        &scenes::box_scene_poses(),
+        offset,
+    );
+    let mut r = Renderer::new(gpu());
+    r.sync_model(&model).unwrap();
+    r
+}
+
+/// The view the box-scene tests use: between the front and right scans.
+pub fn box_camera(offset: &Pose) -> VirtualCamera {
+    VirtualCamera::new(
+        offset * scenes::look_at([0.9, -0.6, 0.2], [0.0, 0.0, 5.0]),
+        55.0,
+        160,
+        120,
+    )
+    .unwrap()
+}
+
+/// Fraction of pixels whose every channel differs by at most `tol`.
+pub fn fraction_within(a: &image::RgbaImage, b: &image::RgbaImage, tol: u8) -> f64 {
+    assert_eq!(a.dimensions(), b.dimensions());
+    let ok = a
+        .pixels()
+        .zip(b.pixels())
+        .filter(|(p, q)| (0..3).all(|k| p[k].abs_diff(q[k]) <= tol))
+        .count();
+    ok as f64 / f64::from(a.width() * a.height())
+}
+
+pub fn golden_dir() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/golden")
+}
+
+/// Compares with `tests/golden/NAME.png` (>= 99 % of pixels within 2/255 per channel);
+/// writes NAME.actual.png and NAME.diff.png beside it on failure.
+/// `TEXEL_UPDATE_GOLDEN=1` rewrites the golden instead.
+pub fn check_golden(name: &str, actual: &image::RgbaImage) {
+    let dir = golden_dir();
+    let path = dir.join(format!("{name}.png"));
+    if std::env::var_os("TEXEL_UPDATE_GOLDEN").is_some_and(|v| v == "1") {
+        actual.save(&path).unwrap();
+        return;
+    }
+    let golden = image::open(&path)
+        .unwrap_or_else(|e| panic!("{}: {e} (TEXEL_UPDATE_GOLDEN=1 writes it)", path.display()))
+        .to_rgba8();
+    let within = fraction_within(&golden, actual, 2);
+    if within < 0.99 {
+        actual.save(dir.join(format!("{name}.actual.png"))).unwrap();
+        let diff = image::RgbaImage::from_fn(actual.width(), actual.height(), |x, y| {
+            let (p, q) = (golden.get_pixel(x, y), actual.get_pixel(x, y));
+            let d = (0..3).map(|k| p[k].abs_diff(q[k])).max().unwrap_or(0);
+            image::Rgba([d.saturating_mul(8), 0, 0, 255])
+        });
+        diff.save(dir.join(format!("{name}.diff.png"))).unwrap();
+        panic!(
+            "{name}: only {:.2} % of pixels within 2/255 of the golden",
+            within * 100.0
+        );
+    }
+}
+
+/// Writes the box scene's three texel frames to a capture with poses on `topic`.
+pub fn write_box_capture(path: &std::path::Path, topic: texel::capture::PoseTopic) {
+    use texel::capture::{CaptureWriter, EoEncoding, RangeEncoding, WriterOptions};
+    let sensor = scenes::test_sensor();
+    let scene = scenes::box_scene();
+    let mut w = CaptureWriter::create(path, WriterOptions::default()).unwrap();
+    w.write_sensor(&sensor.model, 0).unwrap();
+    for (i, pose) in scenes::box_scene_poses().iter().enumerate() {
+        let (range, eo) =
+            scenes::frames(&scene, &sensor, pose, scenes::tint(i as u32), i as u32 + 1);
+        w.write_range(&range, RangeEncoding::F32Metres).unwrap();
+        w.write_eo(&eo, EoEncoding::Rgb8).unwrap();
+        w.write_pose(topic, range.timestamp_ns, pose).unwrap();
+    }
+    w.finish().unwrap();
+}
+
+pub fn viewer_binary() -> PathBuf {
+    PathBuf::from(env!("CARGO_BIN_EXE_texel-viewer"))
+}
+
+/// An Xvfb server, killed when dropped.
+pub struct Xvfb(std::process::Child);
+
+impl Drop for Xvfb {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// Starts Xvfb on the first display number whose lock file is free.
+pub fn start_xvfb() -> (Xvfb, String) {
+    for n in 90..140 {
+        if std::path::Path::new(&format!("/tmp/.X{n}-lock")).exists() {
+            continue;
+        }
+        let display = format!(":{n}");
+        let child = std::process::Command::new("Xvfb")
+            .args([&display, "-screen", "0", "800x600x24", "-nolisten", "tcp"])
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .expect("Xvfb must be installed (scripts/setup.sh installs xvfb)");
+        let xvfb = Xvfb(child);
+        let start = std::time::Instant::now();
+        while start.elapsed() < std::time::Duration::from_secs(10) {
+            if std::path::Path::new(&format!("/tmp/.X11-unix/X{n}")).exists() {
+                return (xvfb, display);
+            }
+            std::thread::sleep(std::time::Duration::from_millis(50));
+        }
+    }
+    panic!("no free X display for Xvfb");
+}
