@@ -15,7 +15,7 @@
 
 use nalgebra::{Point3, Vector3};
 
-use crate::geometry::{Bvh, Ray};
+use crate::geometry::{Aabb, Bvh, Ray};
 use crate::material::{Material, Rgb};
 
 /// Point lights closer than this to the shaded point are treated as this far (m),
@@ -61,15 +61,76 @@ pub struct ShadePoint<'a> {
     pub material: &'a Material,
 }
 
+/// What shadow rays are tested against.
+#[derive(Debug, Clone, Copy)]
+pub enum Occluders<'a> {
+    /// Every shadow caster, through the shadow BVH.
+    All(&'a Bvh),
+    /// Per light (in [`Lighting::lights`] order), the shadow casters that can lie
+    /// between it and the points being shaded (from [`Bvh::overlapping`]), or `None`
+    /// to test them all.
+    Culled {
+        bvh: &'a Bvh,
+        per_light: &'a [Option<Vec<u32>>],
+    },
+}
+
+impl Occluders<'_> {
+    /// True when a caster blocks the shadow ray of light `light` before `t_max`.
+    #[inline]
+    fn blocked(&self, light: usize, ray: &Ray, t_max: f64) -> bool {
+        match self {
+            Self::All(bvh) => bvh.any_hit(ray, t_max),
+            Self::Culled { bvh, per_light } => match per_light.get(light) {
+                Some(Some(candidates)) => bvh.any_hit_among(ray, t_max, candidates),
+                _ => bvh.any_hit(ray, t_max),
+            },
+        }
+    }
+}
+
 impl Lighting {
+    /// For a group of points inside `region` (padded by the shadow rays' offset), the
+    /// casters each shadowed point light can be hidden behind: those whose bounds
+    /// overlap the box around the light and `region`, which holds every shadow ray
+    /// segment of the group. Directional lights and lights without shadows get `None`.
+    pub fn shadow_candidates(&self, bvh: &Bvh, region: &Aabb, out: &mut Vec<Option<Vec<u32>>>) {
+        out.resize_with(self.lights.len(), || None);
+        for (light, slot) in self.lights.iter().zip(out.iter_mut()) {
+            match light {
+                Light::Point {
+                    position,
+                    shadows: true,
+                    ..
+                } => {
+                    let mut b = *region;
+                    b.grow_point(position);
+                    let list = slot.get_or_insert_with(Vec::new);
+                    bvh.overlapping(&b, list);
+                }
+                _ => *slot = None,
+            }
+        }
+    }
+
     /// Radiance towards the eye; `specular` (a multiplier on the material's `k_s`)
     /// switches the Blinn-Phong lobe on.
     pub fn shade(&self, bvh: &Bvh, p: &ShadePoint<'_>, specular: Option<f32>) -> Rgb {
+        self.shade_with(&Occluders::All(bvh), p, specular)
+    }
+
+    /// [`Self::shade`] with the shadow casters given per light.
+    pub fn shade_with(
+        &self,
+        occluders: &Occluders<'_>,
+        p: &ShadePoint<'_>,
+        specular: Option<f32>,
+    ) -> Rgb {
         let mut diffuse = self.ambient;
         let mut glossy = [0.0f32; 3];
         let k_s = specular.map_or(0.0, |s| s * p.material.specular);
         let use_specular = k_s > 0.0;
-        for light in &self.lights {
+        for (index, light) in self.lights.iter().enumerate() {
             let (to_light, distance, irradiance, shadows) = match light {
                 Light::Directional {
                     towards_light,
@@ -112,7 +173,7 @@ impl Lighting {
                     origin: p.point + p.normal * SHADOW_BIAS_M,
                     dir: to_light,
                 };
-                if bvh.any_hit(&ray, distance - 2.0 * SHADOW_BIAS_M) {
+                if occluders.blocked(index, &ray, distance - 2.0 * SHADOW_BIAS_M) {
                     continue;
                 }
             }

@@ -172,7 +172,7 @@ impl Simulator {
         }
         let sensor = Sensor::new(model);
         let lidar_rays = LidarRays {
-            centre: sensor.lidar_rays.rays().0.to_vec(),
+            centre: CameraRays::new(&sensor.model.lidar),
             footprint: effects
                 .mixed_pixels
                 .as_ref()
@@ -434,6 +434,7 @@ impl Simulator {
         let hits = self
             .lidar_rays
             .centre
+            .rays
             .par_iter()
             .map(|r| world_ray(&world_from_lidar, r).and_then(|ray| self.scene.world.truth(&ray)))
             .collect();

@@ -5,7 +5,7 @@
 use nalgebra::{Point3, Vector3};
 
 use crate::geometry::{Bvh, Hit, Ray};
-use crate::light::{Lighting, ShadePoint};
+use crate::light::{Lighting, Occluders, ShadePoint};
 use crate::material::{Material, Rgb};
 use crate::render::SurfaceSample;
 
@@ -66,7 +66,13 @@ impl World {
     /// beam's angular width (texture footprint for the reflectivity lookup).
     #[inline]
     pub fn surface_sample(&self, ray: &Ray, beam_rad: f64) -> Option<SurfaceSample> {
-        let h = self.trace(ray)?;
+        self.echo_of_hit(ray, self.trace(ray), beam_rad)
+    }
+
+    /// [`Self::surface_sample`] for the hit `hit` of `ray`, found by the caller.
+    #[inline]
+    pub fn echo_of_hit(&self, ray: &Ray, hit: Option<Hit>, beam_rad: f64) -> Option<SurfaceSample> {
+        let h = hit?;
         let cos = h.normal.dot(&ray.dir).abs().min(1.0);
         let material = self.materials.get(h.material as usize)?;
         let footprint = footprint_m(h.distance_m, beam_rad, cos);
@@ -94,6 +100,26 @@ impl World {
         pixel_rad: f64,
         specular: Option<f32>,
     ) -> Rgb {
+        self.shade_hit_with(
+            &Occluders::All(&self.shadow_bvh),
+            ray,
+            hit,
+            pixel_rad,
+            specular,
+        )
+    }
+
+    /// [`Self::shade_hit`] with the shadow casters chosen by the caller (see
+    /// [`Occluders`]).
+    #[inline]
+    pub fn shade_hit_with(
+        &self,
+        occluders: &Occluders<'_>,
+        ray: &Ray,
+        hit: Option<Hit>,
+        pixel_rad: f64,
+        specular: Option<f32>,
+    ) -> Rgb {
         let Some(h) = hit else {
             return self.background;
         };
@@ -103,8 +129,8 @@ impl World {
         let cos = h.normal.dot(&ray.dir);
         let normal = if cos > 0.0 { -h.normal } else { h.normal };
         let albedo = material.albedo(h.uv_m, footprint_m(h.distance_m, pixel_rad, cos.abs()));
-        self.lighting.shade(
-            &self.shadow_bvh,
+        self.lighting.shade_with(
+            occluders,
             &ShadePoint {
                 point: ray.at(h.distance_m),
                 normal,

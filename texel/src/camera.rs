@@ -19,7 +19,7 @@ pub const MAX_IMAGE_SIDE: u32 = 16_384;
 pub const UNDISTORT_MAX_ITERATIONS: u32 = 50;
 
 /// Nearest depth in front of the camera a point may have and still be projected.
-const MIN_PROJECT_DEPTH: f64 = 1.0e-9;
+pub(crate) const MIN_PROJECT_DEPTH: f64 = 1.0e-9;
 
 /// Lens distortion of a camera.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, Default)]

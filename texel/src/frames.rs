@@ -61,7 +61,9 @@ impl RangeFrame {
 /// zero and negative values are no-returns.
 #[inline]
 pub fn is_return(range_m: f32) -> bool {
-    range_m.is_finite() && range_m > 0.0
+    // Two comparisons without a branch between them (NaN fails both), so loops over
+    // ranges vectorise.
+    (range_m > 0.0) & (range_m < f32::INFINITY)
 }
 
 /// One EO frame after conversion to RGB8, row-major, row 0 at the top.

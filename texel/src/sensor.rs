@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 use crate::camera::{CameraError, PinholeCamera};
-use crate::fuse::LidarPitch;
+use crate::fuse::{FusionTables, LidarPitch};
 use crate::pose::{Pose, PoseError, pose_from_parts, pose_to_parts};
 use crate::rays::RayTable;
 
@@ -306,6 +306,9 @@ pub struct Sensor {
     pub lidar_pitch: LidarPitch,
     /// The EO distortion model's valid-domain bound, computed once.
     pub eo_max_r2: Option<f64>,
+    /// The lidar rays in the EO frame and the EO projection constants, so that
+    /// fusion does per frame only what depends on the frame.
+    pub fusion: FusionTables,
 }
 
 impl Sensor {
@@ -313,11 +316,13 @@ impl Sensor {
         let lidar_rays = RayTable::new(&model.lidar);
         let lidar_pitch = LidarPitch::new(&lidar_rays);
         let eo_max_r2 = model.eo.max_radius_squared();
+        let fusion = FusionTables::new(&model, &lidar_rays);
         Self {
             model,
             lidar_rays,
             lidar_pitch,
             eo_max_r2,
+            fusion,
         }
     }
 }

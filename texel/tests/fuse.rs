@@ -389,6 +389,21 @@ fn depth_steps_are_stretched_and_flat_noisy_surfaces_are_not() {
 proptest! {
     #![proptest_config(ProptestConfig::with_cases(64))]
 
+    /// Any finite vertices, up to f32's range: no NaN, an accuracy within [0, 1] or
+    /// a degenerate verdict.
+    #[test]
+    fn normal_accuracy_is_bounded_for_any_finite_triangle(
+        coords in proptest::array::uniform9(
+            prop::num::f32::NORMAL | prop::num::f32::SUBNORMAL | prop::num::f32::ZERO
+        ),
+        cop in proptest::array::uniform3(-1e3f64..1e3),
+    ) {
+        let [a0, a1, a2, b0, b1, b2, c0, c1, c2] = coords;
+        if let Some(acc) = normal_accuracy([a0, a1, a2], [b0, b1, b2], [c0, c1, c2], cop) {
+            prop_assert!((0.0..=1.0).contains(&acc), "{acc}");
+        }
+    }
+
     /// Random valid sensors and ranges: nothing non-finite anywhere in the scan and
     /// accuracies within [0, 1].
     #[test]

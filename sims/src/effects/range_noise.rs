@@ -46,6 +46,6 @@ impl RangeNoiseEffect {
     /// The noisy range.
     #[inline]
     pub fn apply(&self, range_m: f64, noise: &RangeNoise, rng: &PixelRng) -> f64 {
-        range_m + self.scale * noise.sigma_at(range_m) * rng.normal(0)
+        range_m + self.scale * noise.sigma_at(range_m) * f64::from(rng.gaussian(0))
     }
 }

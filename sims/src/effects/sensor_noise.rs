@@ -54,25 +54,23 @@ impl EffectParams for SensorNoise {
 }
 
 impl SensorNoise {
-    /// Noisy linear values of one RGB pixel (inputs clipped to [0, 1] first).
+    /// Noisy linear values of one RGB pixel (inputs clipped to [0, 1] first): one
+    /// Gaussian per channel with the shot and read variances added.
     #[inline]
     pub fn apply(&self, rgb: [f32; 3], rng: &PixelRng) -> [f32; 3] {
-        let (a, b) = rng.normal_pair(0);
-        let (c, d) = rng.normal_pair(1);
-        let (e, f) = rng.normal_pair(2);
-        let shots = [a, c, e];
-        let reads = [b, d, f];
         let mut out = [0.0f32; 3];
-        for k in 0..3 {
-            let x = f64::from(rgb[k]);
+        let read_variance = self.read_noise_e * self.read_noise_e;
+        for (k, (o, &v)) in out.iter_mut().zip(&rgb).enumerate() {
+            let x = f64::from(v);
             let x = if x.is_finite() {
                 x.clamp(0.0, 1.0)
             } else {
                 0.0
             };
             let electrons = x * self.full_well_e;
-            let measured = electrons + electrons.sqrt() * shots[k] + self.read_noise_e * reads[k];
-            out[k] = (measured.clamp(0.0, self.full_well_e) / self.full_well_e) as f32;
+            let sigma = (electrons + read_variance).sqrt();
+            let measured = electrons + sigma * f64::from(rng.gaussian(k as u64));
+            *o = (measured.clamp(0.0, self.full_well_e) / self.full_well_e) as f32;
         }
         out
     }

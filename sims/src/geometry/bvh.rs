@@ -211,6 +211,61 @@ impl Bvh {
         best.and_then(|p| p.intersect(ray, f64::INFINITY))
     }
 
+    /// Indices (as for [`Self::closest_among`]) of every primitive whose bounds
+    /// overlap `region`, and all unbounded ones: the only primitives a segment inside
+    /// `region` can meet.
+    pub fn overlapping(&self, region: &Aabb, out: &mut Vec<u32>) {
+        out.clear();
+        let bounded = self.primitives.len() as u32;
+        out.extend((0..self.unbounded.len() as u32).map(|i| bounded + i));
+        if self.nodes.is_empty() {
+            return;
+        }
+        let overlaps =
+            |b: &Aabb| (0..3).all(|a| b.min[a] <= region.max[a] && b.max[a] >= region.min[a]);
+        let mut stack = [0u32; STACK];
+        let mut top = 1usize;
+        while top > 0 {
+            top -= 1;
+            let index = stack[top];
+            let node = &self.nodes[index as usize];
+            if !overlaps(&node.bounds) {
+                continue;
+            }
+            if node.count > 0 {
+                let first = node.first_or_right;
+                for i in first..first + node.count {
+                    if self.primitives[i as usize]
+                        .bounds()
+                        .is_none_or(|b| overlaps(&b))
+                    {
+                        out.push(i);
+                    }
+                }
+            } else if top + 2 <= STACK {
+                stack[top] = node.first_or_right;
+                stack[top + 1] = index + 1;
+                top += 2;
+            }
+        }
+    }
+
+    /// [`Self::any_hit`] among the primitives `candidates` only (from
+    /// [`Self::overlapping`] or [`Self::cone_candidates`]).
+    #[inline]
+    pub fn any_hit_among(&self, ray: &Ray, t_max: f64, candidates: &[u32]) -> bool {
+        let bounded = self.primitives.len();
+        candidates.iter().any(|&i| {
+            let i = i as usize;
+            let p = if i < bounded {
+                self.primitives.get(i)
+            } else {
+                self.unbounded.get(i - bounded)
+            };
+            p.is_some_and(|p| p.distance(ray, t_max).is_some())
+        })
+    }
+
     /// True when anything lies on the ray closer than `t_max` (shadow rays).
     pub fn any_hit(&self, ray: &Ray, t_max: f64) -> bool {
         if self

@@ -18,8 +18,9 @@ use crate::rng::{PixelRng, Stream};
 /// What the lidar pipeline needs about the lidar, computed once per simulator.
 #[derive(Debug, Clone)]
 pub struct LidarRays {
-    /// One unit ray per pixel, the sensor's ray table (zero = invalid pixel).
-    pub centre: Vec<[f32; 3]>,
+    /// One unit ray per pixel, the sensor's ray table (zero = invalid pixel), with its
+    /// tiles.
+    pub centre: CameraRays,
     /// The beam-footprint sub-rays of the `mixed_pixels` effect, when it runs.
     pub footprint: Option<CameraRays>,
     /// Angular width of one lidar pixel, radians.
@@ -57,13 +58,13 @@ pub fn echoes(
 ) -> Vec<Option<SurfaceSample>> {
     match (&effects.mixed_pixels, &rays.footprint) {
         (Some(mixed), Some(sub)) => {
-            let samples = backend.echoes(world_from_lidar, &sub.rays, rays.pixel_rad);
+            let samples = backend.camera_echoes(world_from_lidar, sub, rays.pixel_rad);
             samples
                 .par_chunks(sub.per_pixel.max(1))
                 .map(|echoes| mixed.combine(echoes))
                 .collect()
         }
-        _ => backend.echoes(world_from_lidar, &rays.centre, rays.pixel_rad),
+        _ => backend.camera_echoes(world_from_lidar, &rays.centre, rays.pixel_rad),
     }
 }
 

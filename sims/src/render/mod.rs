@@ -13,7 +13,8 @@ use nalgebra::{Vector2, Vector3};
 use rayon::prelude::*;
 use texel::{PinholeCamera, Pose};
 
-use crate::geometry::Ray;
+use crate::geometry::{Aabb, Hit, Ray};
+use crate::light::Occluders;
 use crate::material::Rgb;
 use crate::world::World;
 
@@ -41,7 +42,8 @@ pub struct CameraRays {
     pub per_pixel: usize,
     /// Angular width of one pixel at the image centre, radians (texture footprint).
     pub pixel_rad: f64,
-    /// Square tiles of [`TILE`] pixels (one ray per pixel only), row of tiles by row.
+    /// Square tiles of [`TILE`] pixels, row of tiles by row (empty: trace every ray
+    /// through the whole BVH).
     pub tiles: Vec<Tile>,
 }
 
@@ -66,11 +68,16 @@ pub struct Tile {
     pub edges: [Vector3<f64>; 4],
 }
 
-/// Bounding cone of the rays of pixels `[x0, x1) x [y0, y1)`: the pyramid of the rays
-/// through the tile's corners pushed out by one pixel, checked against every ray.
+/// Bounding cone of the rays of pixels `[x0, x1) x [y0, y1)` (`per_pixel` rays each,
+/// up to `reach_px` pixels off their pixel's centre): the pyramid of the rays through
+/// the tile's corners pushed out by one pixel more than that, checked against every
+/// ray.
+#[allow(clippy::too_many_arguments)]
 fn tile_cone(
     camera: &PinholeCamera,
     rays: &[[f32; 3]],
+    per_pixel: usize,
+    reach_px: f64,
     x0: u32,
     y0: u32,
     x1: u32,
@@ -83,8 +90,14 @@ fn tile_cone(
             .ok()?;
         Some(Vector3::new(n.x, n.y, 1.0))
     };
-    let (l, t) = (f64::from(x0) - 1.5, f64::from(y0) - 1.5);
-    let (r, b) = (f64::from(x1) + 0.5, f64::from(y1) + 0.5);
+    let (l, t) = (
+        f64::from(x0) - 1.5 - reach_px,
+        f64::from(y0) - 1.5 - reach_px,
+    );
+    let (r, b) = (
+        f64::from(x1) + 0.5 + reach_px,
+        f64::from(y1) + 0.5 + reach_px,
+    );
     let c = [corner(l, t)?, corner(r, t)?, corner(r, b)?, corner(l, b)?];
     let centre = c.iter().fold(Vector3::zeros(), |a, v| a + v);
     let mut planes = [Vector3::zeros(); 4];
@@ -102,13 +115,15 @@ fn tile_cone(
     let w = camera.width as usize;
     for y in y0..y1 {
         for x in x0..x1 {
-            let r = rays[y as usize * w + x as usize];
-            if r == [0.0; 3] {
-                return None;
-            }
-            let r = Vector3::new(f64::from(r[0]), f64::from(r[1]), f64::from(r[2]));
-            if planes.iter().any(|n| n.dot(&r) < 0.0) {
-                return None;
+            let first = (y as usize * w + x as usize) * per_pixel;
+            for r in rays.get(first..first + per_pixel)? {
+                if *r == [0.0; 3] {
+                    return None;
+                }
+                let r = Vector3::new(f64::from(r[0]), f64::from(r[1]), f64::from(r[2]));
+                if planes.iter().any(|n| n.dot(&r) < 0.0) {
+                    return None;
+                }
             }
         }
     }
@@ -147,30 +162,31 @@ impl CameraRays {
             })
             .collect();
         let pixel_rad = 1.0 / camera.fx.max(camera.fy);
-        let tiles = if offsets.len() == 1 {
-            let (tw, th) = (camera.width.div_ceil(TILE), camera.height.div_ceil(TILE));
-            (0..tw * th)
-                .into_par_iter()
-                .map(|i| {
-                    let (x0, y0) = ((i % tw) * TILE, (i / tw) * TILE);
-                    let (x1, y1) = (
-                        (x0 + TILE).min(camera.width),
-                        (y0 + TILE).min(camera.height),
-                    );
-                    let cone = tile_cone(camera, &rays, x0, y0, x1, y1);
-                    Tile {
-                        x0,
-                        y0,
-                        x1,
-                        y1,
-                        planes: cone.map(|c| c.0),
-                        edges: cone.map_or([Vector3::zeros(); 4], |c| c.1),
-                    }
-                })
-                .collect()
-        } else {
-            Vec::new()
-        };
+        let per_pixel = offsets.len();
+        let reach_px = offsets
+            .iter()
+            .map(|o| o[0].abs().max(o[1].abs()))
+            .fold(0.0, f64::max);
+        let (tw, th) = (camera.width.div_ceil(TILE), camera.height.div_ceil(TILE));
+        let tiles = (0..tw * th)
+            .into_par_iter()
+            .map(|i| {
+                let (x0, y0) = ((i % tw) * TILE, (i / tw) * TILE);
+                let (x1, y1) = (
+                    (x0 + TILE).min(camera.width),
+                    (y0 + TILE).min(camera.height),
+                );
+                let cone = tile_cone(camera, &rays, per_pixel, reach_px, x0, y0, x1, y1);
+                Tile {
+                    x0,
+                    y0,
+                    x1,
+                    y1,
+                    planes: cone.map(|c| c.0),
+                    edges: cone.map_or([Vector3::zeros(); 4], |c| c.1),
+                }
+            })
+            .collect();
         Self {
             camera: camera.clone(),
             rays,
@@ -225,6 +241,18 @@ pub trait RenderBackend: Send + Sync {
         specular: Option<f32>,
     ) -> Vec<Rgb>;
 
+    /// [`Self::echoes`] of a camera's rays (`rays.per_pixel` per pixel), whose layout
+    /// a backend may use (the built-in one culls per tile). By default, `echoes` of
+    /// `rays.rays`.
+    fn camera_echoes(
+        &self,
+        world_from_camera: &Pose,
+        rays: &CameraRays,
+        beam_rad: f64,
+    ) -> Vec<Option<SurfaceSample>> {
+        self.echoes(world_from_camera, &rays.rays, beam_rad)
+    }
+
     /// Why rendering failed, if it did (an out-of-process renderer that died): the
     /// results of the failed calls are empty (no echoes, black radiance) and the
     /// simulator reports this message instead of returning them.
@@ -265,9 +293,78 @@ pub struct BuiltinBackend {
     world: Arc<World>,
 }
 
+/// One ray of a tile and what it hits, found by [`BuiltinBackend::trace_tiles`].
+struct TileRay {
+    /// Index of the ray's output within its strip of tiles.
+    local: usize,
+    ray: Ray,
+    hit: Option<Hit>,
+}
+
 impl BuiltinBackend {
     pub fn new(world: Arc<World>) -> Self {
         Self { world }
+    }
+
+    /// Traces every ray of `rays` tile by tile: each tile gathers the primitives its
+    /// cone of rays can meet once, then its rays test only those (a tile without a
+    /// cone traces through the BVH). `finish` turns a tile's rays and hits into
+    /// outputs in `strip`, the tile's row of tiles; strips run in parallel.
+    fn trace_tiles<T, F>(
+        &self,
+        world_from_camera: &Pose,
+        rays: &CameraRays,
+        out: &mut [T],
+        finish: F,
+    ) where
+        T: Send,
+        F: Fn(&[TileRay], &mut [T]) + Sync,
+    {
+        let width = rays.camera.width as usize;
+        let per = rays.per_pixel.max(1);
+        let tiles_per_row = rays.camera.width.div_ceil(TILE) as usize;
+        let origin: nalgebra::Point3<f64> = world_from_camera.translation.vector.into();
+        let bvh = &self.world.bvh;
+        out.par_chunks_mut(TILE as usize * width * per)
+            .zip(rays.tiles.par_chunks(tiles_per_row.max(1)))
+            .for_each(|(strip, tiles)| {
+                let mut candidates = Vec::new();
+                let mut traced = Vec::with_capacity((TILE * TILE) as usize * per);
+                for tile in tiles {
+                    let planes = tile
+                        .planes
+                        .map(|p| p.map(|n| world_from_camera.rotation * n));
+                    if let Some(planes) = &planes {
+                        let edges = tile.edges.map(|e| world_from_camera.rotation * e);
+                        bvh.cone_candidates(&origin, planes, &edges, &mut candidates);
+                    }
+                    traced.clear();
+                    for y in tile.y0..tile.y1 {
+                        let row = y as usize * width;
+                        let local_row = (y - tile.y0) as usize * width;
+                        for x in tile.x0..tile.x1 {
+                            for k in 0..per {
+                                let index = (row + x as usize) * per + k;
+                                let local = (local_row + x as usize) * per + k;
+                                let Some(ray) = rays
+                                    .rays
+                                    .get(index)
+                                    .and_then(|r| world_ray(world_from_camera, r))
+                                else {
+                                    continue;
+                                };
+                                let hit = if planes.is_some() {
+                                    bvh.closest_among(&ray, &candidates)
+                                } else {
+                                    self.world.trace(&ray)
+                                };
+                                traced.push(TileRay { local, ray, hit });
+                            }
+                        }
+                    }
+                    finish(&traced, strip);
+                }
+            });
     }
 }
 
@@ -294,6 +391,26 @@ impl RenderBackend for BuiltinBackend {
         out
     }
 
+    fn camera_echoes(
+        &self,
+        world_from_camera: &Pose,
+        rays: &CameraRays,
+        beam_rad: f64,
+    ) -> Vec<Option<SurfaceSample>> {
+        if rays.tiles.is_empty() || rays.camera.width == 0 {
+            return self.echoes(world_from_camera, &rays.rays, beam_rad);
+        }
+        let mut out = vec![None; rays.rays.len()];
+        self.trace_tiles(world_from_camera, rays, &mut out, |traced, strip| {
+            for t in traced {
+                if let Some(o) = strip.get_mut(t.local) {
+                    *o = self.world.echo_of_hit(&t.ray, t.hit, beam_rad);
+                }
+            }
+        });
+        out
+    }
+
     fn radiance(
         &self,
         world_from_camera: &Pose,
@@ -302,8 +419,7 @@ impl RenderBackend for BuiltinBackend {
     ) -> Vec<Rgb> {
         let mut out = vec![[0.0f32; 3]; rays.rays.len()];
         let pixel_rad = rays.pixel_rad;
-        let width = rays.camera.width as usize;
-        if rays.per_pixel != 1 || rays.tiles.is_empty() || width == 0 {
+        if rays.per_pixel != 1 || rays.tiles.is_empty() || rays.camera.width == 0 {
             out.par_chunks_mut(CHUNK)
                 .zip(rays.rays.par_chunks(CHUNK))
                 .for_each(|(out, rays)| {
@@ -316,43 +432,40 @@ impl RenderBackend for BuiltinBackend {
                 });
             return out;
         }
-        // Strips of one row of tiles: each tile gathers the primitives its cone of
-        // rays can meet once, then its pixels test only those.
-        let tiles_per_row = rays.camera.width.div_ceil(TILE) as usize;
-        let origin: nalgebra::Point3<f64> = world_from_camera.translation.vector.into();
-        out.par_chunks_mut(TILE as usize * width)
-            .zip(rays.tiles.par_chunks(tiles_per_row))
-            .for_each(|(strip, tiles)| {
-                let mut candidates = Vec::new();
-                for tile in tiles {
-                    let planes = tile
-                        .planes
-                        .map(|p| p.map(|n| world_from_camera.rotation * n));
-                    if let Some(planes) = &planes {
-                        let edges = tile.edges.map(|e| world_from_camera.rotation * e);
-                        self.world
-                            .bvh
-                            .cone_candidates(&origin, planes, &edges, &mut candidates);
-                    }
-                    for y in tile.y0..tile.y1 {
-                        for x in tile.x0..tile.x1 {
-                            let index = y as usize * width + x as usize;
-                            let local = (y - tile.y0) as usize * width + x as usize;
-                            let Some(ray) = world_ray(world_from_camera, &rays.rays[index]) else {
-                                continue;
-                            };
-                            let hit = if planes.is_some() {
-                                self.world.bvh.closest_among(&ray, &candidates)
-                            } else {
-                                self.world.trace(&ray)
-                            };
-                            if let Some(o) = strip.get_mut(local) {
-                                *o = self.world.shade_hit(&ray, hit, pixel_rad, specular);
-                            }
-                        }
-                    }
+        let world = &self.world;
+        self.trace_tiles(world_from_camera, rays, &mut out, |traced, strip| {
+            // Shadow rays of the tile run from its hit points to the lights: only the
+            // casters between the two can block them.
+            let mut region = Aabb::EMPTY;
+            for t in traced {
+                if let Some(h) = &t.hit {
+                    region.grow_point(&t.ray.at(h.distance_m));
                 }
-            });
+            }
+            let mut per_light = Vec::new();
+            let occluders = if region.min[0] <= region.max[0] {
+                for a in 0..3 {
+                    // Room for the shadow rays' offset off the surface.
+                    let pad = 1.0e-5 * (1.0 + region.min[a].abs().max(region.max[a].abs()));
+                    region.min[a] -= pad;
+                    region.max[a] += pad;
+                }
+                world
+                    .lighting
+                    .shadow_candidates(&world.shadow_bvh, &region, &mut per_light);
+                Occluders::Culled {
+                    bvh: &world.shadow_bvh,
+                    per_light: &per_light,
+                }
+            } else {
+                Occluders::All(&world.shadow_bvh)
+            };
+            for t in traced {
+                if let Some(o) = strip.get_mut(t.local) {
+                    *o = world.shade_hit_with(&occluders, &t.ray, t.hit, pixel_rad, specular);
+                }
+            }
+        });
         out
     }
 }
