@@ -5,7 +5,7 @@
 //! read back by trimesh.
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests panic on failure by design
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
 use std::time::Duration;
 
@@ -231,7 +231,7 @@ async fn sim_scans_reach_a_client_registered_near_the_truth_and_replay_bit_ident
     }
 }
 
-fn check_export(path: &PathBuf) -> serde_json::Value {
+fn check_export(path: &Path) -> serde_json::Value {
     let out = run_python("check_export.py", &[path.as_os_str()]);
     assert!(
         out.status.success(),

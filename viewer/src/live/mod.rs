@@ -157,7 +157,7 @@ pub fn fov_y_deg_of_scan(scan: &texel::TexelScan) -> Option<f64> {
         .zip(&scan.vertex_textured)
     {
         let z = f64::from(v[2]);
-        if !*textured || !(z > 1e-3) || !z.is_finite() {
+        if !*textured || !z.is_finite() || z <= 1e-3 {
             continue;
         }
         let a = f64::from(v[1]) / z;

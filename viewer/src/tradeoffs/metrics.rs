@@ -166,7 +166,7 @@ mod tests {
         // Every channel off by 5: MSE 25, PSNR 20 log10(255 / 5).
         let b: Vec<u8> = a
             .iter()
-            .map(|v| v.saturating_add(5).min(250).max(5))
+            .map(|v| v.saturating_add(5).clamp(5, 250))
             .collect();
         let a2: Vec<u8> = b.iter().map(|v| v - 5).collect();
         let s = score(&a2, &b, &mask, w, h).unwrap();
