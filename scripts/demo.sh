@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The main job on one machine: the daemon on the simulated texel camera (the `lab`
-# scene, registered as it goes) with the viewer attached. With a display the viewer
+# scene, registered as it goes; configs/sessions/demo-lab.toml, which waits for every
+# frame rather than skipping late ones) with the viewer attached. With a display the viewer
 # opens a window; without one it renders snapshots of the live model to a folder and
 # says where. Ctrl-C stops both cleanly.
 #   bash scripts/demo.sh
@@ -12,7 +13,7 @@ repo="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$repo"
 
 addr="${TEXEL_DEMO_ADDR:-127.0.0.1:7878}"
-config="${TEXEL_DEMO_CONFIG:-configs/sessions/sim-lab.toml}"
+config="${TEXEL_DEMO_CONFIG:-configs/sessions/demo-lab.toml}"
 snapshots="${TEXEL_DEMO_SNAPSHOTS:-demo-snapshots}"
 
 bash scripts/setup.sh
@@ -38,6 +39,9 @@ stop() {
 trap stop INT TERM
 
 if [ -f "$config" ]; then
+  # The session records into captures/ (git-ignored, so absent from a fresh clone);
+  # the daemon does not create folders for its recording.
+  mkdir -p captures
   echo "demo: starting texeld run --config $config on $addr" >&2
   "$bin/texeld" run --config "$config" --bind "$addr" &
   daemon_pid=$!
@@ -58,7 +62,11 @@ fi
 viewer_args=(--connect "$addr")
 if [ -z "${DISPLAY:-}" ] && [ -z "${WAYLAND_DISPLAY:-}" ]; then
   viewer_args+=(--snapshots "$snapshots" --width 640 --height 480)
-  echo "demo: no display; the viewer writes snapshots of the live model to $repo/$snapshots" >&2
+  case "$snapshots" in
+    /*) shown="$snapshots" ;;
+    *) shown="$repo/$snapshots" ;;
+  esac
+  echo "demo: no display; the viewer writes snapshots of the live model to $shown" >&2
 fi
 "$bin/texel-viewer" "${viewer_args[@]}" &
 viewer_pid=$!

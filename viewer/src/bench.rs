@@ -173,5 +173,76 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<()> {
             bytes as f64 / base_bytes as f64
         );
     }
+    profile(&gpu, &mut renderer, &camera, &mut settings, args)?;
+    Ok(())
+}
+
+/// Where a k-buffer frame's time goes: each phase submitted and waited for on its
+/// own (the medians of `frames` frames; the sum exceeds an unprofiled frame by the
+/// lost overlap).
+fn profile(
+    gpu: &GpuContext,
+    renderer: &mut Renderer,
+    camera: &VirtualCamera,
+    settings: &mut RenderSettings,
+    args: &BenchArgs,
+) -> anyhow::Result<()> {
+    let texture = gpu.device.create_texture(&wgpu::TextureDescriptor {
+        label: Some("profile target"),
+        size: wgpu::Extent3d {
+            width: camera.width,
+            height: camera.height,
+            depth_or_array_layers: 1,
+        },
+        mip_level_count: 1,
+        sample_count: 1,
+        dimension: wgpu::TextureDimension::D2,
+        format: IMAGE_FORMAT,
+        usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
+        view_formats: &[],
+    });
+    let view = texture.create_view(&wgpu::TextureViewDescriptor::default());
+    let target = RenderTarget {
+        view: &view,
+        format: IMAGE_FORMAT,
+        width: camera.width,
+        height: camera.height,
+    };
+    println!(
+        "k-buffer phases, 30 scans, ms (median of {} frames):",
+        args.frames
+    );
+    println!(
+        "{:>6} {:>10} {:>10} {:>10} {:>10} {:>10}",
+        "batch", "pre-pass", "layers", "merges", "composite", "sum"
+    );
+    renderer.profile_phases = true;
+    for batch in [args.batch, 16] {
+        settings.strategy = Strategy::KBuffer { batch };
+        let mut samples: Vec<[f64; 4]> = Vec::new();
+        for i in 0..args.frames.max(1) + 1 {
+            let stats = renderer.render(camera, settings, &target)?;
+            if i > 0
+                && let Some(p) = stats.phase_ms
+            {
+                samples.push(p);
+            }
+        }
+        let median = |j: usize| {
+            let mut v: Vec<f64> = samples.iter().map(|p| p[j]).collect();
+            v.sort_by(f64::total_cmp);
+            v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
+        };
+        let m = [median(0), median(1), median(2), median(3)];
+        println!(
+            "{batch:>6} {:>10.2} {:>10.2} {:>10.2} {:>10.2} {:>10.2}",
+            m[0],
+            m[1],
+            m[2],
+            m[3],
+            m.iter().sum::<f64>()
+        );
+    }
+    renderer.profile_phases = false;
     Ok(())
 }

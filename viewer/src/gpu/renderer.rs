@@ -68,7 +68,7 @@ impl RenderSettings {
 }
 
 /// What a frame drew.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct FrameStats {
     pub scans: usize,
     pub drawn: usize,
@@ -79,6 +79,19 @@ pub struct FrameStats {
     pub target_memory: TargetMemory,
     /// GPU bytes of all uploaded scans (vertices, indices, textures).
     pub scan_bytes: u64,
+    /// With [`Renderer::profile_phases`]: milliseconds spent in each k-buffer phase
+    /// (pre-pass, scan layers, merges, composite), each submitted and waited for on
+    /// its own.
+    pub phase_ms: Option<[f64; 4]>,
+}
+
+/// The k-buffer's phases, for profiling.
+#[derive(Debug, Clone, Copy)]
+enum Phase {
+    Prepass = 0,
+    Layers = 1,
+    Merge = 2,
+    Composite = 3,
 }
 
 /// Where a frame goes: a view of a texture of `format` and size.
@@ -115,6 +128,9 @@ pub struct Renderer {
     depth: Option<DepthTarget>,
     kbuffer: Option<KBufferTargets>,
     pub(crate) naive: Option<NaiveTargets>,
+    /// Submit and wait after each k-buffer phase and time it (slower; for `bench`).
+    pub profile_phases: bool,
+    phase_clock: std::cell::Cell<Option<(std::time::Instant, [f64; 4])>>,
 }
 
 impl Renderer {
@@ -145,7 +161,29 @@ impl Renderer {
             depth: None,
             kbuffer: None,
             naive: None,
+            profile_phases: false,
+            phase_clock: std::cell::Cell::new(None),
         }
+    }
+
+    /// When profiling, ends `phase`: submits what is encoded, waits for the GPU and
+    /// books the time since the previous checkpoint to `phase`.
+    fn checkpoint(&self, encoder: &mut wgpu::CommandEncoder, phase: Phase) {
+        let Some((since, mut phases)) = self.phase_clock.get() else {
+            return;
+        };
+        let done = std::mem::replace(
+            encoder,
+            self.device
+                .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                    label: Some("profiled frame"),
+                }),
+        );
+        self.queue.submit(Some(done.finish()));
+        let _ = self.device.poll(wgpu::PollType::wait_indefinitely());
+        let now = std::time::Instant::now();
+        phases[phase as usize] += now.duration_since(since).as_secs_f64() * 1e3;
+        self.phase_clock.set(Some((now, phases)));
     }
 
     /// Uploads a scan once; adding an id again only moves it.
@@ -441,11 +479,27 @@ impl Renderer {
                 };
             }
             Some(Strategy::KBuffer { batch }) => {
+                if self.profile_phases {
+                    self.queue.submit(Some(
+                        std::mem::replace(
+                            &mut encoder,
+                            self.device
+                                .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                                    label: Some("profiled frame"),
+                                }),
+                        )
+                        .finish(),
+                    ));
+                    let _ = self.device.poll(wgpu::PollType::wait_indefinitely());
+                    self.phase_clock
+                        .set(Some((std::time::Instant::now(), [0.0; 4])));
+                }
                 let batch = batch.clamp(1, 64);
                 let batches = visible.len().div_ceil(batch as usize) as u32;
                 let k = settings.composite.effective_k() as u32;
                 self.ensure_kbuffer(target.width, target.height, k, batch, batches)?;
                 self.encode_kbuffer(&mut encoder, settings, target, &visible)?;
+                stats.phase_ms = self.phase_clock.take().map(|(_, p)| p);
                 stats.target_memory = self
                     .kbuffer
                     .as_ref()
@@ -624,6 +678,7 @@ impl Renderer {
             pass.set_pipeline(&self.pipelines.prepass);
             self.draw_scans(&mut pass, settings, visible);
         }
+        self.checkpoint(encoder, Phase::Prepass);
         // 2. Scans a batch at a time into the layers, each batch merged into the k-buffer.
         encoder.clear_buffer(&t.kbuffer, 0, None);
         for (b, chunk) in visible.chunks(t.batch as usize).enumerate() {
@@ -642,6 +697,7 @@ impl Renderer {
                     id,
                 );
             }
+            self.checkpoint(encoder, Phase::Layers);
             // The pass needs an attachment: the depth buffer, neither tested nor written.
             let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("merge"),
@@ -658,6 +714,8 @@ impl Renderer {
                 &[KBufferTargets::slot_offset(b as u32)],
             );
             pass.draw(0..3, 0..1);
+            drop(pass);
+            self.checkpoint(encoder, Phase::Merge);
         }
         // 3. Composite into the target.
         let Some(outputs) = self.pipelines.outputs_for(target.format) else {
@@ -670,6 +728,7 @@ impl Renderer {
             &t.composite_bind_group,
             Self::clear_colour(settings, target.format),
         );
+        self.checkpoint(encoder, Phase::Composite);
         Ok(())
     }
 

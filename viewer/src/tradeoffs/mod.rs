@@ -46,6 +46,11 @@ pub struct TradeoffsArgs {
     /// Measure and print, but leave docs/tradeoffs.md alone.
     #[arg(long)]
     pub no_write: bool,
+    /// Also write, per scene and held-out pose, the ground truth and the default
+    /// `painter`, `best` and `blended` images (registered poses) as PNGs under this
+    /// folder, to look at what the numbers score.
+    #[arg(long)]
+    pub images: Option<PathBuf>,
 }
 
 /// One rendering configuration of the sweep.
@@ -241,6 +246,46 @@ fn registered_capture(capture: &Path) -> Result<(PathBuf, f64)> {
     Ok((out, start.elapsed().as_secs_f64()))
 }
 
+/// The ground truth and the default configurations' images of every pose, as
+/// `POSE-truth.png` and `POSE-MODE.png` in `dir`.
+fn write_images(
+    dir: &Path,
+    configs: &[Config],
+    rendered: &[(Vec<Vec<u8>>, Vec<f64>)],
+    truth_images: &std::collections::BTreeMap<(u32, u32), Vec<Vec<u8>>>,
+) -> Result<()> {
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    let save = |name: String, width: u32, height: u32, rgb: &[u8]| -> Result<()> {
+        let path = dir.join(name);
+        let image = image::RgbImage::from_raw(width, height, rgb.to_vec())
+            .with_context(|| format!("{}: image of the wrong size", path.display()))?;
+        image
+            .save(&path)
+            .with_context(|| format!("writing {}", path.display()))
+    };
+    let base = Config::base(Mode::Painter);
+    if let Some(truths) = truth_images.get(&(base.width, base.height)) {
+        for (i, rgb) in truths.iter().enumerate() {
+            save(format!("{i:02}-truth.png"), base.width, base.height, rgb)?;
+        }
+    }
+    for (c, (images, _)) in configs.iter().zip(rendered) {
+        let default = Config::base(c.mode);
+        if c.label() != default.label() || c.truth_poses {
+            continue;
+        }
+        for (i, rgb) in images.iter().enumerate() {
+            save(
+                format!("{i:02}-{}.png", c.mode.name()),
+                c.width,
+                c.height,
+                rgb,
+            )?;
+        }
+    }
+    Ok(())
+}
+
 /// RMSE of scan positions, registered against truth, matched by timestamp (mm).
 fn ate_mm(registered: &Model, truth: &Model) -> f64 {
     let truth_by_time: std::collections::HashMap<u64, texel::Pose> = truth
@@ -348,6 +393,9 @@ fn measure_scene(
             );
         }
         rendered.push((images, times));
+    }
+    if let Some(dir) = &args.images {
+        write_images(&dir.join(scene), &configs, &rendered, &truth_images)?;
     }
 
     // The mask of a pose at a resolution: pixels every configuration of that
