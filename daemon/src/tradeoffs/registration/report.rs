@@ -43,8 +43,7 @@ pub fn markdown(r: &Results, stem: &Path) -> String {
          200-frame handheld walk once around the `lab` room and back past its start, with \
          mixed pixels, dropouts, range noise and quantisation), `corridor` (one \
          unobservable direction), `plane` (three) and `courtyard` (outdoors: a third of \
-         its 10 m orbit, slowed from the scene's 72 frames a turn to 360, i.e. 17 cm \
-         and 1 degree a frame). \
+         a 10 m circle at a walking pace, 17 cm and 1 degree a frame). \
          Errors are against `/truth/pose`, relative to the first frame; RPE is between \
          consecutive frames. **Time per scan is registration alone (not fusion): the \
          CPU time of the process on one core** (one thread, `align.parallel = false`), \
