@@ -38,7 +38,7 @@ if [ ! -x "$venv/bin/python" ] || ! cmp -s "$req" "$stamp"; then
   echo "setup: creating the Python venv at $venv" >&2
   mkdir -p "$(dirname "$venv")"
   python3 -m venv "$venv"
-  "$venv/bin/python" -m pip install -q --disable-pip-version-check --upgrade pip
-  "$venv/bin/python" -m pip install -q --disable-pip-version-check -r "$req"
+  "$venv/bin/python" -m pip install -q --no-cache-dir --disable-pip-version-check --upgrade pip
+  "$venv/bin/python" -m pip install -q --no-cache-dir --disable-pip-version-check -r "$req"
   cp "$req" "$stamp"
 fi
