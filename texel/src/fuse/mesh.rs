@@ -40,7 +40,7 @@ impl StretchRule {
     /// spans a depth discontinuity. Used only for two returns (finite, positive
     /// ranges); elsewhere its answer is computed but never read. Plain comparisons
     /// rather than `min`/`max` (the same for such ranges) keep the loops vectorised.
-    #[inline]
+    #[inline(always)]
     fn stretched(&self, ri: f32, rj: f32, angle: f32) -> bool {
         let (near, far) = if ri < rj { (ri, rj) } else { (rj, ri) };
         // σ(r) as `RangeNoise::sigma_at` defines it: never negative.
@@ -51,6 +51,7 @@ impl StretchRule {
     }
 
     /// Edge flags `out[k]` for the edges `(ri[k], rj[k])` with ray angles `angles[k]`.
+    #[inline(always)]
     fn edges(&self, ri: &[f32], rj: &[f32], angles: &[f32], out: &mut [bool]) {
         for (((o, &a), &b), &angle) in out.iter_mut().zip(ri).zip(rj).zip(angles) {
             *o = self.stretched(a, b, angle);
@@ -144,6 +145,7 @@ impl Mesh {
 
     /// Adds the cells between `above` and `row` (none for the first row). `ranges`
     /// is the whole frame's.
+    #[inline(always)]
     pub fn add_row(&mut self, above: Option<&Row>, row: &Row, ranges: &[f32], pitch: &LidarPitch) {
         let w = row.width();
         let cells = w.saturating_sub(1);
@@ -172,6 +174,7 @@ impl Mesh {
 
     /// Triangles, flags and accuracies of every cell between `above` and `row`,
     /// whether or not its vertices exist (incomplete cells are not emitted).
+    #[inline(always)]
     fn build_cells(
         &mut self,
         above: &Row,
@@ -253,6 +256,7 @@ impl Mesh {
     }
 
     /// Appends the two triangles of every full cell, run by run (slice copies).
+    #[inline(always)]
     fn emit(&mut self) {
         let cells = &self.cells;
         for run in runs_of_true(&cells.full) {

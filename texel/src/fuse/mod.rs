@@ -38,6 +38,7 @@
 //! scan's arrays are allocated once at their final size and filled by slice copies.
 //! `cargo bench -p texel --bench fuse` measures it.
 
+mod isa;
 mod mesh;
 mod rows;
 mod tables;
@@ -131,8 +132,19 @@ pub fn fuse(
     sensor: &Sensor,
     config: &FuseConfig,
 ) -> Result<TexelScan, FuseError> {
+    fuse_with(isa::Isa::detect(), range, eo, sensor, config)
+}
+
+/// [`fuse`] with its row loop built for `isa`.
+fn fuse_with(
+    isa: isa::Isa,
+    range: &RangeFrame,
+    eo: EoFrame,
+    sensor: &Sensor,
+    config: &FuseConfig,
+) -> Result<TexelScan, FuseError> {
     check_sizes(range, &eo, sensor)?;
-    let (width, height) = (range.width as usize, range.height as usize);
+    let width = range.width as usize;
     let (returns, full_cells) = count_returns_and_cells(range, sensor.fusion.ray_valid());
     let mut points = Points::with_capacity(returns, range.pixel_count());
     let cop_m = [0.0; 3];
@@ -143,22 +155,7 @@ pub fn fuse(
         sensor.model.range_noise,
         cop_m,
     );
-    let (mut above, mut row) = (Row::new(width), Row::new(width));
-    for v in 0..height {
-        // Sec. 3: every return becomes a point in the EO frame, textured by projection.
-        row.place(v, range, &sensor.fusion, sensor.model.range_bias_m);
-        points.append(&mut row);
-        // Sec. 3: the range grid becomes a mesh, two triangles per full 2x2 cell, each
-        // graded by its normal accuracy; Sec. 4: triangles over depth discontinuities
-        // are flagged stretched.
-        mesh.add_row(
-            (v > 0).then_some(&above),
-            &row,
-            &range.ranges_m,
-            &sensor.lidar_pitch,
-        );
-        std::mem::swap(&mut above, &mut row);
-    }
+    isa::fuse_rows_with(isa, range, sensor, &mut points, &mut mesh);
     let (triangles, triangle_flags, triangle_accuracy) = mesh.finish();
     Ok(TexelScan {
         timestamp_ns: range.timestamp_ns,
@@ -178,6 +175,29 @@ pub fn fuse(
         scan_from_lidar: sensor.model.eo_from_lidar,
         range_noise: sensor.model.range_noise,
     })
+}
+
+/// The row loop of [`fuse`]: each row of lidar pixels placed, appended to the scan's
+/// vertices and meshed with the row above. Inlined into each of [`isa`]'s builds.
+#[inline(always)]
+fn fuse_rows(range: &RangeFrame, sensor: &Sensor, points: &mut Points, mesh: &mut Mesh) {
+    let width = range.width as usize;
+    let (mut above, mut row) = (Row::new(width), Row::new(width));
+    for v in 0..range.height as usize {
+        // Sec. 3: every return becomes a point in the EO frame, textured by projection.
+        row.place(v, range, &sensor.fusion, sensor.model.range_bias_m);
+        points.append(&mut row);
+        // Sec. 3: the range grid becomes a mesh, two triangles per full 2x2 cell, each
+        // graded by its normal accuracy; Sec. 4: triangles over depth discontinuities
+        // are flagged stretched.
+        mesh.add_row(
+            (v > 0).then_some(&above),
+            &row,
+            &range.ranges_m,
+            &sensor.lidar_pitch,
+        );
+        std::mem::swap(&mut above, &mut row);
+    }
 }
 
 fn check_sizes(range: &RangeFrame, eo: &EoFrame, sensor: &Sensor) -> Result<(), FuseError> {
@@ -241,6 +261,7 @@ fn count_returns_and_cells(range: &RangeFrame, ray_valid: &[bool]) -> (usize, us
 }
 
 /// The runs of consecutive `true` in `flags`, as index ranges, in order.
+#[inline(always)]
 fn runs_of_true(flags: &[bool]) -> impl Iterator<Item = Range<usize>> + '_ {
     let mut start = 0;
     std::iter::from_fn(move || {

@@ -55,6 +55,7 @@ impl Row {
     /// `ray · (r - range_bias_m) + t`
     /// (the lidar ray already turned into the EO frame), then its texture coordinate
     /// through the EO model, distortion included.
+    #[inline(always)]
     pub fn place(
         &mut self,
         v: usize,
@@ -126,6 +127,7 @@ impl Points {
 
     /// Appends the vertices of a placed row (each run of placed pixels as slice
     /// copies) and numbers the row's usable ones.
+    #[inline(always)]
     pub fn append(&mut self, row: &mut Row) {
         let n = row.width();
         let first_vertex = self.vertices.len() as u32;

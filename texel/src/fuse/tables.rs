@@ -192,7 +192,7 @@ impl EoProjection {
     /// value anywhere along the way is refused by the last one; everything is computed
     /// unconditionally and the verdict taken at the end, so loops over pixels
     /// vectorise.
-    #[inline]
+    #[inline(always)]
     pub fn project(&self, p: [f64; 3]) -> ([f32; 2], bool) {
         let in_front = p[2] >= MIN_PROJECT_DEPTH;
         let (x, y) = (p[0] / p[2], p[1] / p[2]);
