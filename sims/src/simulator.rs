@@ -9,6 +9,7 @@ use thiserror::Error;
 
 use crate::effects::lens_distortion::effective_model;
 use crate::effects::{Effect, EffectSet};
+use crate::render::eo::Development;
 use crate::render::lidar::{LidarRays, NoiseKey, echoes, render_range};
 use crate::render::mitsuba::{MitsubaBackend, MitsubaRenderer};
 use crate::render::{
@@ -84,6 +85,8 @@ pub struct Simulator {
     sensor: Sensor,
     lidar_rays: LidarRays,
     eo_rays: CameraRays,
+    /// How the EO images are developed with the simulation's effects.
+    eo_development: Development,
     /// Renders with the simulation's effects (global illumination included).
     backend: Arc<dyn RenderBackend>,
     /// Renders the clean signal (`clean_*_at`): the same renderer without effects.
@@ -202,11 +205,13 @@ impl Simulator {
                     Arc::new(BuiltinBackend::new(scene.world.clone()));
                 (builtin.clone(), builtin, None)
             };
+        let eo_development = Development::new(&eo_rays, &effects);
         Ok(Self {
             seed: options.seed,
             effects,
             sensor,
             lidar_rays,
+            eo_development,
             eo_rays,
             backend,
             clean_backend,
@@ -347,7 +352,7 @@ impl Simulator {
 
     fn eo_frame(&self, poses: &[Pose], key: NoiseKey, timestamp_ns: u64) -> EoFrame {
         let linear = eo::radiance(self.backend.as_ref(), &self.eo_rays, &self.effects, poses);
-        eo::develop(&linear, &self.eo_rays, &self.effects, key, timestamp_ns)
+        self.eo_development.develop(&linear, key, timestamp_ns)
     }
 
     /// A texel frame at any pose, with the simulation's effects except motion blur

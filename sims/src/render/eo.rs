@@ -10,6 +10,7 @@ use super::lidar::NoiseKey;
 use super::{CameraRays, RenderBackend};
 use crate::effects::EffectSet;
 use crate::effects::exposure::{CLEAN, lut_lookup};
+use crate::effects::sensor_noise::SensorNoise;
 use crate::material::Rgb;
 use crate::rng::{PixelRng, Stream};
 
@@ -47,7 +48,87 @@ pub fn radiance(
     acc
 }
 
-/// Turns linear radiance into an 8-bit RGB frame through the EO effects.
+/// What developing an image needs that does not change from frame to frame: the
+/// response curve's table, the exposure gain, each pixel's vignetting factor and the
+/// sensor noise model. Built once per camera and effect set.
+#[derive(Debug, Clone)]
+pub struct Development {
+    width: u32,
+    height: u32,
+    lut: Vec<u8>,
+    gain: f32,
+    /// Per pixel, the vignetting factor of its ray (`None` without `vignetting`).
+    vignette: Option<Vec<f32>>,
+    sensor_noise: Option<SensorNoise>,
+}
+
+impl Development {
+    pub fn new(rays: &CameraRays, effects: &EffectSet) -> Self {
+        let exposure = effects.exposure.clone().unwrap_or(CLEAN);
+        let per = rays.per_pixel.max(1);
+        let vignette = effects.vignetting.as_ref().map(|vig| {
+            (0..rays.pixel_count())
+                .into_par_iter()
+                .map(|pixel| {
+                    let cos = rays.rays.get(pixel * per).map_or(1.0, |r| f64::from(r[2]));
+                    vig.factor(cos)
+                })
+                .collect()
+        });
+        Self {
+            width: rays.camera.width,
+            height: rays.camera.height,
+            lut: exposure.lut(),
+            gain: exposure.gain(),
+            vignette,
+            sensor_noise: effects.sensor_noise.clone(),
+        }
+    }
+
+    /// Turns linear radiance (one value per pixel) into an 8-bit RGB frame through the
+    /// EO effects: vignetting, exposure gain and saturation, sensor noise, response
+    /// curve.
+    pub fn develop(&self, linear: &[Rgb], key: NoiseKey, timestamp_ns: u64) -> EoFrame {
+        let mut rgb = vec![0u8; 3 * linear.len()];
+        rgb.par_chunks_mut(3 * 1024)
+            .enumerate()
+            .for_each(|(chunk, out)| {
+                for (j, px) in out.chunks_exact_mut(3).enumerate() {
+                    let pixel = chunk * 1024 + j;
+                    let Some(l) = linear.get(pixel) else {
+                        continue;
+                    };
+                    let mut v = *l;
+                    if let Some(vignette) = &self.vignette {
+                        let f = vignette.get(pixel).copied().unwrap_or(1.0);
+                        for c in v.iter_mut() {
+                            *c *= f;
+                        }
+                    }
+                    for c in v.iter_mut() {
+                        *c = (*c * self.gain).clamp(0.0, 1.0);
+                    }
+                    if let Some(noise) = &self.sensor_noise {
+                        let rng =
+                            PixelRng::new(key.seed, key.frame, pixel as u64, Stream::SensorNoise);
+                        v = noise.apply(v, &rng);
+                    }
+                    for (o, c) in px.iter_mut().zip(v) {
+                        *o = lut_lookup(&self.lut, c);
+                    }
+                }
+            });
+        EoFrame {
+            width: self.width,
+            height: self.height,
+            rgb,
+            timestamp_ns,
+        }
+    }
+}
+
+/// Turns linear radiance into an 8-bit RGB frame through the EO effects (building the
+/// [`Development`] for this one image; keep one to develop many).
 pub fn develop(
     linear: &[Rgb],
     rays: &CameraRays,
@@ -55,43 +136,5 @@ pub fn develop(
     key: NoiseKey,
     timestamp_ns: u64,
 ) -> EoFrame {
-    let exposure = effects.exposure.clone().unwrap_or(CLEAN);
-    let lut = exposure.lut();
-    let gain = exposure.gain();
-    let per = rays.per_pixel.max(1);
-    let mut rgb = vec![0u8; 3 * linear.len()];
-    rgb.par_chunks_mut(3 * 1024)
-        .enumerate()
-        .for_each(|(chunk, out)| {
-            for (j, px) in out.chunks_exact_mut(3).enumerate() {
-                let pixel = chunk * 1024 + j;
-                let Some(l) = linear.get(pixel) else {
-                    continue;
-                };
-                let mut v = *l;
-                if let Some(vig) = &effects.vignetting {
-                    let cos = rays.rays.get(pixel * per).map_or(1.0, |r| f64::from(r[2]));
-                    let f = vig.factor(cos);
-                    for c in v.iter_mut() {
-                        *c *= f;
-                    }
-                }
-                for c in v.iter_mut() {
-                    *c = (*c * gain).clamp(0.0, 1.0);
-                }
-                if let Some(noise) = &effects.sensor_noise {
-                    let rng = PixelRng::new(key.seed, key.frame, pixel as u64, Stream::SensorNoise);
-                    v = noise.apply(v, &rng);
-                }
-                for (o, c) in px.iter_mut().zip(v) {
-                    *o = lut_lookup(&lut, c);
-                }
-            }
-        });
-    EoFrame {
-        width: rays.camera.width,
-        height: rays.camera.height,
-        rgb,
-        timestamp_ns,
-    }
+    Development::new(rays, effects).develop(linear, key, timestamp_ns)
 }
