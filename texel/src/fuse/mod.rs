@@ -36,7 +36,8 @@
 //! pixels, then the mesh between it and the row above (edge tests once per edge,
 //! triangles graded as they are made), all in loops the compiler vectorises; the
 //! scan's arrays are allocated once at their final size and filled by slice copies.
-//! `cargo bench -p texel --bench fuse` measures it.
+//! The row loop is built for the baseline target and for AVX2, chosen at run time
+//! (`isa`). `cargo bench -p texel --bench fuse` measures it.
 
 mod isa;
 mod mesh;
