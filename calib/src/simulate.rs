@@ -22,11 +22,15 @@ pub const BOARD_FACING: [f64; 3] = [0.0, -1.0, 0.0];
 /// How views are placed.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum PoseStyle {
-    /// Tilts of 15-40 degrees about random axes; every other view has the whole
-    /// plate in both cameras, the others put it near the EO image's edges.
+    /// A capture as the calibration guide asks for it: tilts of 25-55 degrees about
+    /// varying axes and rolls of up to 15 degrees throughout. Even views keep the whole
+    /// plate inside the lidar's view (0.95-1.35 m away, near the middle); odd views
+    /// (0.55-0.85 m away) cover the EO image,
+    /// putting the board into its four corners and against its four edges in turn
+    /// (see [`COVERAGE_CELLS`]), where the distortion's radial and tangential terms
+    /// part from the principal point.
     Varied,
-    /// Like `Varied`, with the board pushed towards the EO image's edges (the lidar
-    /// may lose it).
+    /// The board pushed towards the EO image's edges (the lidar may lose it).
     NearBorder,
     /// Board square-on to the camera (tilt below 2 degrees).
     FrontoParallel,
@@ -35,6 +39,26 @@ pub enum PoseStyle {
     /// The board in the EO image but partly outside the lidar's narrower view.
     LidarCut,
 }
+
+/// Where the coverage views of [`PoseStyle::Varied`] put the board in the EO image, in
+/// turn: `(-1, 0, +1)` along x (left, middle, right) and y (top, middle, bottom). The
+/// four corners come first: they fix the tangential terms best.
+pub const COVERAGE_CELLS: [(i8, i8); 8] = [
+    (-1, -1),
+    (1, 1),
+    (1, -1),
+    (-1, 1),
+    (-1, 0),
+    (1, 0),
+    (0, -1),
+    (0, 1),
+];
+
+/// A coverage view's inner corners stay this far inside the EO image (pixels), so the
+/// detector's window fits.
+const COVERAGE_INSIDE_PX: f64 = 10.0;
+/// ... and come within this much more of the borders of their cell (pixels).
+const COVERAGE_REACH_PX: f64 = 40.0;
 
 /// A small deterministic generator (splitmix64) for pose sampling.
 #[derive(Debug, Clone)]
@@ -90,6 +114,72 @@ fn margin_px(
         .fold(f64::INFINITY, f64::min)
 }
 
+/// The board's outermost inner corners (the rim of the corner grid) in the world.
+fn inner_corner_rim(target: &TargetConfig) -> Vec<Point3<f64>> {
+    let (nx, ny) = (target.nx(), target.ny());
+    let c = Vector3::from(BOARD_CENTRE);
+    let s = target.square_m;
+    let (hx, hz) = ((nx as f64 - 1.0) * 0.5 * s, (ny as f64 - 1.0) * 0.5 * s);
+    let mut out = Vec::with_capacity(2 * (nx + ny));
+    for i in 0..nx {
+        for j in [0, ny - 1] {
+            out.push((i, j));
+        }
+    }
+    for j in 1..ny.saturating_sub(1) {
+        for i in [0, nx - 1] {
+            out.push((i, j));
+        }
+    }
+    out.into_iter()
+        .map(|(i, j)| Point3::from(c + Vector3::new(i as f64 * s - hx, 0.0, j as f64 * s - hz)))
+        .collect()
+}
+
+/// Pixel bounding box `[min x, min y, max x, max y]` of `points` seen from
+/// `world_from_camera`; `None` when one is behind the camera.
+fn pixel_extent(
+    camera: &texel::PinholeCamera,
+    world_from_camera: &Pose,
+    points: &[Point3<f64>],
+) -> Option<[f64; 4]> {
+    let inv = world_from_camera.inverse();
+    let mut b = [
+        f64::INFINITY,
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+        f64::NEG_INFINITY,
+    ];
+    for p in points {
+        let px = camera.project(&(inv * p).coords).ok()?;
+        b = [
+            b[0].min(px.x),
+            b[1].min(px.y),
+            b[2].max(px.x),
+            b[3].max(px.y),
+        ];
+    }
+    Some(b)
+}
+
+/// True when the inner corners' box `b` lies inside a `width` x `height` image and
+/// reaches the borders of `cell` (see [`COVERAGE_CELLS`]).
+fn covers_cell(b: [f64; 4], width: f64, height: f64, cell: (i8, i8)) -> bool {
+    let inside = COVERAGE_INSIDE_PX;
+    let reach = inside + COVERAGE_REACH_PX;
+    let axis = |lo: f64, hi: f64, size: f64, side: i8| {
+        let far = size - 1.0;
+        lo >= inside
+            && hi <= far - inside
+            && match side {
+                -1 => lo <= reach,
+                1 => hi >= far - reach,
+                _ => (0.5 * (lo + hi) - 0.5 * far).abs() <= size / 6.0,
+            }
+    };
+    axis(b[0], b[2], width, cell.0) && axis(b[1], b[3], height, cell.1)
+}
+
 /// `count` camera poses (`world_from_eo`) looking at the board, by `style`.
 pub fn sample_poses(
     sim: &Simulator,
@@ -100,19 +190,22 @@ pub fn sample_poses(
 ) -> Vec<Pose> {
     let model = sim.sensor_model();
     let corners = plate_corners(target);
+    let rim = inner_corner_rim(target);
+    let (width, height) = (f64::from(model.eo.width), f64::from(model.eo.height));
     let centre = Point3::from(BOARD_CENTRE);
     let facing = Vector3::from(BOARD_FACING);
     let mut rng = Rng::new(seed);
     let mut out = Vec::with_capacity(count);
     let mut attempts = 0;
-    while out.len() < count && attempts < 200_000 {
+    while out.len() < count && attempts < 400_000 {
         attempts += 1;
-        // Every other varied view puts the board near the EO image's edges (where the
-        // distortion shows), the others keep it inside the lidar's view.
-        let edge_view = style == PoseStyle::Varied && out.len() % 2 == 1;
+        // Every other varied view covers a cell of the EO image (corners and edges,
+        // in turn), the others keep the plate inside the lidar's view.
+        let cell = (style == PoseStyle::Varied && out.len() % 2 == 1)
+            .then(|| COVERAGE_CELLS[(out.len() / 2) % COVERAGE_CELLS.len()]);
         let (tilt_lo, tilt_hi, dist_lo, dist_hi, look) = match style {
-            PoseStyle::Varied if edge_view => (25.0, 55.0, 0.85, 1.2, 0.35),
-            PoseStyle::Varied => (25.0, 55.0, 1.0, 1.35, 0.06),
+            PoseStyle::Varied if cell.is_some() => (25.0, 55.0, 0.55, 0.85, 0.0),
+            PoseStyle::Varied => (25.0, 55.0, 0.95, 1.35, 0.06),
             PoseStyle::NearBorder => (10.0, 35.0, 0.8, 1.0, 0.3),
             PoseStyle::FrontoParallel => (0.0, 2.0, 1.0, 1.3, 0.0),
             PoseStyle::Tilt(d) => (d * 0.8, d, 1.0, 1.3, 0.05),
@@ -133,14 +226,32 @@ pub fn sample_poses(
             );
         let base = sims::trajectory::look_at(eye, aim, Vector3::z());
         let roll = rng.uniform(-15.0, 15.0).to_radians();
-        let pose = base * Pose::rotation(Vector3::z() * roll);
+        let mut pose = base * Pose::rotation(Vector3::z() * roll);
+        if let Some((sx, sy)) = cell {
+            // Turn the camera so that the board's centre lands on a pixel in the cell's
+            // half of the image (the check below keeps the poses that reach its borders).
+            let pick = |rng: &mut Rng, side: i8, size: f64| match side {
+                -1 => rng.uniform(0.0, 0.5 * size),
+                1 => rng.uniform(0.5 * size, size),
+                _ => rng.uniform(0.3 * size, 0.7 * size),
+            };
+            let px = Vector2::new(pick(&mut rng, sx, width), pick(&mut rng, sy, height));
+            let Ok(ray) = model.eo.unproject_ray(px) else {
+                continue;
+            };
+            let Some(turn) = nalgebra::UnitQuaternion::rotation_between(&ray, &Vector3::z()) else {
+                continue;
+            };
+            pose *= Pose::from_parts(nalgebra::Translation3::identity(), turn);
+        }
         let lidar_pose = pose * model.eo_from_lidar;
         let eo_margin = margin_px(&model.eo, &pose, &corners);
         let lidar_margin = margin_px(&model.lidar, &lidar_pose, &corners);
         let ok = match style {
             PoseStyle::NearBorder => (2.0..25.0).contains(&eo_margin),
             PoseStyle::LidarCut => eo_margin > 8.0 && lidar_margin < -3.0,
-            PoseStyle::Varied if edge_view => (5.0..50.0).contains(&eo_margin),
+            PoseStyle::Varied if let Some(cell) = cell => pixel_extent(&model.eo, &pose, &rim)
+                .is_some_and(|b| covers_cell(b, width, height, cell)),
             _ => eo_margin > 8.0 && lidar_margin > 3.0,
         };
         if ok {

@@ -96,11 +96,10 @@ fn run_writes_a_sensor_file_and_report_that_fuse_and_register_like_the_true_sens
 
     // Registration of a short lab capture rendered with the true sensor, by the
     // daemon's offline path, with the capture's own sensor and with the calibrated
-    // file in its place: the calibrated file registers every frame and the trajectory
-    // error stays within a few millimetres of the true file's (a 1 degree extrinsic
-    // error adds about 17 mm here, see `lab_check.rs`). The 10 % criterion is not
-    // met reliably for the unaligned ATE (docs/calibration.md gives the figures):
-    // the small extrinsic rotation error turns the whole path.
+    // file in its place: the calibrated file registers every frame and both trajectory
+    // errors are within 10 % of the true file's (a 1 degree extrinsic error adds about
+    // 17 mm here, see `lab_check.rs`). Over the whole 36-frame orbit the unaligned ATE
+    // is not within 10 % for every capture (docs/calibration.md gives the figures).
     let lab_capture = dir.path().join("lab.mcap");
     calib::lab_check::render_lab_capture(
         sims::Scene::load(&root().join("configs/scenes/lab.toml")).unwrap(),
@@ -120,11 +119,11 @@ fn run_writes_a_sensor_file_and_report_that_fuse_and_register_like_the_true_sens
     assert_eq!(c.truth.registered, REGISTER_FRAMES);
     assert_eq!(c.calibrated.registered, REGISTER_FRAMES);
     assert!(
-        c.calibrated.ate_rmse_mm <= c.truth.ate_rmse_mm + 3.0,
+        c.calibrated.ate_rmse_mm <= 1.10 * c.truth.ate_rmse_mm,
         "{c:?}"
     );
     assert!(
-        c.calibrated.aligned_ate_rmse_mm <= c.truth.aligned_ate_rmse_mm + 2.0,
+        c.calibrated.aligned_ate_rmse_mm <= 1.10 * c.truth.aligned_ate_rmse_mm,
         "{c:?}"
     );
 }

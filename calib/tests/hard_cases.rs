@@ -136,7 +136,7 @@ fn lidar_intrinsics_are_estimated_when_asked() {
     let sim = sim(target_scene(), 13, None);
     let mut config = CalibConfig::default();
     config.solver.estimate_lidar_intrinsics = true;
-    let poses = sample_poses(&sim, &config.target, 12, PoseStyle::Varied, 13);
+    let poses = sample_poses(&sim, &config.target, 16, PoseStyle::Varied, 13);
     let mut input = render_input(&sim, &poses, 0);
     // Start from a wrong lidar calibration: 3 % off in focal length, 2 px in centre.
     let truth = sim.sensor_model().lidar.clone();

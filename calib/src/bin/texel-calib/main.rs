@@ -91,6 +91,17 @@ enum Command {
         #[arg(long)]
         registration: Option<PathBuf>,
     },
+    /// Print the `[trajectory] poses` of a calibration capture as TOML lines: views of
+    /// the scene's board sampled as the calibration guide asks (the poses of
+    /// configs/scenes/calib-target.toml are `--count 40 --seed 2024`).
+    Poses {
+        #[arg(long, default_value = "configs/scenes/calib-target.toml")]
+        scene: PathBuf,
+        #[arg(long, default_value_t = 40)]
+        count: usize,
+        #[arg(long, default_value_t = 2024)]
+        seed: u64,
+    },
     /// Measure error against truth and time for a sweep of the number of views and
     /// of the LM iterations; rewrite the calibration section of docs/tradeoffs.md.
     Tradeoffs(tradeoffs::Args),
@@ -137,8 +148,35 @@ fn main() -> anyhow::Result<()> {
                 None => Ok(()),
             }
         }
+        Command::Poses { scene, count, seed } => print_poses(&scene, count, seed),
         Command::Tradeoffs(args) => tradeoffs::run(&args),
     }
+}
+
+fn print_poses(scene: &Path, count: usize, seed: u64) -> anyhow::Result<()> {
+    let sim = simulate::simulator(sims::Scene::load(scene)?, seed, Some(Vec::new()))?;
+    let poses = simulate::sample_poses(
+        &sim,
+        &CalibConfig::default().target,
+        count,
+        PoseStyle::Varied,
+        seed,
+    );
+    if poses.len() < count {
+        bail!(
+            "could place only {} of {count} views of the board",
+            poses.len()
+        );
+    }
+    for pose in &poses {
+        let (t, q) = texel::pose::pose_to_parts(pose);
+        println!(
+            "    {{ position = [{:.4}, {:.4}, {:.4}], rotation_xyzw = [{:.6}, {:.6}, {:.6}, \
+             {:.6}] }},",
+            t[0], t[1], t[2], q[0], q[1], q[2], q[3]
+        );
+    }
+    Ok(())
 }
 
 fn progress_bar() -> ProgressBar {
@@ -296,8 +334,12 @@ fn accuracy(
         a.model_rms_px
     );
     println!(
-        "  extrinsic rotation error  {:.4} deg (limit 0.05 deg)",
-        a.rotation_error_deg
+        "  extrinsic rotation error  {:.4} deg (limit 0.05 deg; stated standard deviations \
+         {:.4}, {:.4}, {:.4} deg about x, y, z)",
+        a.rotation_error_deg,
+        calibration.lidar.rotation_std_deg[0],
+        calibration.lidar.rotation_std_deg[1],
+        calibration.lidar.rotation_std_deg[2]
     );
     println!(
         "  extrinsic translation err {:.3} mm  (limit 2 mm)",
