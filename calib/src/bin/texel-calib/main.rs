@@ -93,11 +93,11 @@ enum Command {
     },
     /// Print the `[trajectory] poses` of a calibration capture as TOML lines: views of
     /// the scene's board sampled as the calibration guide asks (the poses of
-    /// configs/scenes/calib-target.toml are `--count 40 --seed 2024`).
+    /// configs/scenes/calib-target.toml are `--count 80 --seed 2024`).
     Poses {
         #[arg(long, default_value = "configs/scenes/calib-target.toml")]
         scene: PathBuf,
-        #[arg(long, default_value_t = 40)]
+        #[arg(long, default_value_t = 80)]
         count: usize,
         #[arg(long, default_value_t = 2024)]
         seed: u64,
