@@ -126,6 +126,21 @@ const COLOURS: [RGBColor; 6] = [
     RGBColor(23, 190, 207),
 ];
 
+/// The range of a logarithmic axis for values in `[lo, hi]` (positive): some room on
+/// both sides, and the bottom taken down to a power of ten. The axis labels only the
+/// decades whose power of ten lies in its range, so without that an axis within one
+/// decade (errors of 12 to 30, say) would carry no labels at all.
+fn log_axis_range(lo: f64, hi: f64) -> (f64, f64) {
+    let bottom = lo / 1.5;
+    let decade = 10f64.powf(bottom.log10().floor());
+    let bottom = if decade.is_finite() && decade > 0.0 {
+        decade
+    } else {
+        bottom
+    };
+    (bottom, hi * 1.5)
+}
+
 fn draw<DB: DrawingBackend>(
     root: &DrawingArea<DB, Shift>,
     title: &str,
@@ -154,7 +169,7 @@ where
     // A linear time axis from 0 (costs compare by difference) and a logarithmic error
     // axis, with some room.
     let (x0, x1) = (0.0, x1 * 1.1);
-    let (y0, y1) = (y0 / 1.5, y1 * 1.5);
+    let (y0, y1) = log_axis_range(y0, y1);
     let mut chart = ChartBuilder::on(root)
         .caption(title, (FAMILY, 22))
         .margin(15)
@@ -222,6 +237,20 @@ where
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_log_axis_reaches_down_to_a_power_of_ten() {
+        for (lo, hi) in [(12.0, 30.0), (2.3, 52.0), (0.04, 0.07), (1.0e-5, 3.0)] {
+            let (bottom, top) = log_axis_range(lo, hi);
+            let power = bottom.log10();
+            assert!((power - power.round()).abs() < 1e-9, "{bottom} for {lo}");
+            assert!(
+                bottom <= lo / 1.5 && bottom > lo / 15.0,
+                "{bottom} for {lo}"
+            );
+            assert!(top >= hi);
+        }
+    }
 
     #[test]
     fn the_front_keeps_only_unbeaten_points() {
