@@ -23,6 +23,17 @@ struct Node {
     axis: u8,
 }
 
+/// A primitive a cone of rays may meet ([`Bvh::cone_candidates`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Candidate {
+    /// Index as [`Bvh::closest_among`] takes it.
+    pub index: u32,
+    /// Position in the traversal's order (breaks ties in distance).
+    pub order: u32,
+    /// No ray of the cone meets the primitive nearer than this, metres.
+    pub near_m: f64,
+}
+
 /// The scene's primitives and the tree over them.
 #[derive(Debug, Clone)]
 pub struct Bvh {
@@ -129,72 +140,85 @@ impl Bvh {
         best.and_then(|p| p.intersect(ray, f64::INFINITY))
     }
 
-    /// Indices (for [`Self::closest_among`]) of every primitive that may meet a ray
-    /// from `origin` inside the convex cone `{x : n·(x - origin) >= 0 for every n in
-    /// planes}`: bounded ones whose boxes are not wholly outside one plane, and all
-    /// unbounded ones. Conservative: it never leaves out a primitive a ray in the cone
-    /// can hit.
+    /// Every primitive that may meet a ray from `origin` inside the convex cone
+    /// `{x : n·(x - origin) >= 0 for every n in planes}` (whose four `edges` span it):
+    /// bounded ones whose boxes are not wholly outside one plane, and all unbounded
+    /// ones, less those the cone provably misses. Conservative: it never leaves out a
+    /// primitive a ray in the cone can hit. Sorted nearest bound first, for
+    /// [`Self::closest_among`].
     pub fn cone_candidates(
         &self,
         origin: &nalgebra::Point3<f64>,
         planes: &[nalgebra::Vector3<f64>],
         edges: &[nalgebra::Vector3<f64>; 4],
-        out: &mut Vec<u32>,
+        out: &mut Vec<Candidate>,
     ) {
         out.clear();
         let bounded = self.primitives.len() as u32;
-        for (i, p) in self.unbounded.iter().enumerate() {
+        let push = |index: u32, p: &Primitive, out: &mut Vec<Candidate>| {
             if p.may_meet_cone(origin, edges) {
-                out.push(bounded + i as u32);
+                out.push(Candidate {
+                    index,
+                    order: out.len() as u32,
+                    near_m: p.near_bound_in_cone(origin, edges),
+                });
             }
-        }
-        if self.nodes.is_empty() {
-            return;
-        }
-        let outside = |b: &Aabb| {
-            planes.iter().any(|n| {
-                // The box corner farthest along n (the "p-vertex").
-                let mut d = 0.0;
-                for a in 0..3 {
-                    let c = if n[a] >= 0.0 { b.max[a] } else { b.min[a] };
-                    d += n[a] * (c - origin[a]);
-                }
-                d < 0.0
-            })
         };
-        let mut stack = [0u32; STACK];
-        let mut top = 1usize;
-        while top > 0 {
-            top -= 1;
-            let index = stack[top];
-            let node = &self.nodes[index as usize];
-            if outside(&node.bounds) {
-                continue;
-            }
-            if node.count > 0 {
-                let first = node.first_or_right;
-                for i in first..first + node.count {
-                    if self.primitives[i as usize].may_meet_cone(origin, edges) {
-                        out.push(i);
+        for (i, p) in self.unbounded.iter().enumerate() {
+            push(bounded + i as u32, p, out);
+        }
+        if !self.nodes.is_empty() {
+            let outside = |b: &Aabb| {
+                planes.iter().any(|n| {
+                    // The box corner farthest along n (the "p-vertex").
+                    let mut d = 0.0;
+                    for a in 0..3 {
+                        let c = if n[a] >= 0.0 { b.max[a] } else { b.min[a] };
+                        d += n[a] * (c - origin[a]);
                     }
+                    d < 0.0
+                })
+            };
+            let mut stack = [0u32; STACK];
+            let mut top = 1usize;
+            while top > 0 {
+                top -= 1;
+                let index = stack[top];
+                let node = &self.nodes[index as usize];
+                if outside(&node.bounds) {
+                    continue;
                 }
-            } else if top + 2 <= STACK {
-                stack[top] = node.first_or_right;
-                stack[top + 1] = index + 1;
-                top += 2;
+                if node.count > 0 {
+                    let first = node.first_or_right;
+                    for i in first..first + node.count {
+                        if let Some(p) = self.primitives.get(i as usize) {
+                            push(i, p, out);
+                        }
+                    }
+                } else if top + 2 <= STACK {
+                    stack[top] = node.first_or_right;
+                    stack[top + 1] = index + 1;
+                    top += 2;
+                }
             }
         }
+        out.sort_by(|a, b| a.near_m.total_cmp(&b.near_m).then(a.order.cmp(&b.order)));
     }
 
-    /// The closest hit among the primitives `candidates` (from
-    /// [`Self::cone_candidates`]).
+    /// The closest hit among `candidates` (from [`Self::cone_candidates`]): tested
+    /// nearest bound first, stopping at the first whose bound lies beyond the closest
+    /// hit so far. Ties in distance go to the candidate found first by the traversal,
+    /// so the result is the same as testing every candidate in traversal order.
     #[inline]
-    pub fn closest_among(&self, ray: &Ray, candidates: &[u32]) -> Option<Hit> {
+    pub fn closest_among(&self, ray: &Ray, candidates: &[Candidate]) -> Option<Hit> {
         let bounded = self.primitives.len();
-        let mut best: Option<&Primitive> = None;
+        let mut best: Option<(&Primitive, u32)> = None;
         let mut limit = f64::INFINITY;
-        for &i in candidates {
-            let i = i as usize;
+        for c in candidates {
+            if c.near_m > limit {
+                break;
+            }
+            let i = c.index as usize;
             let p = if i < bounded {
                 &self.primitives[i]
             } else {
@@ -203,12 +227,15 @@ impl Bvh {
                     None => continue,
                 }
             };
-            if let Some(t) = p.distance(ray, limit) {
-                limit = t;
-                best = Some(p);
+            // Up to and including `limit`, to see ties.
+            if let Some(t) = p.distance(ray, limit.next_up()) {
+                if t < limit || best.is_none_or(|(_, order)| c.order < order) {
+                    limit = t;
+                    best = Some((p, c.order));
+                }
             }
         }
-        best.and_then(|p| p.intersect(ray, f64::INFINITY))
+        best.and_then(|(p, _)| p.intersect(ray, f64::INFINITY))
     }
 
     /// Indices (as for [`Self::closest_among`]) of every primitive whose bounds
@@ -251,7 +278,7 @@ impl Bvh {
     }
 
     /// [`Self::any_hit`] among the primitives `candidates` only (from
-    /// [`Self::overlapping`] or [`Self::cone_candidates`]).
+    /// [`Self::overlapping`]).
     #[inline]
     pub fn any_hit_among(&self, ray: &Ray, t_max: f64, candidates: &[u32]) -> bool {
         let bounded = self.primitives.len();

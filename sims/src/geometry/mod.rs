@@ -4,6 +4,7 @@
 
 pub mod bvh;
 pub mod mesh;
+mod near;
 
 use nalgebra::{Point3, Vector3};
 
@@ -238,7 +239,8 @@ impl Primitive {
             }
         }
         if ahead == 0 {
-            return !ts.iter().any(|t| t.is_infinite());
+            // No edge meets the plane ahead: only an edge parallel to it leaves doubt.
+            return ts.iter().any(|t| t.is_infinite());
         }
         if ahead < 4 {
             return true;
