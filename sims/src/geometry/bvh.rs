@@ -228,11 +228,11 @@ impl Bvh {
                 }
             };
             // Up to and including `limit`, to see ties.
-            if let Some(t) = p.distance(ray, limit.next_up()) {
-                if t < limit || best.is_none_or(|(_, order)| c.order < order) {
-                    limit = t;
-                    best = Some((p, c.order));
-                }
+            if let Some(t) = p.distance(ray, limit.next_up())
+                && (t < limit || best.is_none_or(|(_, order)| c.order < order))
+            {
+                limit = t;
+                best = Some((p, c.order));
             }
         }
         best.and_then(|(p, _)| p.intersect(ray, f64::INFINITY))
