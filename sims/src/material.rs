@@ -187,14 +187,20 @@ const NOISE_PERIOD: usize = 256;
 /// Random lattice values of one seed, looked up instead of hashed per sample.
 #[derive(Debug, Clone, PartialEq)]
 pub struct NoiseTable {
-    values: Vec<f32>,
+    /// Row-major, `NOISE_PERIOD` by `NOISE_PERIOD`: a lattice index is 16 bits, so
+    /// looking one up needs no bounds check.
+    values: Box<[f32; LATTICE_LEN]>,
 }
+
+/// Values in a noise lattice.
+const LATTICE_LEN: usize = NOISE_PERIOD * NOISE_PERIOD;
 
 impl NoiseTable {
     pub fn new(seed: u64) -> Self {
-        let values = (0..NOISE_PERIOD * NOISE_PERIOD)
-            .map(|i| (mix64(seed ^ mix64(i as u64 + 1)) >> 40) as f32 / (1u64 << 24) as f32)
-            .collect();
+        let mut values = Box::new([0.0f32; LATTICE_LEN]);
+        for (i, v) in values.iter_mut().enumerate() {
+            *v = (mix64(seed ^ mix64(i as u64 + 1)) >> 40) as f32 / (1u64 << 24) as f32;
+        }
         Self { values }
     }
 
@@ -261,6 +267,8 @@ impl NoiseTable {
 const FIXED_BITS: u32 = 24;
 /// One lattice period in fixed point: coordinates wrap modulo this.
 const FIXED_PERIOD: u64 = (NOISE_PERIOD as u64) << FIXED_BITS;
+// `fbm_fixed` wraps coordinates in u32 and indexes the lattice with 16 bits.
+const _: () = assert!(NOISE_PERIOD == 256 && FIXED_PERIOD == 1 << 32);
 
 impl NoiseTable {
     /// [`Self::fbm`] evaluated the fast way, to within 1e-5 of it: the base
@@ -269,12 +277,13 @@ impl NoiseTable {
     /// octave's cell and fraction are a shift and a mask instead of a float floor. The
     /// renderer samples noise textures through this.
     pub fn fbm_fixed(&self, x: f64, y: f64, footprint: f64, octaves: u32) -> f32 {
-        let to_fixed = |v: f64| -> u64 {
+        // One lattice period is exactly 2^32 in fixed point, so u32 arithmetic wraps
+        // the coordinates modulo the period for free.
+        let to_fixed = |v: f64| -> u32 {
             let period = NOISE_PERIOD as f64;
             let wrapped = v - period * fast_floor(v / period);
             // In [0, period] for finite v; anything else (NaN, huge) lands at 0.
-            let f = (wrapped * f64::from(1u32 << FIXED_BITS)) as u64;
-            f % FIXED_PERIOD
+            (wrapped * f64::from(1u32 << FIXED_BITS)) as u64 as u32
         };
         let (fx, fy) = (to_fixed(x), to_fixed(y));
         let octaves = octaves.min(16);
@@ -282,14 +291,14 @@ impl NoiseTable {
         let mut norm = 0.0f32;
         let mut freq = 1.0f64;
         let mut amp = 1.0f32;
-        for o in 0..octaves {
+        for (o, &(sx, sy)) in OCTAVE_SHIFTS.iter().enumerate().take(octaves as usize) {
             norm += amp;
             let keep = (1.0 - (freq * footprint - 0.25) * 2.0).clamp(0.0, 1.0) as f32;
             if keep <= 0.0 {
                 // Every finer octave is gone too: they add their mean.
                 sum += 0.5 * amp;
                 let mut a = amp * 0.5;
-                for _ in o + 1..octaves {
+                for _ in o + 1..octaves as usize {
                     sum += 0.5 * a;
                     norm += a;
                     a *= 0.5;
@@ -297,7 +306,6 @@ impl NoiseTable {
                 break;
             }
             // The octave's coordinates: base × 2^o plus its offset (as in `fbm`).
-            let (sx, sy) = OCTAVE_SHIFTS.get(o as usize).copied().unwrap_or((0, 0));
             let ox = (fx << o).wrapping_add(sx);
             let oy = (fy << o).wrapping_add(sy);
             let n = self.value_noise_fixed(ox, oy);
@@ -310,22 +318,19 @@ impl NoiseTable {
 
     /// [`Self::value_noise`] at fixed-point coordinates (wrapping).
     #[inline]
-    fn value_noise_fixed(&self, x: u64, y: u64) -> f32 {
-        let m = NOISE_PERIOD - 1;
-        let (ix, iy) = (
-            (x >> FIXED_BITS) as usize & m,
-            (y >> FIXED_BITS) as usize & m,
-        );
-        let fraction =
-            |v: u64| (v & ((1 << FIXED_BITS) - 1)) as f32 * (1.0 / (1u32 << FIXED_BITS) as f32);
+    fn value_noise_fixed(&self, x: u32, y: u32) -> f32 {
+        const CELL: u32 = FIXED_BITS;
+        let (ix, iy) = (x >> CELL, y >> CELL);
+        let fraction = |v: u32| (v & ((1 << CELL) - 1)) as f32 * (1.0 / (1u32 << CELL) as f32);
         let (tx, ty) = (fraction(x), fraction(y));
         let sx = tx * tx * (3.0 - 2.0 * tx);
         let sy = ty * ty * (3.0 - 2.0 * ty);
-        let (row0, row1) = (iy * NOISE_PERIOD, ((iy + 1) & m) * NOISE_PERIOD);
-        let ix1 = (ix + 1) & m;
-        let at = |i: usize| self.values.get(i).copied().unwrap_or(0.5);
-        let (a, b) = (at(row0 + ix), at(row0 + ix1));
-        let (c, d) = (at(row1 + ix), at(row1 + ix1));
+        // 8-bit cell coordinates wrap at the period; (row << 8 | column) is 16 bits.
+        let (row0, row1) = (iy << 8, ((iy + 1) & 0xFF) << 8);
+        let ix1 = (ix + 1) & 0xFF;
+        let at = |i: u32| self.values[i as u16 as usize];
+        let (a, b) = (at(row0 | ix), at(row0 | ix1));
+        let (c, d) = (at(row1 | ix), at(row1 | ix1));
         let top = a + (b - a) * sx;
         let bottom = c + (d - c) * sx;
         top + (bottom - top) * sy
@@ -334,8 +339,8 @@ impl NoiseTable {
 
 /// The per-octave offsets of [`NoiseTable::fbm`] (`+37.7 o`, `-37.7 · 0.61 o` lattice
 /// cells) in fixed point, modulo the lattice period.
-const OCTAVE_SHIFTS: [(u64, u64); 16] = {
-    let mut out = [(0u64, 0u64); 16];
+const OCTAVE_SHIFTS: [(u32, u32); 16] = {
+    let mut out = [(0u32, 0u32); 16];
     let mut o = 0;
     while o < 16 {
         let sx = 37.7 * o as f64;
@@ -349,8 +354,8 @@ const OCTAVE_SHIFTS: [(u64, u64); 16] = {
         }
         let scale = (1u64 << FIXED_BITS) as f64;
         out[o] = (
-            (wx * scale) as u64 % FIXED_PERIOD,
-            (wy * scale) as u64 % FIXED_PERIOD,
+            ((wx * scale) as u64 % FIXED_PERIOD) as u32,
+            ((wy * scale) as u64 % FIXED_PERIOD) as u32,
         );
         o += 1;
     }

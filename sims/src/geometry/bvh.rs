@@ -76,6 +76,16 @@ impl Bvh {
         }
     }
 
+    /// The primitive at `index` as [`Self::closest_among`] and [`Self::overlapping`]
+    /// number them.
+    pub fn primitive(&self, index: u32) -> Option<&Primitive> {
+        let i = index as usize;
+        match i.checked_sub(self.primitives.len()) {
+            None => self.primitives.get(i),
+            Some(j) => self.unbounded.get(j),
+        }
+    }
+
     pub fn primitive_count(&self) -> usize {
         self.primitives.len() + self.unbounded.len()
     }

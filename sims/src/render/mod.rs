@@ -42,7 +42,9 @@ pub struct CameraRays {
     pub per_pixel: usize,
     /// Angular width of one pixel at the image centre, radians (texture footprint).
     pub pixel_rad: f64,
-    /// Square tiles of [`TILE`] pixels, row of tiles by row (empty: trace every ray
+    /// Side of the square tiles, pixels: about [`TILE_RAYS`] rays each.
+    pub tile_px: u32,
+    /// Square tiles of `tile_px` pixels, row of tiles by row (empty: trace every ray
     /// through the whole BVH).
     pub tiles: Vec<Tile>,
 }
@@ -50,8 +52,16 @@ pub struct CameraRays {
 /// Four vectors around a cone: its plane normals or its edge directions.
 type Quad = [Vector3<f64>; 4];
 
-/// Side of a tile of pixels whose rays share one bounding cone.
-pub const TILE: u32 = 16;
+/// Rays in a tile of pixels whose rays share one bounding cone (16 x 16 at one ray per
+/// pixel): enough to amortise gathering the cone's candidates, few enough that the
+/// cone stays narrow.
+pub const TILE_RAYS: u32 = 256;
+
+/// Side of the square tiles for `per_pixel` rays per pixel: about [`TILE_RAYS`] rays.
+fn tile_side_px(per_pixel: usize) -> u32 {
+    let per = per_pixel.clamp(1, TILE_RAYS as usize) as f64;
+    ((f64::from(TILE_RAYS) / per).sqrt().round() as u32).max(2)
+}
 
 /// A tile of pixels and the cone bounding all of its rays.
 #[derive(Debug, Clone)]
@@ -167,14 +177,15 @@ impl CameraRays {
             .iter()
             .map(|o| o[0].abs().max(o[1].abs()))
             .fold(0.0, f64::max);
-        let (tw, th) = (camera.width.div_ceil(TILE), camera.height.div_ceil(TILE));
+        let tile = tile_side_px(per_pixel);
+        let (tw, th) = (camera.width.div_ceil(tile), camera.height.div_ceil(tile));
         let tiles = (0..tw * th)
             .into_par_iter()
             .map(|i| {
-                let (x0, y0) = ((i % tw) * TILE, (i / tw) * TILE);
+                let (x0, y0) = ((i % tw) * tile, (i / tw) * tile);
                 let (x1, y1) = (
-                    (x0 + TILE).min(camera.width),
-                    (y0 + TILE).min(camera.height),
+                    (x0 + tile).min(camera.width),
+                    (y0 + tile).min(camera.height),
                 );
                 let cone = tile_cone(camera, &rays, per_pixel, reach_px, x0, y0, x1, y1);
                 Tile {
@@ -192,6 +203,7 @@ impl CameraRays {
             rays,
             per_pixel: offsets.len(),
             pixel_rad,
+            tile_px: tile,
             tiles,
         }
     }
@@ -322,14 +334,15 @@ impl BuiltinBackend {
     {
         let width = rays.camera.width as usize;
         let per = rays.per_pixel.max(1);
-        let tiles_per_row = rays.camera.width.div_ceil(TILE) as usize;
+        let tile_px = rays.tile_px.max(1);
+        let tiles_per_row = rays.camera.width.div_ceil(tile_px) as usize;
         let origin: nalgebra::Point3<f64> = world_from_camera.translation.vector.into();
         let bvh = &self.world.bvh;
-        out.par_chunks_mut(TILE as usize * width * per)
+        out.par_chunks_mut(tile_px as usize * width * per)
             .zip(rays.tiles.par_chunks(tiles_per_row.max(1)))
             .for_each(|(strip, tiles)| {
                 let mut candidates = Vec::new();
-                let mut traced = Vec::with_capacity((TILE * TILE) as usize * per);
+                let mut traced = Vec::with_capacity((tile_px * tile_px) as usize * per);
                 for tile in tiles {
                     let planes = tile
                         .planes
