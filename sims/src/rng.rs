@@ -38,6 +38,31 @@ pub fn mix64(mut z: u64) -> u64 {
     z ^ (z >> 31)
 }
 
+/// The part of [`PixelRng`]'s key shared by every pixel of one frame and stream,
+/// computed once per frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FrameRng {
+    key: u64,
+}
+
+impl FrameRng {
+    #[inline]
+    pub fn new(seed: u64, frame: u64, stream: Stream) -> Self {
+        let mut k = mix64(seed ^ GOLDEN);
+        k = mix64(k ^ frame.wrapping_mul(GOLDEN));
+        k = mix64(k ^ (stream as u64).wrapping_mul(0xD6E8_FEB8_6659_FD93));
+        Self { key: k }
+    }
+
+    /// The random numbers of `pixel` (the same as [`PixelRng::new`]).
+    #[inline]
+    pub fn pixel(&self, pixel: u64) -> PixelRng {
+        PixelRng {
+            key: mix64(self.key ^ pixel.wrapping_mul(0xA076_1D64_78BD_642F)),
+        }
+    }
+}
+
 /// The key of one pixel's random numbers in one frame and stream.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct PixelRng {
@@ -47,11 +72,7 @@ pub struct PixelRng {
 impl PixelRng {
     #[inline]
     pub fn new(seed: u64, frame: u64, pixel: u64, stream: Stream) -> Self {
-        let mut k = mix64(seed ^ GOLDEN);
-        k = mix64(k ^ frame.wrapping_mul(GOLDEN));
-        k = mix64(k ^ (stream as u64).wrapping_mul(0xD6E8_FEB8_6659_FD93));
-        k = mix64(k ^ pixel.wrapping_mul(0xA076_1D64_78BD_642F));
-        Self { key: k }
+        FrameRng::new(seed, frame, stream).pixel(pixel)
     }
 
     /// The `draw`-th 64-bit value of this pixel's sequence.

@@ -13,7 +13,7 @@ use texel::{Pose, RangeFrame, SensorModel};
 
 use super::{CameraRays, RenderBackend, SurfaceSample};
 use crate::effects::EffectSet;
-use crate::rng::{PixelRng, Stream};
+use crate::rng::{FrameRng, Stream};
 
 /// What the lidar pipeline needs about the lidar, computed once per simulator.
 #[derive(Debug, Clone)]
@@ -81,6 +81,8 @@ pub fn render_range(
     seq: u32,
 ) -> RangeFrame {
     let echoes = echoes(backend, rays, effects, world_from_lidar);
+    let dropout_rng = FrameRng::new(key.seed, key.frame, Stream::Dropouts);
+    let noise_rng = FrameRng::new(key.seed, key.frame, Stream::RangeNoise);
     let (ranges_m, intensity): (Vec<f32>, Vec<f32>) = echoes
         .par_iter()
         .enumerate()
@@ -92,7 +94,7 @@ pub fn render_range(
             // a property of the camera, not an effect a scene opts into.
             let mut r = echo.range_m + sensor.range_bias_m;
             if let Some(d) = &effects.dropouts {
-                let rng = PixelRng::new(key.seed, key.frame, pixel as u64, Stream::Dropouts);
+                let rng = dropout_rng.pixel(pixel as u64);
                 if d.decide(echo, sensor.min_range_m, sensor.max_range_m, &rng)
                     .is_some()
                 {
@@ -100,8 +102,7 @@ pub fn render_range(
                 }
             }
             if let Some(n) = &effects.range_noise {
-                let rng = PixelRng::new(key.seed, key.frame, pixel as u64, Stream::RangeNoise);
-                r = n.apply(r, &sensor.range_noise, &rng);
+                r = n.apply(r, &sensor.range_noise, &noise_rng.pixel(pixel as u64));
             }
             if let Some(q) = &effects.range_quantisation {
                 r = q.apply(r);
