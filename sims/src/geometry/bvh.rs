@@ -201,7 +201,10 @@ impl Bvh {
                 if node.count > 0 {
                     let first = node.first_or_right;
                     for i in first..first + node.count {
-                        if let Some(p) = self.primitives.get(i as usize) {
+                        // A leaf holds several primitives: each box is culled too.
+                        if let Some(p) = self.primitives.get(i as usize)
+                            && !p.bounds().is_some_and(|b| outside(&b))
+                        {
                             push(i, p, out);
                         }
                     }
