@@ -12,6 +12,7 @@ use sims::{BackendKind, CaptureOptions, Scene, SimOptions, Simulator, render_cap
 use texel::PinholeCamera;
 
 mod cli_backends;
+mod cli_bench;
 mod cli_serial;
 
 #[derive(Parser)]
@@ -123,7 +124,7 @@ fn main() -> Result<()> {
             frames,
             mitsuba,
         } => {
-            bench(&scene, frames)?;
+            cli_bench::bench(&scene, frames)?;
             if mitsuba {
                 cli_backends::bench_backends(&scene, frames)?;
             }
@@ -251,116 +252,6 @@ fn view(
         image::ExtendedColorType::Rgb8,
     )
     .with_context(|| format!("cannot write {}", out.display()))?;
-    Ok(())
-}
-
-/// CPU time (user + system) of this process in seconds, from `/proc/self/stat`
-/// (Linux clock ticks, 100 per second); `None` where that is not readable.
-fn process_cpu_seconds() -> Option<f64> {
-    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
-    let after = stat.rsplit_once(')')?.1;
-    let fields: Vec<&str> = after.split_whitespace().collect();
-    let utime: f64 = fields.get(11)?.parse().ok()?;
-    let stime: f64 = fields.get(12)?.parse().ok()?;
-    Some((utime + stime) / 100.0)
-}
-
-/// Wall-clock frames per second of rendering `frames` frames (cycling over the
-/// trajectory), and CPU seconds per frame.
-fn frames_per_second(
-    scene: &Scene,
-    effects: Option<Vec<sims::Effect>>,
-    frames: usize,
-) -> Result<(f64, Option<f64>)> {
-    let sim = Simulator::with_options(
-        scene.clone(),
-        &SimOptions {
-            effects,
-            ..SimOptions::default()
-        },
-    )?;
-    // One warm-up frame (page faults, thread pool start).
-    let _ = sim.frame(0)?;
-    let start = Instant::now();
-    let cpu_start = process_cpu_seconds();
-    for i in 0..frames {
-        let frame = sim.frame(i % sim.frame_count())?;
-        std::hint::black_box(&frame);
-    }
-    let wall = frames as f64 / start.elapsed().as_secs_f64().max(1e-9);
-    let cpu = match (cpu_start, process_cpu_seconds()) {
-        (Some(a), Some(b)) => Some((b - a) / frames as f64),
-        _ => None,
-    };
-    Ok((wall, cpu))
-}
-
-fn cpu_text(cpu: Option<f64>) -> String {
-    cpu.map_or_else(String::new, |c| format!("  {:>6.1} ms CPU/frame", c * 1e3))
-}
-
-fn bench(scene_path: &Path, frames: usize) -> Result<()> {
-    let scene = Scene::load(scene_path)?;
-    let frames = frames.max(1);
-    let (lidar, eo) = (&scene.sensor().lidar, &scene.sensor().eo);
-    println!(
-        "scene {}: lidar {}x{}, EO {}x{}, {} frames per configuration, {} threads",
-        scene.name,
-        lidar.width,
-        lidar.height,
-        eo.width,
-        eo.height,
-        frames,
-        rayon::current_num_threads()
-    );
-    println!(
-        "(wall-clock frames/s depend on the machine's load; CPU ms/frame include rayon's idle spinning)"
-    );
-    let (baseline, cpu) = frames_per_second(&scene, Some(Vec::new()), frames)?;
-    println!(
-        "{:<28} {:>8.1} frames/s  (baseline)      {}",
-        "no effects",
-        baseline,
-        cpu_text(cpu)
-    );
-    // Effects only Mitsuba simulates are timed by `--mitsuba`.
-    let builtin_effects: Vec<&str> = effect_docs()
-        .iter()
-        .filter(|d| !d.needs_mitsuba)
-        .map(|d| d.name)
-        .collect();
-    let mut configs: Vec<(String, Option<Vec<sims::Effect>>)> = builtin_effects
-        .iter()
-        .map(|n| {
-            Ok((
-                n.to_string(),
-                Some(vec![
-                    sims::Effect::with_defaults(n).map_err(anyhow::Error::msg)?,
-                ]),
-            ))
-        })
-        .collect::<Result<_>>()?;
-    let default_names = scene.effect_set().names().join(", ");
-    configs.push((format!("scene default ({default_names})"), None));
-    configs.push((
-        "all effects".to_string(),
-        Some(
-            builtin_effects
-                .iter()
-                .map(|n| sims::Effect::with_defaults(n).map_err(anyhow::Error::msg))
-                .collect::<Result<_>>()?,
-        ),
-    ));
-    for (name, effects) in configs {
-        let (fps, cpu) = frames_per_second(&scene, effects, frames)?;
-        println!(
-            "{:<28} {:>8.1} frames/s  {:>5.2}x baseline time{}",
-            name,
-            fps,
-            baseline / fps,
-            cpu_text(cpu)
-        );
-    }
     Ok(())
 }
 

@@ -9,6 +9,15 @@
 //! depth step smaller than the resolution this gives the classic mixed pixel, a
 //! point between the two surfaces; across a larger step the strongest surface wins.
 //! The incidence and reflectivity reported with a mixed echo are energy-weighted too.
+//!
+//! With `adaptive` (the default) only beams that may straddle surfaces are sampled:
+//! those where a pixel within half a footprint (at least one pixel) has a return and
+//! this one none or the reverse, a return from another object, or a range that differs
+//! by more than one smooth surface explains (twice the change the incidence predicts,
+//! plus 1 mm). Elsewhere the footprint lies on one smooth surface and the centre ray's
+//! echo stands for it: the footprint is symmetric about the centre, so their ranges
+//! differ only to second order. A feature narrower than the pixel spacing that meets
+//! no pixel's centre ray is missed, where sampling everywhere could catch it.
 
 use serde::{Deserialize, Serialize};
 
@@ -21,6 +30,9 @@ pub struct MixedPixels {
     pub footprint_px: f64,
     pub samples_per_side: u32,
     pub pulse_resolution_m: f64,
+    /// Sample the footprint only where the beam may straddle surfaces (see the module
+    /// documentation); `false` samples every pixel's footprint.
+    pub adaptive: bool,
 }
 
 impl Default for MixedPixels {
@@ -29,6 +41,7 @@ impl Default for MixedPixels {
             footprint_px: 1.0,
             samples_per_side: 3,
             pulse_resolution_m: 1.5,
+            adaptive: true,
         }
     }
 }
@@ -39,7 +52,9 @@ impl EffectParams for MixedPixels {
     const MODEL: &'static str = "Each pixel's beam footprint (footprint_px wide) is \
         sampled by samples_per_side² sub-rays; echoes of energy ρ·cos α/r² within \
         pulse_resolution_m of the strongest are merged into their energy-weighted mean \
-        range (a mixed pixel between two surfaces).";
+        range (a mixed pixel between two surfaces). With adaptive, only beams that may \
+        straddle surfaces or a reflectivity step are sampled; the others take the \
+        centre ray's echo.";
     const PARAMS: &'static [ParamDoc] = &[
         ParamDoc {
             name: "footprint_px",
@@ -55,6 +70,12 @@ impl EffectParams for MixedPixels {
             name: "pulse_resolution_m",
             unit: "m",
             what: "echoes closer than this are merged (range resolution of the pulse)",
+        },
+        ParamDoc {
+            name: "adaptive",
+            unit: "bool",
+            what: "sample the footprint only where the beam may straddle surfaces \
+                   (false: at every pixel)",
         },
     ];
 

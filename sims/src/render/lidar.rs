@@ -56,17 +56,108 @@ pub fn echoes(
     effects: &EffectSet,
     world_from_lidar: &Pose,
 ) -> Vec<Option<SurfaceSample>> {
-    match (&effects.mixed_pixels, &rays.footprint) {
-        (Some(mixed), Some(sub)) => {
-            let samples = backend.camera_echoes(world_from_lidar, sub, rays.pixel_rad);
-            samples
-                .par_chunks(sub.per_pixel.max(1))
-                .map(|echoes| mixed.combine(echoes))
-                .collect()
-        }
-        _ => backend.camera_echoes(world_from_lidar, &rays.centre, rays.pixel_rad),
+    let (Some(mixed), Some(sub)) = (&effects.mixed_pixels, &rays.footprint) else {
+        return backend.camera_echoes(world_from_lidar, &rays.centre, rays.pixel_rad);
+    };
+    if !mixed.adaptive {
+        return backend
+            .camera_echoes(world_from_lidar, sub, rays.pixel_rad)
+            .par_chunks(sub.per_pixel.max(1))
+            .map(|echoes| mixed.combine(echoes))
+            .collect();
     }
+    let centre = backend.camera_echoes(world_from_lidar, &rays.centre, rays.pixel_rad);
+    // Only beams that may straddle surfaces are sampled across their footprint;
+    // elsewhere the footprint lies on one smooth surface, whose echo is the centre's.
+    let per = sub.per_pixel.max(1);
+    let (width, height) = (
+        rays.centre.camera.width as usize,
+        rays.centre.camera.height as usize,
+    );
+    let reach_px = (0.5 * mixed.footprint_px).ceil().max(1.0) as usize;
+    let straddling: Vec<bool> = (0..centre.len())
+        .into_par_iter()
+        .map(|pixel| may_straddle(&centre, width, height, pixel, reach_px, rays.pixel_rad))
+        .collect();
+    let samples = backend.camera_echoes_of(world_from_lidar, sub, &straddling, rays.pixel_rad);
+    let mut out = centre;
+    out.par_iter_mut()
+        .zip(samples.par_chunks(per))
+        .zip(straddling.par_iter())
+        .for_each(|((o, echoes), straddles)| {
+            if *straddles {
+                *o = mixed.combine(echoes);
+            }
+        });
+    out
 }
+
+/// Whether the beam of `pixel` may meet more than one surface, or one surface whose
+/// reflectivity changes enough to shift the echo: some pixel within `reach_px` of it
+/// has a return where it has none (or the reverse), a return from another object, a
+/// range that differs by more than one smooth surface explains (twice the change its
+/// incidence predicts over the distance, plus 1 mm), or a reflectivity whose range
+/// walk could exceed [`RANGE_WALK_M`]; or the pixel lies at the image's border,
+/// where its footprint reaches past the last pixel centre. Features that fall between
+/// pixel centres without touching one are not seen.
+fn may_straddle(
+    centre: &[Option<SurfaceSample>],
+    width: usize,
+    height: usize,
+    pixel: usize,
+    reach_px: usize,
+    pixel_rad: f64,
+) -> bool {
+    if width == 0 {
+        return false;
+    }
+    let (u, v) = (pixel % width, pixel / width);
+    // The footprint of a pixel at the border reaches past the last pixel centre.
+    if u < reach_px || v < reach_px || u + reach_px >= width || v + reach_px >= height {
+        return true;
+    }
+    let here = centre.get(pixel).copied().flatten();
+    for y in v.saturating_sub(reach_px)..(v + reach_px + 1).min(height) {
+        for x in u.saturating_sub(reach_px)..(u + reach_px + 1).min(width) {
+            let there = centre.get(y * width + x).copied().flatten();
+            match (here, there) {
+                (None, None) => {}
+                (Some(a), Some(b)) => {
+                    if a.object != b.object {
+                        return true;
+                    }
+                    let steps = u.abs_diff(x).max(v.abs_diff(y)) as f64;
+                    let cos = a.cos_incidence.clamp(MIN_STRADDLE_COS, 1.0);
+                    let tan = (1.0 - cos * cos).max(0.0).sqrt() / cos;
+                    // How far the range changes across one pixel on this surface.
+                    let slope_m = a.range_m * pixel_rad * (1.0 + tan);
+                    if (a.range_m - b.range_m).abs() > 2.0 * slope_m * steps + 1.0e-3 {
+                        return true;
+                    }
+                    // A reflectivity step within the footprint pulls the echo's range
+                    // towards the brighter side (range walk): a step from ρ₁ to ρ₂
+                    // mid-footprint by (ρ₂ - ρ₁) / (ρ₁ + ρ₂) / 4 of the range change
+                    // across it, at most a quarter of it.
+                    let (ra, rb) = (f64::from(a.reflectivity), f64::from(b.reflectivity));
+                    let sum = ra + rb;
+                    if sum > 0.0 && (ra - rb).abs() / sum * 0.25 * slope_m > RANGE_WALK_M {
+                        return true;
+                    }
+                }
+                _ => return true,
+            }
+        }
+    }
+    false
+}
+
+/// A reflectivity step whose range walk across one pixel could exceed this is
+/// sampled (metres).
+const RANGE_WALK_M: f64 = 1.0e-3;
+
+/// The incidence cosine below which [`may_straddle`] stops widening its smooth-surface
+/// allowance (about 87°), so the allowance stays finite at grazing incidence.
+const MIN_STRADDLE_COS: f64 = 0.05;
 
 /// Renders one range frame for a lidar at `world_from_lidar`.
 #[allow(clippy::too_many_arguments)]
@@ -126,7 +217,36 @@ pub fn render_range(
 
 #[cfg(test)]
 mod tests {
+    #![allow(clippy::unwrap_used)]
+    use std::sync::Arc;
+
     use super::*;
+    use crate::render::BuiltinBackend;
+    use crate::scene::Scene;
+
+    /// Tile-traced echoes of every pixel, and of some, equal tracing every ray alone.
+    #[test]
+    fn echoes_of_some_pixels_equal_tracing_those_rays() {
+        let path =
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/scenes/lab.toml");
+        let lab = Scene::load(&path).unwrap();
+        let camera = crate::rescale_camera(&lab.sensor().lidar, 40, 30);
+        let rays = CameraRays::with_offsets(&camera, &[[-0.3, -0.3], [0.3, 0.1], [0.0, 0.0]]);
+        let backend = BuiltinBackend::new(Arc::clone(&lab.world));
+        let pixels: Vec<bool> = (0..40 * 30).map(|i| i % 3 == 0 || i % 7 == 1).collect();
+        let beam = 0.01;
+        for frame in [0, 13] {
+            let pose = lab.trajectory.frame_pose(frame);
+            let each = backend.echoes(&pose, &rays.rays, beam);
+            assert_eq!(backend.camera_echoes(&pose, &rays, beam), each);
+            let some = backend.camera_echoes_of(&pose, &rays, &pixels, beam);
+            for (i, (s, e)) in some.iter().zip(&each).enumerate() {
+                let wanted = pixels[i / 3];
+                assert_eq!(*s, if wanted { *e } else { None }, "ray {i}");
+            }
+            assert!(each.iter().filter(|e| e.is_some()).count() > 3000);
+        }
+    }
 
     fn echo(reflectivity: f32, cos_incidence: f64) -> SurfaceSample {
         SurfaceSample {

@@ -265,6 +265,37 @@ pub trait RenderBackend: Send + Sync {
         self.echoes(world_from_camera, &rays.rays, beam_rad)
     }
 
+    /// [`Self::camera_echoes`] of the pixels whose entry in `pixels` is true (one per
+    /// pixel); the others' echoes are `None`. By default, `echoes` of those rays.
+    fn camera_echoes_of(
+        &self,
+        world_from_camera: &Pose,
+        rays: &CameraRays,
+        pixels: &[bool],
+        beam_rad: f64,
+    ) -> Vec<Option<SurfaceSample>> {
+        let per = rays.per_pixel.max(1);
+        let wanted: Vec<[f32; 3]> = rays
+            .rays
+            .chunks(per)
+            .zip(pixels)
+            .filter(|(_, w)| **w)
+            .flat_map(|(r, _)| r.iter().copied())
+            .collect();
+        let mut found = self
+            .echoes(world_from_camera, &wanted, beam_rad)
+            .into_iter();
+        let mut out = vec![None; rays.rays.len()];
+        for (o, w) in out.chunks_mut(per).zip(pixels) {
+            if *w {
+                for e in o.iter_mut() {
+                    *e = found.next().flatten();
+                }
+            }
+        }
+        out
+    }
+
     /// Why rendering failed, if it did (an out-of-process renderer that died): the
     /// results of the failed calls are empty (no echoes, black radiance) and the
     /// simulator reports this message instead of returning them.
@@ -326,6 +357,7 @@ impl BuiltinBackend {
         &self,
         world_from_camera: &Pose,
         rays: &CameraRays,
+        pixels: Option<&[bool]>,
         out: &mut [T],
         finish: F,
     ) where
@@ -344,6 +376,18 @@ impl BuiltinBackend {
                 let mut candidates = Vec::new();
                 let mut traced = Vec::with_capacity((tile_px * tile_px) as usize * per);
                 for tile in tiles {
+                    let wanted = |x: u32, y: u32| {
+                        pixels.is_none_or(|p| {
+                            p.get(y as usize * width + x as usize)
+                                .copied()
+                                .unwrap_or(false)
+                        })
+                    };
+                    if pixels.is_some()
+                        && !(tile.y0..tile.y1).any(|y| (tile.x0..tile.x1).any(|x| wanted(x, y)))
+                    {
+                        continue;
+                    }
                     let planes = tile
                         .planes
                         .map(|p| p.map(|n| world_from_camera.rotation * n));
@@ -356,6 +400,9 @@ impl BuiltinBackend {
                         let row = y as usize * width;
                         let local_row = (y - tile.y0) as usize * width;
                         for x in tile.x0..tile.x1 {
+                            if !wanted(x, y) {
+                                continue;
+                            }
                             for k in 0..per {
                                 let index = (row + x as usize) * per + k;
                                 let local = (local_row + x as usize) * per + k;
@@ -378,6 +425,33 @@ impl BuiltinBackend {
                     finish(&traced, strip);
                 }
             });
+    }
+}
+
+impl BuiltinBackend {
+    /// Echoes of `rays` (of the pixels `pixels` marks, all without), tile by tile.
+    fn tiled_echoes(
+        &self,
+        world_from_camera: &Pose,
+        rays: &CameraRays,
+        pixels: Option<&[bool]>,
+        beam_rad: f64,
+    ) -> Vec<Option<SurfaceSample>> {
+        let mut out = vec![None; rays.rays.len()];
+        self.trace_tiles(
+            world_from_camera,
+            rays,
+            pixels,
+            &mut out,
+            |traced, strip| {
+                for t in traced {
+                    if let Some(o) = strip.get_mut(t.local) {
+                        *o = self.world.echo_of_hit(&t.ray, t.hit, beam_rad);
+                    }
+                }
+            },
+        );
+        out
     }
 }
 
@@ -413,15 +487,20 @@ impl RenderBackend for BuiltinBackend {
         if rays.tiles.is_empty() || rays.camera.width == 0 {
             return self.echoes(world_from_camera, &rays.rays, beam_rad);
         }
-        let mut out = vec![None; rays.rays.len()];
-        self.trace_tiles(world_from_camera, rays, &mut out, |traced, strip| {
-            for t in traced {
-                if let Some(o) = strip.get_mut(t.local) {
-                    *o = self.world.echo_of_hit(&t.ray, t.hit, beam_rad);
-                }
-            }
-        });
-        out
+        self.tiled_echoes(world_from_camera, rays, None, beam_rad)
+    }
+
+    fn camera_echoes_of(
+        &self,
+        world_from_camera: &Pose,
+        rays: &CameraRays,
+        pixels: &[bool],
+        beam_rad: f64,
+    ) -> Vec<Option<SurfaceSample>> {
+        if rays.tiles.is_empty() || rays.camera.width == 0 {
+            return self.echoes(world_from_camera, &rays.rays, beam_rad);
+        }
+        self.tiled_echoes(world_from_camera, rays, Some(pixels), beam_rad)
     }
 
     fn radiance(
@@ -446,7 +525,7 @@ impl RenderBackend for BuiltinBackend {
             return out;
         }
         let world = &self.world;
-        self.trace_tiles(world_from_camera, rays, &mut out, |traced, strip| {
+        self.trace_tiles(world_from_camera, rays, None, &mut out, |traced, strip| {
             // Shadow rays of the tile run from its hit points to the lights: only the
             // casters between the two can block them.
             let mut region = Aabb::EMPTY;
