@@ -12,12 +12,14 @@
 //!
 //! With `adaptive` (the default) only beams that may straddle surfaces are sampled:
 //! those where a pixel within half a footprint (at least one pixel) has a return and
-//! this one none or the reverse, a return from another object, or a range that differs
+//! this one none or the reverse, a return from another object, a range that differs
 //! by more than one smooth surface explains (twice the change the incidence predicts,
-//! plus 1 mm). Elsewhere the footprint lies on one smooth surface and the centre ray's
-//! echo stands for it: the footprint is symmetric about the centre, so their ranges
-//! differ only to second order. A feature narrower than the pixel spacing that meets
-//! no pixel's centre ray is missed, where sampling everywhere could catch it.
+//! plus 1 mm), or a reflectivity step that could walk the echo's range by more than
+//! 1 mm; and pixels at the image border. Elsewhere the footprint lies on one smooth,
+//! evenly reflecting surface and the centre ray's echo stands for it: the footprint
+//! is symmetric about the centre, so their ranges differ only to second order. A
+//! feature narrower than the pixel spacing that meets no pixel's centre ray is
+//! missed, where sampling everywhere could catch it.
 
 use serde::{Deserialize, Serialize};
 
