@@ -282,10 +282,13 @@ pub trait RenderBackend: Send + Sync {
             .filter(|(_, w)| **w)
             .flat_map(|(r, _)| r.iter().copied())
             .collect();
+        let mut out = vec![None; rays.rays.len()];
+        if wanted.is_empty() {
+            return out;
+        }
         let mut found = self
             .echoes(world_from_camera, &wanted, beam_rad)
             .into_iter();
-        let mut out = vec![None; rays.rays.len()];
         for (o, w) in out.chunks_mut(per).zip(pixels) {
             if *w {
                 for e in o.iter_mut() {
