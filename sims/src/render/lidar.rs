@@ -245,6 +245,43 @@ mod tests {
                 assert_eq!(*s, if wanted { *e } else { None }, "ray {i}");
             }
             assert!(each.iter().filter(|e| e.is_some()).count() > 3000);
+            // The trait's own version (what the Mitsuba backend runs) agrees.
+            let plain = Plain(backend.clone());
+            assert_eq!(plain.camera_echoes_of(&pose, &rays, &pixels, beam), some);
+            let none = vec![false; pixels.len()];
+            assert!(
+                plain
+                    .camera_echoes_of(&pose, &rays, &none, beam)
+                    .iter()
+                    .all(Option::is_none)
+            );
+        }
+    }
+
+    /// A backend with only the required methods: the trait's defaults for the rest.
+    struct Plain(BuiltinBackend);
+
+    impl RenderBackend for Plain {
+        fn name(&self) -> &'static str {
+            "plain"
+        }
+
+        fn echoes(
+            &self,
+            world_from_camera: &Pose,
+            rays: &[[f32; 3]],
+            beam_rad: f64,
+        ) -> Vec<Option<SurfaceSample>> {
+            self.0.echoes(world_from_camera, rays, beam_rad)
+        }
+
+        fn radiance(
+            &self,
+            world_from_camera: &Pose,
+            rays: &CameraRays,
+            specular: Option<f32>,
+        ) -> Vec<crate::material::Rgb> {
+            self.0.radiance(world_from_camera, rays, specular)
         }
     }
 
