@@ -43,6 +43,15 @@ impl GrayImage {
         if !frame.is_consistent() {
             return None;
         }
+        Self::from_intensity_values(frame.width as usize, frame.height as usize, values)
+    }
+
+    /// [`Self::from_intensity`] of a row-major `width` x `height` intensity buffer;
+    /// `None` when its length does not match or nothing returned.
+    pub fn from_intensity_values(width: usize, height: usize, values: &[f32]) -> Option<Self> {
+        if values.len() != width * height {
+            return None;
+        }
         let mut finite: Vec<f32> = values
             .iter()
             .copied()
@@ -64,7 +73,7 @@ impl GrayImage {
                 }
             })
             .collect();
-        Self::new(frame.width as usize, frame.height as usize, data)
+        Self::new(width, height, data)
     }
 
     #[inline]

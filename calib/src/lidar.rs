@@ -157,8 +157,9 @@ pub fn detect_lidar_board(
             interior.len()
         ));
     }
-    // Step 6: intensity corners, where the resolution allows.
-    let corners = GrayImage::from_intensity(frame)
+    // Step 6: intensity corners, where the resolution allows, in the plate's
+    // reflectivity (its intensity with the incidence shading divided out).
+    let corners = plate_reflectivity(frame, camera, &plane, pixels)
         .and_then(|g| detect_board(&g, target, &DetectParams::lidar()).ok());
     Ok(LidarBoard {
         view,
@@ -172,6 +173,39 @@ pub fn detect_lidar_board(
         extent_m: extent,
         corners,
     })
+}
+
+/// The smallest incidence cosine the intensity is divided by (about 84 degrees).
+const MIN_INCIDENCE_COS: f64 = 0.1;
+
+/// The intensity image with each of the plate's pixels (`pixels`, row-major indices)
+/// divided by the incidence cosine of its ray on the plate's `plane`: the reflectivity
+/// the lidar saw there, up to a constant. A lidar's intensity is the reflectivity times
+/// that cosine (Lambertian), which falls across a tilted board; an X-corner refined by
+/// gradient orthogonality in the shaded image moves towards the brighter side, the far
+/// corners more than the near ones (the cosine falls faster there), which makes the
+/// board look more foreshortened than it is and biases the lidar's focal length low.
+fn plate_reflectivity(
+    frame: &RangeFrame,
+    camera: &PinholeCamera,
+    plane: &Plane,
+    pixels: &[usize],
+) -> Option<GrayImage> {
+    let mut values = frame.intensity.clone()?;
+    if !frame.is_consistent() {
+        return None;
+    }
+    let w = frame.width as usize;
+    for &k in pixels {
+        let Ok(ray) = camera.unproject_ray(Vector2::new((k % w) as f64, (k / w) as f64)) else {
+            continue;
+        };
+        let cos = plane.normal.dot(&ray).abs().max(MIN_INCIDENCE_COS);
+        if let Some(v) = values.get_mut(k) {
+            *v = (f64::from(*v) / cos) as f32;
+        }
+    }
+    GrayImage::from_intensity_values(w, frame.height as usize, &values)
 }
 
 /// Region growing over 4-neighbours with a range-continuity test; returns the pixel
