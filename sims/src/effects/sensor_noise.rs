@@ -58,8 +58,13 @@ impl SensorNoise {
     /// Gaussian per channel with the shot and read variances added.
     #[inline]
     pub fn apply(&self, rgb: [f32; 3], rng: &PixelRng) -> [f32; 3] {
+        // In units of the full well (validate keeps it >= 1): the measured charge over
+        // the full well is x + √(x / full_well_e + (read_noise_e / full_well_e)²) · n,
+        // the model above divided through, without a division per channel.
+        let per_electron = 1.0 / self.full_well_e;
+        let read = self.read_noise_e * per_electron;
+        let read_variance = read * read;
         let mut out = [0.0f32; 3];
-        let read_variance = self.read_noise_e * self.read_noise_e;
         for (k, (o, &v)) in out.iter_mut().zip(&rgb).enumerate() {
             let x = f64::from(v);
             let x = if x.is_finite() {
@@ -67,10 +72,9 @@ impl SensorNoise {
             } else {
                 0.0
             };
-            let electrons = x * self.full_well_e;
-            let sigma = (electrons + read_variance).sqrt();
-            let measured = electrons + sigma * f64::from(rng.gaussian(k as u64));
-            *o = (measured.clamp(0.0, self.full_well_e) / self.full_well_e) as f32;
+            let sigma = (x * per_electron + read_variance).sqrt();
+            let measured = x + sigma * f64::from(rng.gaussian(k as u64));
+            *o = measured.clamp(0.0, 1.0) as f32;
         }
         out
     }
