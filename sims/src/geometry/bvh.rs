@@ -177,44 +177,26 @@ impl Bvh {
         for (i, p) in self.unbounded.iter().enumerate() {
             push(bounded + i as u32, p, out);
         }
-        if !self.nodes.is_empty() {
-            let outside = |b: &Aabb| {
-                planes.iter().any(|n| {
-                    // The box corner farthest along n (the "p-vertex").
-                    let mut d = 0.0;
-                    for a in 0..3 {
-                        let c = if n[a] >= 0.0 { b.max[a] } else { b.min[a] };
-                        d += n[a] * (c - origin[a]);
-                    }
-                    d < 0.0
-                })
-            };
-            let mut stack = [0u32; STACK];
-            let mut top = 1usize;
-            while top > 0 {
-                top -= 1;
-                let index = stack[top];
-                let node = &self.nodes[index as usize];
-                if outside(&node.bounds) {
-                    continue;
+        let outside = |b: &Aabb| {
+            planes.iter().any(|n| {
+                // The box corner farthest along n (the "p-vertex").
+                let mut d = 0.0;
+                for a in 0..3 {
+                    let c = if n[a] >= 0.0 { b.max[a] } else { b.min[a] };
+                    d += n[a] * (c - origin[a]);
                 }
-                if node.count > 0 {
-                    let first = node.first_or_right;
-                    for i in first..first + node.count {
-                        // A leaf holds several primitives: each box is culled too.
-                        if let Some(p) = self.primitives.get(i as usize)
-                            && !p.bounds().is_some_and(|b| outside(&b))
-                        {
-                            push(i, p, out);
-                        }
-                    }
-                } else if top + 2 <= STACK {
-                    stack[top] = node.first_or_right;
-                    stack[top + 1] = index + 1;
-                    top += 2;
+                d < 0.0
+            })
+        };
+        self.visit_bounded(
+            |b| !outside(b),
+            |i, p| {
+                // A leaf holds several primitives: each box is culled too.
+                if !p.bounds().is_some_and(|b| outside(&b)) {
+                    push(i, p, out);
                 }
-            }
-        }
+            },
+        );
         out.sort_by(|a, b| a.near_m.total_cmp(&b.near_m).then(a.order.cmp(&b.order)));
     }
 
@@ -258,28 +240,37 @@ impl Bvh {
         out.clear();
         let bounded = self.primitives.len() as u32;
         out.extend((0..self.unbounded.len() as u32).map(|i| bounded + i));
+        let overlaps =
+            |b: &Aabb| (0..3).all(|a| b.min[a] <= region.max[a] && b.max[a] >= region.min[a]);
+        self.visit_bounded(overlaps, |i, p| {
+            if p.bounds().is_none_or(|b| overlaps(&b)) {
+                out.push(i);
+            }
+        });
+    }
+
+    /// Calls `visit` with the index and primitive of every bounded primitive in a leaf
+    /// whose path from the root passes `enter` at every node (depth first).
+    fn visit_bounded(&self, enter: impl Fn(&Aabb) -> bool, mut visit: impl FnMut(u32, &Primitive)) {
         if self.nodes.is_empty() {
             return;
         }
-        let overlaps =
-            |b: &Aabb| (0..3).all(|a| b.min[a] <= region.max[a] && b.max[a] >= region.min[a]);
         let mut stack = [0u32; STACK];
         let mut top = 1usize;
         while top > 0 {
             top -= 1;
             let index = stack[top];
-            let node = &self.nodes[index as usize];
-            if !overlaps(&node.bounds) {
+            let Some(node) = self.nodes.get(index as usize) else {
+                continue;
+            };
+            if !enter(&node.bounds) {
                 continue;
             }
             if node.count > 0 {
                 let first = node.first_or_right;
                 for i in first..first + node.count {
-                    if self.primitives[i as usize]
-                        .bounds()
-                        .is_none_or(|b| overlaps(&b))
-                    {
-                        out.push(i);
+                    if let Some(p) = self.primitives.get(i as usize) {
+                        visit(i, p);
                     }
                 }
             } else if top + 2 <= STACK {

@@ -274,29 +274,7 @@ pub trait RenderBackend: Send + Sync {
         pixels: &[bool],
         beam_rad: f64,
     ) -> Vec<Option<SurfaceSample>> {
-        let per = rays.per_pixel.max(1);
-        let wanted: Vec<[f32; 3]> = rays
-            .rays
-            .chunks(per)
-            .zip(pixels)
-            .filter(|(_, w)| **w)
-            .flat_map(|(r, _)| r.iter().copied())
-            .collect();
-        let mut out = vec![None; rays.rays.len()];
-        if wanted.is_empty() {
-            return out;
-        }
-        let mut found = self
-            .echoes(world_from_camera, &wanted, beam_rad)
-            .into_iter();
-        for (o, w) in out.chunks_mut(per).zip(pixels) {
-            if *w {
-                for e in o.iter_mut() {
-                    *e = found.next().flatten();
-                }
-            }
-        }
-        out
+        echoes_of_pixels(self, world_from_camera, rays, pixels, beam_rad)
     }
 
     /// Why rendering failed, if it did (an out-of-process renderer that died): the
@@ -305,6 +283,40 @@ pub trait RenderBackend: Send + Sync {
     fn failure(&self) -> Option<String> {
         None
     }
+}
+
+/// [`RenderBackend::camera_echoes_of`] through [`RenderBackend::echoes`] of the wanted
+/// pixels' rays alone (the trait's default).
+fn echoes_of_pixels<B: RenderBackend + ?Sized>(
+    backend: &B,
+    world_from_camera: &Pose,
+    rays: &CameraRays,
+    pixels: &[bool],
+    beam_rad: f64,
+) -> Vec<Option<SurfaceSample>> {
+    let per = rays.per_pixel.max(1);
+    let wanted: Vec<[f32; 3]> = rays
+        .rays
+        .chunks(per)
+        .zip(pixels)
+        .filter(|(_, w)| **w)
+        .flat_map(|(r, _)| r.iter().copied())
+        .collect();
+    let mut out = vec![None; rays.rays.len()];
+    if wanted.is_empty() {
+        return out;
+    }
+    let mut found = backend
+        .echoes(world_from_camera, &wanted, beam_rad)
+        .into_iter();
+    for (o, w) in out.chunks_mut(per).zip(pixels) {
+        if *w {
+            for e in o.iter_mut() {
+                *e = found.next().flatten();
+            }
+        }
+    }
+    out
 }
 
 /// Which renderer makes the clean signal.
@@ -501,7 +513,7 @@ impl RenderBackend for BuiltinBackend {
         beam_rad: f64,
     ) -> Vec<Option<SurfaceSample>> {
         if rays.tiles.is_empty() || rays.camera.width == 0 {
-            return self.echoes(world_from_camera, &rays.rays, beam_rad);
+            return echoes_of_pixels(self, world_from_camera, rays, pixels, beam_rad);
         }
         self.tiled_echoes(world_from_camera, rays, Some(pixels), beam_rad)
     }
