@@ -6,4 +6,8 @@ bash "$repo/scripts/setup.sh"
 cd "$repo"
 # Incremental caches only pay off on rebuilds and cost gigabytes on a clean clone.
 export CARGO_INCREMENTAL="${CARGO_INCREMENTAL:-0}"
+# Property tests draw their cases from a fixed seed, so a run is reproducible and a
+# failure can be replayed; set PROPTEST_RNG_SEED to another number to explore new cases
+# (failures are saved in the *.proptest-regressions files beside the tests).
+export PROPTEST_RNG_SEED="${PROPTEST_RNG_SEED:-20261123}"
 cargo test --workspace --locked
