@@ -14,7 +14,10 @@
 //! grows with `r`: beyond the first zero of `ρ'(r)` the image folds back on itself, so a
 //! distorted pixel there has two preimages and neither is trustworthy. That first zero
 //! bounds the **valid domain** `r < r_max`; projection refuses points outside it and
-//! undistortion reports pixels it cannot reach from inside it.
+//! undistortion reports pixels it cannot reach from inside it. The tangential terms
+//! bend the fold towards the centre on some sides, so the bound also keeps the radial
+//! map's slope above the most the tangential terms can take away (`fold_margin`): the
+//! whole disc is then free of folds, not only its radial profile.
 
 use nalgebra::{Matrix2, Vector2};
 use serde::{Deserialize, Serialize};
@@ -39,6 +42,10 @@ const DOMAIN_SEARCH_MAX_R2: f64 = 1.0e6;
 /// Undistortion stops when the distorted-coordinate residual is below this (normalised
 /// units; ~1e-9 px for focal lengths up to 1e3 px).
 const UNDISTORT_TOLERANCE: f64 = 1.0e-13;
+
+/// Iterations of the radial preimage that starts undistortion (safeguarded Newton;
+/// bisection alone would need about 60 for full precision).
+const RADIAL_START_ITERATIONS: u32 = 64;
 
 /// Why a distorted point could not be undistorted.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -84,19 +91,34 @@ impl PlumbBob {
         1.0 + s * (3.0 * self.k1 + s * (5.0 * self.k2 + s * 7.0 * self.k3))
     }
 
-    /// The valid domain's bound `r_max²`: the first `s > 0` where the radial map stops
-    /// growing, or `None` when it grows over every radius a pinhole camera can see.
+    /// How far the map is from folding at `s = r²`, a lower bound on the smallest
+    /// singular value of its Jacobian anywhere on the circle `r`: the radial part's
+    /// is `min(radial, ρ')` (tangentially and radially), and the tangential part
+    /// `2 (q'·v) v + r² q'` (with `q' = (p2, p1)`) has a Jacobian of norm at most
+    /// `6 r |q|`.
+    fn fold_margin(&self, s: f64) -> f64 {
+        let radial = 1.0 + s * (self.k1 + s * (self.k2 + s * self.k3));
+        let tangential = 6.0 * s.max(0.0).sqrt() * self.p1.hypot(self.p2);
+        radial.min(self.radial_slope(s)) - tangential
+    }
+
+    /// The valid domain's bound `r_max²`: the first `s > 0` where the map may stop
+    /// being locally invertible (the radial map stops growing, or the tangential
+    /// terms could outweigh it: see `fold_margin`), or `None` when it stays
+    /// invertible over every radius a pinhole camera can see. Without tangential
+    /// terms this is exactly the first zero of `ρ'`.
     pub fn max_radius_squared(&self) -> Option<f64> {
-        // Bracket the first sign change on a geometric grid (the slope is a cubic in s,
-        // so it has at most three roots; a fine grid cannot step over the first of a
-        // pair that are far apart relative to their size), then bisect.
+        // Bracket the first sign change on a geometric grid (the margin is a cubic in
+        // s less a multiple of √s, so it changes sign only a few times; a 5 % grid
+        // cannot step over the first of a pair that are far apart relative to their
+        // size), then bisect.
         let mut lo = 0.0;
         let mut hi = 1.0e-4;
         while hi <= DOMAIN_SEARCH_MAX_R2 {
-            if self.radial_slope(hi) <= 0.0 {
+            if self.fold_margin(hi) <= 0.0 {
                 for _ in 0..200 {
                     let mid = 0.5 * (lo + hi);
-                    if self.radial_slope(mid) > 0.0 {
+                    if self.fold_margin(mid) > 0.0 {
                         lo = mid;
                     } else {
                         hi = mid;
@@ -122,6 +144,50 @@ impl PlumbBob {
             x * radial + 2.0 * self.p1 * xy + self.p2 * (r2 + 2.0 * x * x),
             y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * xy,
         )
+    }
+
+    /// The undistortion's starting point: `distorted` scaled to the radius `r` inside
+    /// the valid domain where the radial map alone reaches its radius, `ρ(r) = |d|`
+    /// (safeguarded Newton on the monotone branch, so it cannot leave the bracket).
+    /// Where the radial map does not reach that far inside the domain, half the
+    /// domain's radius squared (the iteration then reports the point as outside).
+    fn radial_start(&self, distorted: Vector2<f64>, max_r2: Option<f64>) -> Vector2<f64> {
+        let target = distorted.norm();
+        if target <= 0.0 || !target.is_finite() {
+            return distorted;
+        }
+        let rho = |r: f64| r * (1.0 + r * r * (self.k1 + r * r * (self.k2 + r * r * self.k3)));
+        let mut hi = max_r2.map_or(DOMAIN_SEARCH_MAX_R2, |m| m.max(0.0)).sqrt();
+        if rho(hi) <= target {
+            return match max_r2 {
+                Some(m) => distorted * (0.5 * m).sqrt() / target,
+                None => distorted,
+            };
+        }
+        // rho(0) = 0 < target < rho(hi), and rho grows on [0, hi].
+        let mut lo = 0.0;
+        let mut r = target.min(0.5 * hi);
+        for _ in 0..RADIAL_START_ITERATIONS {
+            let g = rho(r) - target;
+            if g.abs() <= UNDISTORT_TOLERANCE * (1.0 + target) {
+                break;
+            }
+            if g < 0.0 {
+                lo = r;
+            } else {
+                hi = r;
+            }
+            // The slope is positive inside the bracket; a step that leaves it (or a
+            // slope too flat to trust) falls back to bisection.
+            let slope = self.radial_slope(r * r);
+            let newton = r - g / slope;
+            r = if slope > 0.0 && newton > lo && newton < hi {
+                newton
+            } else {
+                0.5 * (lo + hi)
+            };
+        }
+        distorted * (r / target)
     }
 
     /// The Jacobian of [`Self::distort`] with respect to `(x, y)`.
@@ -155,13 +221,11 @@ impl PlumbBob {
             });
         }
         let inside = |p: &Vector2<f64>| max_r2.is_none_or(|m| p.norm_squared() < m);
-        // Start from the distorted point, pulled inside the domain if needed.
-        let mut p = distorted;
-        if let Some(m) = max_r2
-            && p.norm_squared() >= m
-        {
-            p *= (0.5 * m / p.norm_squared()).sqrt();
-        }
+        // Start from the radial model's own preimage, on the monotone branch: starting
+        // from the distorted point itself can put a pincushion lens's first Newton
+        // step next to the fold, where the Jacobian is nearly singular and the step
+        // throws the iterate out of the domain.
+        let mut p = self.radial_start(distorted, max_r2);
         let mut residual = self.distort(p) - distorted;
         for _ in 0..max_iterations {
             let residual_norm = residual.norm();

@@ -172,3 +172,27 @@ fn strong_barrel_corners_round_trip() {
         assert!((back - px).norm() < 1e-6, "{px:?} -> {back:?}");
     }
 }
+
+#[test]
+fn a_pincushion_corner_near_the_fold_is_undistorted() {
+    // A wide pincushion lens whose image corner sits at 86 % of the largest distorted
+    // radius: its preimage lies well inside the domain (r² 1.60 against 2.40), but
+    // the distorted point itself is next to the fold, where Newton's first step used
+    // to leave the domain and the pixel was refused.
+    let d = PlumbBob {
+        k1: 0.19778359087579972,
+        k2: 0.015998703466011364,
+        p1: 0.0,
+        p2: -0.003342023176280032,
+        k3: -0.029827872544375404,
+    };
+    let c = camera(261.9499129410448, 1.007021715682775, -5.83, -3.9, d);
+    let m = c.max_radius_squared();
+    let corner = Vector2::new(639.0, 479.0);
+    let n = c.unproject_with_domain(corner, m).unwrap();
+    assert!(n.norm_squared() < 0.7 * m.unwrap(), "{n:?}");
+    let back = c
+        .project_with_domain(&Vector3::new(n.x, n.y, 1.0), m)
+        .unwrap();
+    assert!((back - corner).norm() < 1e-6, "{back:?}");
+}
