@@ -15,6 +15,8 @@
 
 use std::sync::OnceLock;
 
+pub mod normal_table;
+
 /// Independent random streams: each effect draws from its own, so adding an effect to
 /// a scene does not change the noise of the others.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -152,22 +154,40 @@ impl PixelRng {
     /// A normal number beyond the base layer's edge `R` (Marsaglia 1964), with draws
     /// from `first_draw` on; signed by `negative`.
     fn gaussian_tail(&self, first_draw: u64, negative: bool) -> f64 {
+        let x = self.tail_beyond(first_draw, ZIGGURAT_R);
+        if negative { -x } else { x }
+    }
+
+    /// Three standard normal numbers from the table sampler (`table` is
+    /// [`normal_table::normal_table`]): draws 0 and 1 give the three 32-bit uniforms;
+    /// a number in a tail (2 in 4096) uses draws from `8 + 32 k` on.
+    #[inline]
+    pub fn normals3(&self, table: &normal_table::NormalTable) -> [f32; 3] {
+        let (a, b) = (self.bits(0), self.bits(1));
+        let uniforms = [(a >> 32) as u32, a as u32, (b >> 32) as u32];
+        let mut out = [0.0f32; 3];
+        for (k, (o, &u)) in out.iter_mut().zip(&uniforms).enumerate() {
+            *o = table.sample(u, |r| self.tail_beyond(8 + 32 * k as u64, r));
+        }
+        out
+    }
+
+    /// A normal number conditioned on exceeding `r > 0` (Marsaglia 1964), with draws
+    /// from `first_draw` on. After 32 rejected attempts (probability below 1e-30) it
+    /// returns `r`.
+    fn tail_beyond(&self, first_draw: u64, r: f64) -> f64 {
         for t in 0..32u64 {
             let bits = self.bits(first_draw + t);
             // Two uniforms in (0, 1) from the two halves: safe to take logarithms of.
             let u1 = ((bits >> 32) as f64 + 0.5) * (1.0 / 4_294_967_296.0);
             let u2 = ((bits & 0xFFFF_FFFF) as f64 + 0.5) * (1.0 / 4_294_967_296.0);
-            let x = u1.ln() / ZIGGURAT_R;
+            let x = u1.ln() / r;
             let y = u2.ln();
             if -2.0 * y >= x * x {
-                return if negative {
-                    x - ZIGGURAT_R
-                } else {
-                    ZIGGURAT_R - x
-                };
+                return r - x;
             }
         }
-        if negative { -ZIGGURAT_R } else { ZIGGURAT_R }
+        r
     }
 }
 
@@ -233,31 +253,12 @@ mod tests {
         assert_ne!(a, PixelRng::new(1, 2, 3, Stream::Dropouts));
     }
 
-    /// The ziggurat's numbers against the normal distribution: mean, variance, and the
-    /// fraction beyond 1, 2, 3 and 4 sigma (each within 4 standard errors), and the
-    /// sequence of a key repeats exactly.
-    #[test]
-    fn ziggurat_numbers_are_standard_normal() {
-        let z = ziggurat();
-        // The layers close: the last edge before 0 is small and positive.
-        assert!(z.x[255] > 0.0 && z.x[255] < 0.3, "{}", z.x[255]);
-        assert!(z.ratio.iter().all(|r| (0.0..1.0).contains(r)));
-        let n = 400_000u64;
-        let (mut sum, mut sum2) = (0.0, 0.0);
-        let mut beyond = [0u64; 4];
-        for p in 0..n {
-            let rng = PixelRng::new(3, 1, p, Stream::SensorNoise);
-            let x = f64::from(rng.gaussian(p % 3));
-            assert_eq!(x.to_bits(), f64::from(rng.gaussian(p % 3)).to_bits());
-            sum += x;
-            sum2 += x * x;
-            for (k, b) in beyond.iter_mut().enumerate() {
-                *b += u64::from(x.abs() > (k + 1) as f64);
-            }
-        }
-        let nf = n as f64;
-        let mean = sum / nf;
-        let var = sum2 / nf - mean * mean;
+    /// Mean, variance, and the fraction beyond 1, 2, 3 and 4 sigma of `numbers`
+    /// against the standard normal distribution (each within 4 standard errors).
+    fn assert_standard_normal(numbers: &[f64]) {
+        let nf = numbers.len() as f64;
+        let mean = numbers.iter().sum::<f64>() / nf;
+        let var = numbers.iter().map(|x| x * x).sum::<f64>() / nf - mean * mean;
         assert!(mean.abs() < 4.0 / nf.sqrt(), "{mean}");
         assert!((var - 1.0).abs() < 4.0 * (2.0 / nf).sqrt(), "{var}");
         // P(|x| > k) = erfc(k / sqrt 2).
@@ -267,8 +268,9 @@ mod tests {
             0.002_699_796_1,
             0.000_063_342_5,
         ];
-        for (k, (&b, &p)) in beyond.iter().zip(&exact).enumerate() {
-            let f = b as f64 / nf;
+        for (k, &p) in exact.iter().enumerate() {
+            let beyond = numbers.iter().filter(|x| x.abs() > (k + 1) as f64).count();
+            let f = beyond as f64 / nf;
             let se = (p * (1.0 - p) / nf).sqrt();
             assert!(
                 (f - p).abs() < 4.0 * se,
@@ -276,6 +278,66 @@ mod tests {
                 k + 1
             );
         }
+    }
+
+    /// The ziggurat's numbers against the normal distribution, and the sequence of a
+    /// key repeats exactly.
+    #[test]
+    fn ziggurat_numbers_are_standard_normal() {
+        let z = ziggurat();
+        // The layers close: the last edge before 0 is small and positive.
+        assert!(z.x[255] > 0.0 && z.x[255] < 0.3, "{}", z.x[255]);
+        assert!(z.ratio.iter().all(|r| (0.0..1.0).contains(r)));
+        let numbers: Vec<f64> = (0..400_000u64)
+            .map(|p| {
+                let rng = PixelRng::new(3, 1, p, Stream::SensorNoise);
+                let x = f64::from(rng.gaussian(p % 3));
+                assert_eq!(x.to_bits(), f64::from(rng.gaussian(p % 3)).to_bits());
+                x
+            })
+            .collect();
+        assert_standard_normal(&numbers);
+    }
+
+    /// The table sampler's three numbers per pixel against the normal distribution,
+    /// each channel alone and all together, and the tails beyond the table (|z| >
+    /// 3.49) as often as the normal has them, with their conditional mean.
+    #[test]
+    fn table_normals_are_standard_normal() {
+        let triples: Vec<[f32; 3]> = (0..400_000u64)
+            .map(|p| {
+                PixelRng::new(5, 2, p, Stream::SensorNoise).normals3(normal_table::normal_table())
+            })
+            .collect();
+        let mut all = Vec::new();
+        for k in 0..3 {
+            let channel: Vec<f64> = triples.iter().map(|t| f64::from(t[k])).collect();
+            assert_standard_normal(&channel);
+            all.extend(channel);
+        }
+        assert_standard_normal(&all);
+        // The channels are uncorrelated.
+        for (a, b) in [(0, 1), (0, 2), (1, 2)] {
+            let r = triples
+                .iter()
+                .map(|t| f64::from(t[a]) * f64::from(t[b]))
+                .sum::<f64>()
+                / triples.len() as f64;
+            assert!(r.abs() < 4.0 / (triples.len() as f64).sqrt(), "{a}{b}: {r}");
+        }
+        let r = normal_table::normal_table().tail_start();
+        let tail: Vec<f64> = all.iter().map(|x| x.abs()).filter(|&x| x > r).collect();
+        let p = 2.0 / normal_table::SEGMENTS as f64;
+        let f = tail.len() as f64 / all.len() as f64;
+        assert!(
+            (f - p).abs() < 4.0 * (p / all.len() as f64).sqrt(),
+            "{f} vs {p}"
+        );
+        // E[Z | Z > r] = φ(r) / (1 − Φ(r)); the tail's spread is about 0.26, so the
+        // ~590 tail numbers give a standard error near 0.011.
+        let expected = (-0.5 * r * r).exp() / (2.0 * std::f64::consts::PI).sqrt() / (p / 2.0);
+        let mean = tail.iter().sum::<f64>() / tail.len() as f64;
+        assert!((mean - expected).abs() < 0.045, "{mean} vs {expected}");
     }
 
     #[test]

@@ -134,6 +134,8 @@ pub fn lut_lookup(lut: &[u8], x: f32) -> u8 {
     } else {
         0.0
     };
-    let i = (x * (LUT_SIZE - 1) as f32 + 0.5) as usize;
+    // In [0.5, LUT_SIZE - 0.5] here: through i32, one conversion instruction (a
+    // float-to-usize cast saturates, which costs several).
+    let i = (x * (LUT_SIZE - 1) as f32 + 0.5) as i32 as usize;
     lut.get(i.min(LUT_SIZE - 1)).copied().unwrap_or(0)
 }

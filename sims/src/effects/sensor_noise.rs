@@ -5,12 +5,13 @@
 //! `n₁, n₂ ~ N(0, 1)` per pixel, channel and frame (the Gaussian limit of Poisson shot
 //! noise, accurate above a few electrons), clipped to `[0, full_well_e]` (saturation),
 //! then divided by `full_well_e` again. The two independent Gaussian terms are drawn
-//! as one, `√(N + read_noise_e²) · n`, which has the same distribution.
+//! as one, `√(N + read_noise_e²) · n`, which has the same distribution. The numbers
+//! `n` come from the table sampler (`rng::normal_table`): three per pixel from two
+//! hashes.
 
 use serde::{Deserialize, Serialize};
 
 use super::{EffectParams, ParamDoc, Target, check_range};
-use crate::rng::PixelRng;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -54,10 +55,11 @@ impl EffectParams for SensorNoise {
 }
 
 impl SensorNoise {
-    /// Noisy linear values of one RGB pixel (inputs clipped to [0, 1] first): one
-    /// Gaussian per channel with the shot and read variances added.
+    /// Noisy linear values of one RGB pixel (inputs clipped to [0, 1] first), given
+    /// the pixel's three standard normal numbers (one per channel, carrying the shot
+    /// and read variances added).
     #[inline]
-    pub fn apply(&self, rgb: [f32; 3], rng: &PixelRng) -> [f32; 3] {
+    pub fn apply(&self, rgb: [f32; 3], normals: [f32; 3]) -> [f32; 3] {
         // In units of the full well (validate keeps it >= 1): the measured charge over
         // the full well is x + √(x / full_well_e + (read_noise_e / full_well_e)²) · n,
         // the model above divided through, without a division per channel.
@@ -65,7 +67,7 @@ impl SensorNoise {
         let read = self.read_noise_e * per_electron;
         let read_variance = read * read;
         let mut out = [0.0f32; 3];
-        for (k, (o, &v)) in out.iter_mut().zip(&rgb).enumerate() {
+        for ((o, &v), &n) in out.iter_mut().zip(&rgb).zip(&normals) {
             let x = f64::from(v);
             let x = if x.is_finite() {
                 x.clamp(0.0, 1.0)
@@ -73,7 +75,7 @@ impl SensorNoise {
                 0.0
             };
             let sigma = (x * per_electron + read_variance).sqrt();
-            let measured = x + sigma * f64::from(rng.gaussian(k as u64));
+            let measured = x + sigma * f64::from(n);
             *o = measured.clamp(0.0, 1.0) as f32;
         }
         out

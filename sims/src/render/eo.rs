@@ -12,6 +12,7 @@ use crate::effects::EffectSet;
 use crate::effects::exposure::{CLEAN, lut_lookup};
 use crate::effects::sensor_noise::SensorNoise;
 use crate::material::Rgb;
+use crate::rng::normal_table::normal_table;
 use crate::rng::{FrameRng, Stream};
 
 /// Linear radiance per pixel, averaged over `poses` (one pose: no motion blur).
@@ -91,6 +92,7 @@ impl Development {
     pub fn develop(&self, linear: &[Rgb], key: NoiseKey, timestamp_ns: u64) -> EoFrame {
         let mut rgb = vec![0u8; 3 * linear.len()];
         let noise_rng = FrameRng::new(key.seed, key.frame, Stream::SensorNoise);
+        let normals = normal_table();
         rgb.par_chunks_mut(3 * 1024)
             .enumerate()
             .for_each(|(chunk, out)| {
@@ -110,7 +112,7 @@ impl Development {
                         *c = (*c * self.gain).clamp(0.0, 1.0);
                     }
                     if let Some(noise) = &self.sensor_noise {
-                        v = noise.apply(v, &noise_rng.pixel(pixel as u64));
+                        v = noise.apply(v, noise_rng.pixel(pixel as u64).normals3(normals));
                     }
                     for (o, c) in px.iter_mut().zip(v) {
                         *o = lut_lookup(&self.lut, c);
