@@ -173,7 +173,10 @@ pub fn ramp(palette: &[Rgb], t: f32) -> Rgb {
         1 => palette[0],
         n => {
             let x = t.clamp(0.0, 1.0) * (n - 1) as f32;
-            let i = (x as usize).min(n - 2);
+            // x is in [0, n - 1] (0 for NaN): one conversion instruction through i32,
+            // where a cast to usize saturates.
+            let i = (x as i32).max(0) as usize;
+            let i = i.min(n - 2);
             lerp(palette[i], palette[i + 1], x - i as f32)
         }
     }
@@ -291,6 +294,22 @@ impl NoiseTable {
         let mut norm = 0.0f32;
         let mut freq = 1.0f64;
         let mut amp = 1.0f32;
+        // A footprint below a quarter of the finest octave's cell keeps every octave
+        // whole (keep = 1 exactly, below, as freq · footprint only grows with the
+        // octave, by exact doublings): the common case, without the filter's
+        // arithmetic.
+        let finest = f64::from(1u32 << octaves.saturating_sub(1));
+        if octaves > 0 && finest * footprint <= 0.25 {
+            for (o, &(sx, sy)) in OCTAVE_SHIFTS.iter().enumerate().take(octaves as usize) {
+                norm += amp;
+                let n =
+                    self.value_noise_fixed((fx << o).wrapping_add(sx), (fy << o).wrapping_add(sy));
+                // (n - 0.5) · 1 is n - 0.5 exactly: the same sum as the loop below.
+                sum += amp * (0.5 + (n - 0.5));
+                amp *= 0.5;
+            }
+            return if norm > 0.0 { sum / norm } else { 0.5 };
+        }
         for (o, &(sx, sy)) in OCTAVE_SHIFTS.iter().enumerate().take(octaves as usize) {
             norm += amp;
             let keep = (1.0 - (freq * footprint - 0.25) * 2.0).clamp(0.0, 1.0) as f32;

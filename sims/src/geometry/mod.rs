@@ -95,6 +95,9 @@ pub enum Shape {
         /// Dual basis: `a = (p - corner)·dual_u`, `b = (p - corner)·dual_v`.
         dual_u: Vector3<f64>,
         dual_v: Vector3<f64>,
+        /// `|edge_u|`, `|edge_v|`: metres per unit of `a`, `b` (kept, not recomputed
+        /// per hit).
+        edge_lengths_m: [f64; 2],
     },
     /// An unbounded plane through `origin`; uv is metres along `axis_u`, `axis_v`.
     InfinitePlane {
@@ -324,11 +327,11 @@ impl Primitive {
         match &self.shape {
             Shape::Parallelogram {
                 corner,
-                edge_u,
-                edge_v,
                 normal,
                 dual_u,
                 dual_v,
+                edge_lengths_m,
+                ..
             } => {
                 let denom = normal.dot(&ray.dir);
                 if denom == 0.0 {
@@ -348,7 +351,7 @@ impl Primitive {
                     t,
                     normal: *normal,
                     uv: if DETAILS {
-                        [(a - 0.5) * edge_u.norm(), (b - 0.5) * edge_v.norm()]
+                        [(a - 0.5) * edge_lengths_m[0], (b - 0.5) * edge_lengths_m[1]]
                     } else {
                         [0.0; 2]
                     },
@@ -592,6 +595,7 @@ pub fn parallelogram(
             normal,
             dual_u,
             dual_v,
+            edge_lengths_m: [edge_u.norm(), edge_v.norm()],
         },
         object,
         material,
