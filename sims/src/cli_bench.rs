@@ -10,10 +10,6 @@ use anyhow::Result;
 use sims::effects::effect_docs;
 use sims::{Effect, Scene, SimOptions, Simulator};
 
-/// Rounds the frames of each configuration are split into; each configuration's
-/// figures are those of its fastest round.
-const ROUNDS: usize = 3;
-
 /// CPU time (user + system) of this process in seconds, from `/proc/self/stat`
 /// (Linux clock ticks, 100 per second); `None` where that is not readable.
 fn process_cpu_seconds() -> Option<f64> {
@@ -81,12 +77,13 @@ impl Config {
     }
 }
 
-pub fn bench(scene_path: &Path, frames: usize) -> Result<()> {
+pub fn bench(scene_path: &Path, frames: usize, rounds: usize) -> Result<()> {
+    let rounds = rounds.max(1);
     let scene = Scene::load(scene_path)?;
-    let per_round = frames.div_ceil(ROUNDS).max(1);
+    let per_round = frames.div_ceil(rounds).max(1);
     let (lidar, eo) = (&scene.sensor().lidar, &scene.sensor().eo);
     println!(
-        "scene {}: lidar {}x{}, EO {}x{}, {} threads; {ROUNDS} interleaved rounds of \
+        "scene {}: lidar {}x{}, EO {}x{}, {} threads; {rounds} interleaved rounds of \
          {per_round} frames per configuration, the fastest round shown",
         scene.name,
         lidar.width,
@@ -133,7 +130,7 @@ pub fn bench(scene_path: &Path, frames: usize) -> Result<()> {
         &scene,
         Some(with_defaults(&builtin)?),
     )?);
-    for _ in 0..ROUNDS {
+    for _ in 0..rounds {
         for config in &mut configs {
             config.round(per_round)?;
         }

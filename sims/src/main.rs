@@ -79,6 +79,10 @@ enum Command {
         /// Frames rendered per configuration.
         #[arg(long, default_value_t = 30)]
         frames: usize,
+        /// Interleaved rounds the frames are split into (each configuration's fastest
+        /// round is shown: more rounds ride out more bursts of load).
+        #[arg(long, default_value_t = 3)]
+        rounds: usize,
         /// Also time the Mitsuba backend against the built-in one on the same clean
         /// range and EO images, and measure how far their images differ.
         #[arg(long)]
@@ -122,9 +126,10 @@ fn main() -> Result<()> {
         Command::Bench {
             scene,
             frames,
+            rounds,
             mitsuba,
         } => {
-            cli_bench::bench(&scene, frames)?;
+            cli_bench::bench(&scene, frames, rounds)?;
             if mitsuba {
                 cli_backends::bench_backends(&scene, frames)?;
             }
