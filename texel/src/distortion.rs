@@ -289,6 +289,65 @@ mod tests {
         }
     }
 
+    /// Inside the domain the map never folds, tangential terms included: the
+    /// Jacobian's determinant stays positive on every circle up to the bound, for
+    /// lenses whose tangential terms bend the fold inwards (the radial-only bound of
+    /// the strong barrel lens lies where its determinant is already negative).
+    #[test]
+    fn the_domain_is_fold_free_with_tangential_terms() {
+        let lenses = [
+            PlumbBob {
+                k1: -0.362,
+                k2: 0.0588,
+                p1: -0.00365,
+                p2: 0.00227,
+                k3: 0.000128,
+            },
+            PlumbBob {
+                k1: 0.198,
+                k2: 0.016,
+                p1: 0.0,
+                p2: -0.00334,
+                k3: -0.0298,
+            },
+            barrel(),
+        ];
+        for d in lenses {
+            // Unbounded lenses are checked out to r = 3.
+            let m = d.max_radius_squared().unwrap_or(9.0);
+            for i in 1..=200 {
+                let r = m.sqrt() * f64::from(i) / 200.0 * (1.0 - 1e-9);
+                for k in 0..360 {
+                    let a = f64::from(k).to_radians();
+                    let det = d
+                        .jacobian(Vector2::new(r * a.cos(), r * a.sin()))
+                        .determinant();
+                    assert!(det > 0.0, "{d:?}: det {det} at r {r}, {k} deg");
+                }
+            }
+        }
+        // The first lens's radial map never stops growing (its slope dips to 0.0006 at
+        // r 1.36), so a radial-only bound would call every radius valid; with its
+        // tangential terms the map folds within r 1.5 on some side.
+        let d = lenses[0];
+        let radial_only = PlumbBob {
+            p1: 0.0,
+            p2: 0.0,
+            ..d
+        };
+        assert_eq!(radial_only.max_radius_squared(), None);
+        let folds = (1..=150).any(|i| {
+            let r = f64::from(i) / 100.0;
+            (0..360).any(|k| {
+                let a = f64::from(k).to_radians();
+                d.jacobian(Vector2::new(r * a.cos(), r * a.sin()))
+                    .determinant()
+                    <= 0.0
+            })
+        });
+        assert!(folds);
+    }
+
     #[test]
     fn jacobian_matches_finite_differences() {
         let d = barrel();
