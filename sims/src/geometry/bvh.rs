@@ -102,12 +102,12 @@ impl Bvh {
 
     /// The closest hit with distance below `t_max`.
     pub fn closest_hit(&self, ray: &Ray, t_max: f64) -> Option<Hit> {
-        let mut best: Option<&Primitive> = None;
+        let mut best: Option<(&Primitive, Option<Hit>)> = None;
         let mut limit = t_max;
         for p in &self.unbounded {
-            if let Some(t) = p.distance(ray, limit) {
+            if let Some((t, hit)) = p.probe(ray, limit) {
                 limit = t;
-                best = Some(p);
+                best = Some((p, hit));
             }
         }
         if !self.nodes.is_empty() {
@@ -124,9 +124,9 @@ impl Bvh {
                 if node.count > 0 {
                     let first = node.first_or_right as usize;
                     for p in &self.primitives[first..first + node.count as usize] {
-                        if let Some(t) = p.distance(ray, limit) {
+                        if let Some((t, hit)) = p.probe(ray, limit) {
                             limit = t;
-                            best = Some(p);
+                            best = Some((p, hit));
                         }
                     }
                 } else {
@@ -145,9 +145,10 @@ impl Bvh {
                 }
             }
         }
-        // Details (normal, uv) only for the winner; its own nearest hit is the one
-        // found, since the traversal's limit only ever excluded farther ones.
-        best.and_then(|p| p.intersect(ray, f64::INFINITY))
+        // Details (normal, uv) of a curved winner only now, for it alone; its own
+        // nearest hit is the one found, since the traversal's limit only ever
+        // excluded farther ones. A flat winner's came with its distance.
+        best.and_then(|(p, hit)| hit.or_else(|| p.intersect(ray, f64::INFINITY)))
     }
 
     /// Every primitive that may meet a ray from `origin` inside the convex cone
@@ -207,7 +208,7 @@ impl Bvh {
     #[inline]
     pub fn closest_among(&self, ray: &Ray, candidates: &[Candidate]) -> Option<Hit> {
         let bounded = self.primitives.len();
-        let mut best: Option<(&Primitive, u32)> = None;
+        let mut best: Option<(&Primitive, u32, Option<Hit>)> = None;
         let mut limit = f64::INFINITY;
         for c in candidates {
             if c.near_m > limit {
@@ -223,14 +224,16 @@ impl Bvh {
                 }
             };
             // Up to and including `limit`, to see ties.
-            if let Some(t) = p.distance(ray, limit.next_up())
-                && (t < limit || best.is_none_or(|(_, order)| c.order < order))
+            if let Some((t, hit)) = p.probe(ray, limit.next_up())
+                && (t < limit || best.is_none_or(|(_, order, _)| c.order < order))
             {
                 limit = t;
-                best = Some((p, c.order));
+                best = Some((p, c.order, hit));
             }
         }
-        best.and_then(|(p, _)| p.intersect(ray, f64::INFINITY))
+        // A curved winner's details are computed once, here; the same arithmetic as
+        // its distance, so the same hit.
+        best.and_then(|(p, _, hit)| hit.or_else(|| p.intersect(ray, f64::INFINITY)))
     }
 
     /// Indices (as for [`Self::closest_among`]) of every primitive whose bounds

@@ -322,6 +322,22 @@ impl Primitive {
         self.intersect_local::<false>(ray, t_max).map(|l| l.t)
     }
 
+    /// The distance of a hit with `t` in (`MIN_HIT_DISTANCE`, `t_max`), and the hit
+    /// itself for flat shapes, whose normal and texture coordinates cost next to
+    /// nothing once the distance is known (a traversal keeps the winner's instead of
+    /// intersecting it again); curved shapes leave them to [`Self::intersect`].
+    #[inline]
+    pub fn probe(&self, ray: &Ray, t_max: f64) -> Option<(f64, Option<Hit>)> {
+        match &self.shape {
+            Shape::Parallelogram { .. } | Shape::InfinitePlane { .. } | Shape::Triangle { .. } => {
+                self.intersect(ray, t_max).map(|h| (h.distance_m, Some(h)))
+            }
+            Shape::Sphere { .. } | Shape::Cylinder { .. } => {
+                self.distance(ray, t_max).map(|t| (t, None))
+            }
+        }
+    }
+
     #[inline]
     fn intersect_local<const DETAILS: bool>(&self, ray: &Ray, t_max: f64) -> Option<LocalHit> {
         match &self.shape {
@@ -696,6 +712,94 @@ mod tests {
             c.intersect(&ray([3.0, 0.0, 1.5], [-1.0, 0.0, 0.0]), f64::INFINITY)
                 .is_none()
         );
+    }
+
+    /// One primitive of every shape, near the origin.
+    fn one_of_each() -> Vec<Primitive> {
+        let mut out = vec![
+            parallelogram(
+                Point3::new(-1.0, -0.5, 2.0),
+                Vector3::new(2.0, 0.3, 0.0),
+                Vector3::new(0.1, 1.5, 0.4),
+                0,
+                0,
+            )
+            .unwrap(),
+            triangle(
+                [
+                    Point3::new(-1.0, -1.0, 1.0),
+                    Point3::new(1.5, -0.5, 1.5),
+                    Point3::new(0.0, 1.0, 2.5),
+                ],
+                [[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]],
+                1,
+                1,
+            )
+            .unwrap(),
+        ];
+        let axes = (Vector3::x(), Vector3::y(), Vector3::z());
+        out.push(Primitive {
+            shape: Shape::InfinitePlane {
+                origin: Point3::new(0.0, 0.0, 3.0),
+                axis_u: axes.0,
+                axis_v: axes.1,
+                normal: axes.2,
+            },
+            object: 2,
+            material: 2,
+        });
+        out.push(Primitive {
+            shape: Shape::Sphere {
+                center: Point3::new(0.3, 0.2, 2.0),
+                radius: 0.8,
+                axis_x: axes.0,
+                axis_y: axes.1,
+                axis_z: axes.2,
+            },
+            object: 3,
+            material: 3,
+        });
+        out.push(Primitive {
+            shape: Shape::Cylinder {
+                center: Point3::new(-0.2, 0.1, 2.2),
+                radius: 0.6,
+                half_height: 0.7,
+                axis_x: axes.0,
+                axis_y: axes.2,
+                axis_z: -axes.1,
+            },
+            object: 4,
+            material: 4,
+        });
+        out
+    }
+
+    proptest::proptest! {
+        /// What traversals keep from `probe` is exactly what `distance` and
+        /// `intersect` give: the same distance, and for flat shapes the same hit
+        /// (curved ones leave it to `intersect`).
+        #[test]
+        fn probing_agrees_with_distance_and_intersect(
+            o in proptest::array::uniform3(-1.5f64..1.5),
+            d in proptest::array::uniform3(-1.0f64..1.0),
+            t_max in 0.5f64..6.0,
+        ) {
+            let dir = Vector3::from(d);
+            proptest::prop_assume!(dir.norm() > 1e-3);
+            let r = ray(o, d);
+            for p in one_of_each() {
+                let probed = p.probe(&r, t_max);
+                proptest::prop_assert_eq!(probed.map(|(t, _)| t), p.distance(&r, t_max));
+                let flat = !matches!(p.shape, Shape::Sphere { .. } | Shape::Cylinder { .. });
+                if let Some((_, hit)) = probed {
+                    proptest::prop_assert_eq!(hit.is_some(), flat);
+                    proptest::prop_assert_eq!(
+                        hit.or_else(|| p.intersect(&r, f64::INFINITY)),
+                        p.intersect(&r, t_max)
+                    );
+                }
+            }
+        }
     }
 
     #[test]
