@@ -38,6 +38,9 @@ pub struct CameraRays {
     pub camera: PinholeCamera,
     /// Unit rays; zero for a pixel outside the distortion model's domain.
     pub rays: Vec<[f32; 3]>,
+    /// `rays` renormalised in f64 as [`world_ray`] does (zero for a zero ray), once
+    /// per camera instead of once per ray and frame.
+    pub unit_rays: Vec<Vector3<f64>>,
     /// Rays per pixel.
     pub per_pixel: usize,
     /// Angular width of one pixel at the image centre, radians (texture footprint).
@@ -171,6 +174,10 @@ impl CameraRays {
                 })
             })
             .collect();
+        let unit_rays = rays
+            .par_iter()
+            .map(|r| unit_ray(r).unwrap_or_else(Vector3::zeros))
+            .collect();
         let pixel_rad = 1.0 / camera.fx.max(camera.fy);
         let per_pixel = offsets.len();
         let reach_px = offsets
@@ -201,6 +208,7 @@ impl CameraRays {
         Self {
             camera: camera.clone(),
             rays,
+            unit_rays,
             per_pixel: offsets.len(),
             pixel_rad,
             tile_px: tile,
@@ -217,16 +225,28 @@ impl CameraRays {
 /// invalid (zero) ray.
 #[inline]
 pub fn world_ray(world_from_camera: &Pose, r: &[f32; 3]) -> Option<Ray> {
+    unit_ray(r).map(|d| rotated_ray(world_from_camera, &d))
+}
+
+/// The unit ray `r` (f32) renormalised in f64, so distances along it are metres to
+/// f64 precision; `None` for an invalid (zero) ray.
+#[inline]
+pub fn unit_ray(r: &[f32; 3]) -> Option<Vector3<f64>> {
     if r[0] == 0.0 && r[1] == 0.0 && r[2] == 0.0 {
         return None;
     }
     let d = Vector3::new(f64::from(r[0]), f64::from(r[1]), f64::from(r[2]));
-    // Renormalise in f64 so distances are metres to f64 precision.
-    let d = d / d.norm();
-    Some(Ray {
+    Some(d / d.norm())
+}
+
+/// The ray along the unit camera-frame direction `d` of a camera at
+/// `world_from_camera`, in world coordinates.
+#[inline]
+fn rotated_ray(world_from_camera: &Pose, d: &Vector3<f64>) -> Ray {
+    Ray {
         origin: world_from_camera.translation.vector.into(),
         dir: world_from_camera.rotation * d,
-    })
+    }
 }
 
 /// A renderer of the clean signal: lidar echoes and EO radiance for a camera at a pose.
@@ -422,9 +442,10 @@ impl BuiltinBackend {
                                 let index = (row + x as usize) * per + k;
                                 let local = (local_row + x as usize) * per + k;
                                 let Some(ray) = rays
-                                    .rays
+                                    .unit_rays
                                     .get(index)
-                                    .and_then(|r| world_ray(world_from_camera, r))
+                                    .filter(|d| **d != Vector3::zeros())
+                                    .map(|d| rotated_ray(world_from_camera, d))
                                 else {
                                     continue;
                                 };
