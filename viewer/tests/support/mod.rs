@@ -109,21 +109,58 @@ pub fn viewer_binary() -> PathBuf {
 }
 
 /// An Xvfb server, killed when dropped.
-pub struct Xvfb(std::process::Child);
+pub struct Xvfb {
+    child: std::process::Child,
+    display: u32,
+    /// Whether the display's files are this server's (it came up on it).
+    owns_display: bool,
+}
 
 impl Drop for Xvfb {
     fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+        // A killed server leaves its lock file and socket behind: without this, every
+        // run would use up a display number for good.
+        if self.owns_display {
+            remove_display_files(self.display);
+        }
     }
 }
 
-/// Starts Xvfb on the first display number whose lock file is free.
+fn lock_path(display: u32) -> String {
+    format!("/tmp/.X{display}-lock")
+}
+
+fn socket_path(display: u32) -> String {
+    format!("/tmp/.X11-unix/X{display}")
+}
+
+fn remove_display_files(display: u32) {
+    let _ = std::fs::remove_file(lock_path(display));
+    let _ = std::fs::remove_file(socket_path(display));
+}
+
+/// Whether `display`'s lock file names a process that is still running (a lock
+/// that cannot be read counts as held).
+fn display_in_use(display: u32) -> bool {
+    let Ok(text) = std::fs::read_to_string(lock_path(display)) else {
+        return std::path::Path::new(&lock_path(display)).exists();
+    };
+    match text.trim().parse::<u32>() {
+        Ok(pid) => std::path::Path::new(&format!("/proc/{pid}")).exists(),
+        Err(_) => true,
+    }
+}
+
+/// Starts Xvfb on the first display number that no running server holds (a lock
+/// left by a server that was killed is cleared first).
 pub fn start_xvfb() -> (Xvfb, String) {
     for n in 90..140 {
-        if std::path::Path::new(&format!("/tmp/.X{n}-lock")).exists() {
+        if display_in_use(n) {
             continue;
         }
+        remove_display_files(n);
         let display = format!(":{n}");
         let child = std::process::Command::new("Xvfb")
             .args([&display, "-screen", "0", "800x600x24", "-nolisten", "tcp"])
@@ -131,11 +168,20 @@ pub fn start_xvfb() -> (Xvfb, String) {
             .stderr(std::process::Stdio::null())
             .spawn()
             .expect("Xvfb must be installed (scripts/setup.sh installs xvfb)");
-        let xvfb = Xvfb(child);
+        let mut xvfb = Xvfb {
+            child,
+            display: n,
+            owns_display: false,
+        };
         let start = std::time::Instant::now();
         while start.elapsed() < std::time::Duration::from_secs(10) {
-            if std::path::Path::new(&format!("/tmp/.X11-unix/X{n}")).exists() {
+            if std::path::Path::new(&socket_path(n)).exists() {
+                xvfb.owns_display = true;
                 return (xvfb, display);
+            }
+            // A server that lost the race for this display exits: try the next one.
+            if matches!(xvfb.child.try_wait(), Ok(Some(_))) {
+                break;
             }
             std::thread::sleep(std::time::Duration::from_millis(50));
         }
