@@ -71,6 +71,7 @@ pub mod effects;
 pub mod geometry;
 pub mod light;
 pub mod material;
+pub mod noise;
 pub mod render;
 pub mod rng;
 pub mod scene;

@@ -162,9 +162,12 @@ impl Lighting {
                 } => {
                     let d = position - p.point;
                     let dist = d.norm().max(MIN_LIGHT_DISTANCE_M);
-                    let falloff = (*intensity as f64 / (dist * dist)) as f32;
+                    // One division for the direction and the falloff: divisions and
+                    // square roots are the slow part of shading a pixel.
+                    let inv_dist = 1.0 / dist;
+                    let falloff = (*intensity as f64 * (inv_dist * inv_dist)) as f32;
                     (
-                        d / dist,
+                        d * inv_dist,
                         dist,
                         [color[0] * falloff, color[1] * falloff, color[2] * falloff],
                         *shadows,

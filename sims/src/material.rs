@@ -10,7 +10,7 @@
 
 use std::sync::Arc;
 
-use crate::rng::mix64;
+pub use crate::noise::NoiseTable;
 
 /// Linear RGB in [0, 1].
 pub type Rgb = [f32; 3];
@@ -88,7 +88,7 @@ fn lerp(a: Rgb, b: Rgb, t: f32) -> Rgb {
 /// `x.floor()` without a libm call on targets without SSE4.1 (finite inputs within
 /// ±2⁶³; others saturate, which only shifts a texture pattern).
 #[inline]
-fn fast_floor(x: f64) -> f64 {
+pub(crate) fn fast_floor(x: f64) -> f64 {
     let i = x as i64;
     let f = i as f64;
     if f > x { f - 1.0 } else { f }
@@ -182,206 +182,6 @@ pub fn ramp(palette: &[Rgb], t: f32) -> Rgb {
     }
 }
 
-/// Side of the lattice of random values behind value noise; the noise repeats every
-/// `NOISE_PERIOD` lattice cells (per octave, with octaves offset from each other, so
-/// repeats are not visible).
-const NOISE_PERIOD: usize = 256;
-
-/// Random lattice values of one seed, looked up instead of hashed per sample.
-#[derive(Debug, Clone, PartialEq)]
-pub struct NoiseTable {
-    /// Row-major, `NOISE_PERIOD` by `NOISE_PERIOD`: a lattice index is 16 bits, so
-    /// looking one up needs no bounds check.
-    values: Box<[f32; LATTICE_LEN]>,
-}
-
-/// Values in a noise lattice.
-const LATTICE_LEN: usize = NOISE_PERIOD * NOISE_PERIOD;
-
-impl NoiseTable {
-    pub fn new(seed: u64) -> Self {
-        let mut values = Box::new([0.0f32; LATTICE_LEN]);
-        for (i, v) in values.iter_mut().enumerate() {
-            *v = (mix64(seed ^ mix64(i as u64 + 1)) >> 40) as f32 / (1u64 << 24) as f32;
-        }
-        Self { values }
-    }
-
-    #[inline]
-    fn lattice(&self, ix: i64, iy: i64) -> f32 {
-        let m = NOISE_PERIOD as i64 - 1;
-        self.values[((iy & m) as usize) * NOISE_PERIOD + (ix & m) as usize]
-    }
-
-    /// Smooth value noise in [0, 1].
-    #[inline]
-    fn value_noise(&self, x: f64, y: f64) -> f32 {
-        let (fx, fy) = (fast_floor(x), fast_floor(y));
-        let (ix, iy) = (fx as i64, fy as i64);
-        let (tx, ty) = ((x - fx) as f32, (y - fy) as f32);
-        let sx = tx * tx * (3.0 - 2.0 * tx);
-        let sy = ty * ty * (3.0 - 2.0 * ty);
-        let a = self.lattice(ix, iy);
-        let b = self.lattice(ix + 1, iy);
-        let c = self.lattice(ix, iy + 1);
-        let d = self.lattice(ix + 1, iy + 1);
-        let top = a + (b - a) * sx;
-        let bottom = c + (d - c) * sx;
-        top + (bottom - top) * sy
-    }
-
-    /// Fractional Brownian motion of value noise in [0, 1]; octaves whose period is
-    /// below about two footprints fade out (band limiting) towards their mean.
-    pub fn fbm(&self, x: f64, y: f64, footprint: f64, octaves: u32) -> f64 {
-        let mut sum = 0.0f32;
-        let mut norm = 0.0f32;
-        let mut freq = 1.0f64;
-        let mut amp = 1.0f32;
-        for o in 0..octaves.min(16) {
-            norm += amp;
-            // Fraction of this octave that survives the footprint's low-pass.
-            let keep = (1.0 - (freq * footprint - 0.25) * 2.0).clamp(0.0, 1.0) as f32;
-            if keep <= 0.0 {
-                // Every finer octave is gone too: they add their mean.
-                sum += 0.5 * amp;
-                let mut a = amp * 0.5;
-                for _ in o + 1..octaves.min(16) {
-                    sum += 0.5 * a;
-                    norm += a;
-                    a *= 0.5;
-                }
-                break;
-            }
-            let shift = f64::from(o) * 37.7;
-            let n = self.value_noise(x * freq + shift, y * freq - shift * 0.61);
-            sum += amp * (0.5 + (n - 0.5) * keep);
-            freq *= 2.0;
-            amp *= 0.5;
-        }
-        if norm > 0.0 {
-            f64::from(sum / norm)
-        } else {
-            0.5
-        }
-    }
-}
-
-/// Fractional bits of the fixed-point lattice coordinates of [`NoiseTable::fbm_fixed`].
-const FIXED_BITS: u32 = 24;
-/// One lattice period in fixed point: coordinates wrap modulo this.
-const FIXED_PERIOD: u64 = (NOISE_PERIOD as u64) << FIXED_BITS;
-// `fbm_fixed` wraps coordinates in u32 and indexes the lattice with 16 bits.
-const _: () = assert!(NOISE_PERIOD == 256 && FIXED_PERIOD == 1 << 32);
-
-impl NoiseTable {
-    /// [`Self::fbm`] evaluated the fast way, to within 1e-5 of it: the base
-    /// coordinates are reduced modulo the lattice period (which every octave's period
-    /// divides) and turned into fixed point with 24 fractional bits once, so each
-    /// octave's cell and fraction are a shift and a mask instead of a float floor. The
-    /// renderer samples noise textures through this.
-    pub fn fbm_fixed(&self, x: f64, y: f64, footprint: f64, octaves: u32) -> f32 {
-        // One lattice period is exactly 2^32 in fixed point, so u32 arithmetic wraps
-        // the coordinates modulo the period for free.
-        let to_fixed = |v: f64| -> u32 {
-            let period = NOISE_PERIOD as f64;
-            let wrapped = v - period * fast_floor(v / period);
-            // In [0, period] for finite v; anything else (NaN, huge) lands at 0.
-            (wrapped * f64::from(1u32 << FIXED_BITS)) as u64 as u32
-        };
-        let (fx, fy) = (to_fixed(x), to_fixed(y));
-        let octaves = octaves.min(16);
-        let mut sum = 0.0f32;
-        let mut norm = 0.0f32;
-        let mut freq = 1.0f64;
-        let mut amp = 1.0f32;
-        // A footprint below a quarter of the finest octave's cell keeps every octave
-        // whole (keep = 1 exactly, below, as freq · footprint only grows with the
-        // octave, by exact doublings): the common case, without the filter's
-        // arithmetic.
-        let finest = f64::from(1u32 << octaves.saturating_sub(1));
-        if octaves > 0 && finest * footprint <= 0.25 {
-            for (o, &(sx, sy)) in OCTAVE_SHIFTS.iter().enumerate().take(octaves as usize) {
-                norm += amp;
-                let n =
-                    self.value_noise_fixed((fx << o).wrapping_add(sx), (fy << o).wrapping_add(sy));
-                // (n - 0.5) · 1 is n - 0.5 exactly: the same sum as the loop below.
-                sum += amp * (0.5 + (n - 0.5));
-                amp *= 0.5;
-            }
-            return if norm > 0.0 { sum / norm } else { 0.5 };
-        }
-        for (o, &(sx, sy)) in OCTAVE_SHIFTS.iter().enumerate().take(octaves as usize) {
-            norm += amp;
-            let keep = (1.0 - (freq * footprint - 0.25) * 2.0).clamp(0.0, 1.0) as f32;
-            if keep <= 0.0 {
-                // Every finer octave is gone too: they add their mean.
-                sum += 0.5 * amp;
-                let mut a = amp * 0.5;
-                for _ in o + 1..octaves as usize {
-                    sum += 0.5 * a;
-                    norm += a;
-                    a *= 0.5;
-                }
-                break;
-            }
-            // The octave's coordinates: base × 2^o plus its offset (as in `fbm`).
-            let ox = (fx << o).wrapping_add(sx);
-            let oy = (fy << o).wrapping_add(sy);
-            let n = self.value_noise_fixed(ox, oy);
-            sum += amp * (0.5 + (n - 0.5) * keep);
-            freq *= 2.0;
-            amp *= 0.5;
-        }
-        if norm > 0.0 { sum / norm } else { 0.5 }
-    }
-
-    /// [`Self::value_noise`] at fixed-point coordinates (wrapping).
-    #[inline]
-    fn value_noise_fixed(&self, x: u32, y: u32) -> f32 {
-        const CELL: u32 = FIXED_BITS;
-        let (ix, iy) = (x >> CELL, y >> CELL);
-        let fraction = |v: u32| (v & ((1 << CELL) - 1)) as f32 * (1.0 / (1u32 << CELL) as f32);
-        let (tx, ty) = (fraction(x), fraction(y));
-        let sx = tx * tx * (3.0 - 2.0 * tx);
-        let sy = ty * ty * (3.0 - 2.0 * ty);
-        // 8-bit cell coordinates wrap at the period; (row << 8 | column) is 16 bits.
-        let (row0, row1) = (iy << 8, ((iy + 1) & 0xFF) << 8);
-        let ix1 = (ix + 1) & 0xFF;
-        let at = |i: u32| self.values[i as u16 as usize];
-        let (a, b) = (at(row0 | ix), at(row0 | ix1));
-        let (c, d) = (at(row1 | ix), at(row1 | ix1));
-        let top = a + (b - a) * sx;
-        let bottom = c + (d - c) * sx;
-        top + (bottom - top) * sy
-    }
-}
-
-/// The per-octave offsets of [`NoiseTable::fbm`] (`+37.7 o`, `-37.7 · 0.61 o` lattice
-/// cells) in fixed point, modulo the lattice period.
-const OCTAVE_SHIFTS: [(u32, u32); 16] = {
-    let mut out = [(0u32, 0u32); 16];
-    let mut o = 0;
-    while o < 16 {
-        let sx = 37.7 * o as f64;
-        let sy = -37.7 * 0.61 * o as f64;
-        let period = NOISE_PERIOD as f64;
-        // Wrap into [0, period) without a float floor (not const): whole periods.
-        let wx = sx - period * ((sx / period) as i64 as f64);
-        let mut wy = sy - period * ((sy / period) as i64 as f64);
-        if wy < 0.0 {
-            wy += period;
-        }
-        let scale = (1u64 << FIXED_BITS) as f64;
-        out[o] = (
-            ((wx * scale) as u64 % FIXED_PERIOD) as u32,
-            ((wy * scale) as u64 % FIXED_PERIOD) as u32,
-        );
-        o += 1;
-    }
-    out
-};
-
-/// An image in linear RGB with its mip pyramid, repeating at its edges.
 #[derive(Debug, Clone, PartialEq)]
 pub struct MipImage {
     /// Level 0 first; each level halves both sides (at least 1).
@@ -559,30 +359,6 @@ mod tests {
         assert_eq!(t.sample([0.25, 0.0], 0.0), [0.5; 3]);
         // The bottom-left square (x in [0,1), y in [0,1) after shifting) is colour 0.
         assert_eq!(t.sample([-0.19, -0.14], 0.0), [0.0; 3]);
-    }
-
-    /// The renderer's fixed-point fBm against the f64 reference (which also makes the
-    /// committed mural): within 1e-5 everywhere, at any footprint, including negative
-    /// and far-away coordinates.
-    #[test]
-    fn fixed_point_fbm_matches_the_reference() {
-        let table = NoiseTable::new(11);
-        let mut s = 5u64;
-        let mut next = || {
-            s = mix64(s);
-            (s >> 11) as f64 / (1u64 << 53) as f64
-        };
-        let mut worst = 0.0f64;
-        for _ in 0..20_000 {
-            let x = (next() - 0.5) * 2000.0;
-            let y = (next() - 0.5) * 2000.0;
-            let footprint = next() * next() * 0.2;
-            let octaves = 1 + (next() * 7.0) as u32;
-            let reference = table.fbm(x, y, footprint, octaves);
-            let fast = f64::from(table.fbm_fixed(x, y, footprint, octaves));
-            worst = worst.max((reference - fast).abs());
-        }
-        assert!(worst < 1e-5, "{worst}");
     }
 
     #[test]

@@ -174,14 +174,7 @@ impl Simulator {
             )));
         }
         let sensor = Sensor::new(model);
-        let lidar_rays = LidarRays {
-            centre: CameraRays::new(&sensor.model.lidar),
-            footprint: effects
-                .mixed_pixels
-                .as_ref()
-                .map(|m| CameraRays::with_offsets(&sensor.model.lidar, &m.offsets_px())),
-            pixel_rad: 1.0 / sensor.model.lidar.fx.max(sensor.model.lidar.fy),
-        };
+        let lidar_rays = LidarRays::new(&sensor.model.lidar, effects.mixed_pixels.as_ref());
         let eo_rays = CameraRays::new(&sensor.model.eo);
         let (backend, clean_backend, mitsuba): (Arc<dyn RenderBackend>, Arc<dyn RenderBackend>, _) =
             if use_mitsuba {

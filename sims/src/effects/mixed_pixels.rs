@@ -103,13 +103,16 @@ impl MixedPixels {
     }
 
     /// Merges the echoes of one pixel's sub-rays (`None` = no hit).
-    pub fn combine(&self, echoes: &[Option<SurfaceSample>]) -> Option<SurfaceSample> {
+    pub fn combine<'a, I>(&self, echoes: I) -> Option<SurfaceSample>
+    where
+        I: IntoIterator<Item = &'a Option<SurfaceSample>> + Clone,
+    {
         let energy = |s: &SurfaceSample| {
             let r2 = (s.range_m * s.range_m).max(1.0e-12);
             (f64::from(s.reflectivity) * s.cos_incidence).max(0.0) / r2
         };
         let mut strongest: Option<(f64, &SurfaceSample)> = None;
-        for s in echoes.iter().flatten() {
+        for s in echoes.clone().into_iter().flatten() {
             let e = energy(s);
             if strongest.is_none_or(|(best, _)| e > best) {
                 strongest = Some((e, s));
@@ -117,7 +120,7 @@ impl MixedPixels {
         }
         let (_, peak) = strongest?;
         let (mut w_sum, mut r_sum, mut cos_sum, mut rho_sum) = (0.0, 0.0, 0.0, 0.0);
-        for s in echoes.iter().flatten() {
+        for s in echoes.into_iter().flatten() {
             if (s.range_m - peak.range_m).abs() <= self.pulse_resolution_m {
                 let w = energy(s);
                 w_sum += w;

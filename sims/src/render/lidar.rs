@@ -9,10 +9,11 @@
 //! travel exactly as `mono16` in captures and as TXL1 intensities.
 
 use rayon::prelude::*;
-use texel::{Pose, RangeFrame, SensorModel};
+use texel::{PinholeCamera, Pose, RangeFrame, SensorModel};
 
 use super::{CameraRays, RenderBackend, SurfaceSample};
 use crate::effects::EffectSet;
+use crate::effects::mixed_pixels::MixedPixels;
 use crate::rng::{FrameRng, Stream};
 
 /// What the lidar pipeline needs about the lidar, computed once per simulator.
@@ -21,10 +22,60 @@ pub struct LidarRays {
     /// One unit ray per pixel, the sensor's ray table (zero = invalid pixel), with its
     /// tiles.
     pub centre: CameraRays,
-    /// The beam-footprint sub-rays of the `mixed_pixels` effect, when it runs.
+    /// The beam-footprint sub-rays of the `mixed_pixels` effect, when it runs, less
+    /// the one through the pixel's centre (see [`Self::centre_sub`]).
     pub footprint: Option<CameraRays>,
+    /// Where the pixel's centre ray goes among its footprint's sub-rays, when it is
+    /// one of them (an odd number per side) and left out of `footprint`: its echo is
+    /// the centre echo every pixel traces anyway, so it is not traced twice.
+    pub centre_sub: Option<usize>,
     /// Angular width of one lidar pixel, radians.
     pub pixel_rad: f64,
+}
+
+impl LidarRays {
+    /// The rays of a lidar `camera`, with the footprint sub-rays of `mixed` if given.
+    pub fn new(camera: &PinholeCamera, mixed: Option<&MixedPixels>) -> Self {
+        let (footprint, centre_sub) = match mixed {
+            Some(m) => {
+                let mut offsets = m.offsets_px();
+                // The centre sub-ray is left out only where others remain (one sample
+                // per side is the centre ray alone).
+                let centre_sub = offsets
+                    .iter()
+                    .position(|o| *o == [0.0, 0.0])
+                    .filter(|_| offsets.len() > 1);
+                if let Some(k) = centre_sub {
+                    offsets.remove(k);
+                }
+                (Some(CameraRays::with_offsets(camera, &offsets)), centre_sub)
+            }
+            None => (None, None),
+        };
+        Self {
+            centre: CameraRays::new(camera),
+            footprint,
+            centre_sub,
+            pixel_rad: 1.0 / camera.fx.max(camera.fy),
+        }
+    }
+
+    /// One pixel's footprint echo from its centre echo and its other sub-rays' echoes
+    /// (`subs`, in [`MixedPixels::offsets_px`] order less the centre).
+    fn footprint_echo(
+        &self,
+        mixed: &MixedPixels,
+        centre: &Option<SurfaceSample>,
+        subs: &[Option<SurfaceSample>],
+    ) -> Option<SurfaceSample> {
+        match self.centre_sub {
+            Some(k) if k <= subs.len() => {
+                let (before, after) = subs.split_at(k);
+                mixed.combine(before.iter().chain(std::iter::once(centre)).chain(after))
+            }
+            _ => mixed.combine(subs),
+        }
+    }
 }
 
 /// Intensity counts of a head-on return from a surface of reflectivity 1.
@@ -59,17 +110,18 @@ pub fn echoes(
     let (Some(mixed), Some(sub)) = (&effects.mixed_pixels, &rays.footprint) else {
         return backend.camera_echoes(world_from_lidar, &rays.centre, rays.pixel_rad);
     };
+    let per = sub.per_pixel.max(1);
+    let centre = backend.camera_echoes(world_from_lidar, &rays.centre, rays.pixel_rad);
     if !mixed.adaptive {
-        return backend
-            .camera_echoes(world_from_lidar, sub, rays.pixel_rad)
-            .par_chunks(sub.per_pixel.max(1))
-            .map(|echoes| mixed.combine(echoes))
+        let samples = backend.camera_echoes(world_from_lidar, sub, rays.pixel_rad);
+        return centre
+            .par_iter()
+            .zip(samples.par_chunks(per))
+            .map(|(c, subs)| rays.footprint_echo(mixed, c, subs))
             .collect();
     }
-    let centre = backend.camera_echoes(world_from_lidar, &rays.centre, rays.pixel_rad);
     // Only beams that may straddle surfaces are sampled across their footprint;
     // elsewhere the footprint lies on one smooth surface, whose echo is the centre's.
-    let per = sub.per_pixel.max(1);
     let (width, height) = (
         rays.centre.camera.width as usize,
         rays.centre.camera.height as usize,
@@ -80,16 +132,18 @@ pub fn echoes(
         .map(|pixel| may_straddle(&centre, width, height, pixel, reach_px, rays.pixel_rad))
         .collect();
     let samples = backend.camera_echoes_of(world_from_lidar, sub, &straddling, rays.pixel_rad);
-    let mut out = centre;
-    out.par_iter_mut()
+    centre
+        .par_iter()
         .zip(samples.par_chunks(per))
         .zip(straddling.par_iter())
-        .for_each(|((o, echoes), straddles)| {
+        .map(|((c, subs), straddles)| {
             if *straddles {
-                *o = mixed.combine(echoes);
+                rays.footprint_echo(mixed, c, subs)
+            } else {
+                *c
             }
-        });
-    out
+        })
+        .collect()
 }
 
 /// Whether the beam of `pixel` may meet more than one surface, or one surface whose
@@ -255,6 +309,58 @@ mod tests {
                     .iter()
                     .all(Option::is_none)
             );
+        }
+    }
+
+    /// Footprints whose centre sub-ray's echo is the pixel's centre echo (traced once)
+    /// merge to exactly what tracing every sub-ray gives, for an odd number per side
+    /// (3 and 5: the centre left out) and an even one (4: no centre sub-ray), adaptive
+    /// or not.
+    #[test]
+    fn reusing_the_centre_echo_equals_tracing_every_sub_ray() {
+        let path =
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/scenes/lab.toml");
+        let lab = Scene::load(&path).unwrap();
+        let camera = crate::rescale_camera(&lab.sensor().lidar, 40, 30);
+        let backend = BuiltinBackend::new(Arc::clone(&lab.world));
+        let pose = lab.trajectory.frame_pose(5);
+        for (side, adaptive) in [(3, true), (3, false), (5, true), (4, false)] {
+            let mixed = MixedPixels {
+                samples_per_side: side,
+                footprint_px: 1.5,
+                adaptive,
+                ..MixedPixels::default()
+            };
+            let rays = LidarRays::new(&camera, Some(&mixed));
+            let per = (side * side) as usize;
+            assert_eq!(rays.centre_sub.is_some(), side % 2 == 1, "{side} per side");
+            let sub = rays.footprint.as_ref().unwrap();
+            assert_eq!(sub.per_pixel, per - usize::from(side % 2 == 1));
+            let effects = EffectSet {
+                mixed_pixels: Some(mixed.clone()),
+                ..EffectSet::default()
+            };
+            let got = echoes(&backend, &rays, &effects, &pose);
+            // Every sub-ray traced, the centre's too, merged in offset order.
+            let all = CameraRays::with_offsets(&camera, &mixed.offsets_px());
+            let traced = backend.camera_echoes(&pose, &all, rays.pixel_rad);
+            let centre = backend.camera_echoes(&pose, &rays.centre, rays.pixel_rad);
+            let (mut merged, mut differs) = (0, 0);
+            for (pixel, (g, subs)) in got.iter().zip(traced.chunks(per)).enumerate() {
+                let full = mixed.combine(subs);
+                if *g == full {
+                    merged += usize::from(*g != centre[pixel]);
+                } else {
+                    // Adaptive sampling keeps the centre echo where no edge is near.
+                    assert!(
+                        adaptive && *g == centre[pixel],
+                        "pixel {pixel}, {side} per side"
+                    );
+                    differs += 1;
+                }
+            }
+            assert!(merged > 50, "{merged} footprints merged, {side} per side");
+            assert_eq!(differs > 0, adaptive, "{side} per side");
         }
     }
 
