@@ -16,8 +16,9 @@ pub struct NoiseTable {
     /// four corners: (x, y), (x + 1, y), (x, y + 1), (x + 1, y + 1), wrapping at the
     /// period. A sample reads its cell's corners with one index and from one cache
     /// line, not four scattered reads (1 MiB a table, against 256 KiB for the values
-    /// alone). `LATTICE_LEN` long: any 16-bit cell index is in bounds.
-    corners: Box<[[f32; 4]]>,
+    /// alone). A fixed-size array: any 16-bit cell index is in bounds, checked by the
+    /// type rather than per sample.
+    corners: Box<[[f32; 4]; LATTICE_LEN]>,
 }
 
 /// Values in a noise lattice.
@@ -30,7 +31,7 @@ impl NoiseTable {
             (mix64(seed ^ mix64(i as u64 + 1)) >> 40) as f32 / (1u64 << 24) as f32
         };
         // Built on the heap: a 1 MiB array value could overflow a thread's stack.
-        let corners = (0..LATTICE_LEN)
+        let corners: Box<[[f32; 4]]> = (0..LATTICE_LEN)
             .map(|i| {
                 let (ix, iy) = (i % NOISE_PERIOD, i / NOISE_PERIOD);
                 [
@@ -41,7 +42,10 @@ impl NoiseTable {
                 ]
             })
             .collect();
-        Self { corners }
+        match corners.try_into() {
+            Ok(corners) => Self { corners },
+            Err(_) => unreachable!("LATTICE_LEN cells are collected"),
+        }
     }
 
     #[inline]
@@ -151,25 +155,30 @@ impl NoiseTable {
         // The amplitudes 1, 1/2, 1/4, … of the octaves sum to 2 - 2^(1 - octaves): in
         // f32 exactly (at most 16 powers of two), whatever order they are added in.
         let norm = 2.0 - 1.0 / (1u32 << (octaves - 1)) as f32;
+        // The octave's coordinates: base × 2^o plus its offset (as in `fbm`).
+        let octave = |o: usize| {
+            let (sx, sy) = OCTAVE_SHIFTS[o];
+            self.value_noise_fixed((fx << o).wrapping_add(sx), (fy << o).wrapping_add(sy))
+        };
         let mut sum = 0.0f32;
         let mut freq = 1.0f64;
         let mut amp = 1.0f32;
-        // A footprint below a quarter of the finest octave's cell keeps every octave
-        // whole (keep = 1 exactly, below, as freq · footprint only grows with the
-        // octave, by exact doublings): the common case, without the filter's
-        // arithmetic.
-        let finest = f64::from(1u32 << (octaves - 1));
-        if finest * footprint <= 0.25 {
-            for (o, &(sx, sy)) in OCTAVE_SHIFTS.iter().enumerate().take(octaves) {
-                let n =
-                    self.value_noise_fixed((fx << o).wrapping_add(sx), (fy << o).wrapping_add(sy));
-                // (n - 0.5) · 1 is n - 0.5 exactly: the same sum as the loop below.
-                sum += amp * (0.5 + (n - 0.5));
-                amp *= 0.5;
-            }
-            return sum / norm;
+        let mut o = 0;
+        // Octaves whose cell is at least four footprints wide are kept whole: there
+        // the filter's keep is 1 exactly (1 - 2 · (freq · footprint - 0.25) with a
+        // non-positive difference), and (n - 0.5) · 1 is n - 0.5, so skipping its
+        // arithmetic gives the same sum. freq · footprint only grows with the octave
+        // (exact doublings), so these octaves come first; with a small footprint they
+        // are all of them.
+        while o < octaves && freq * footprint <= 0.25 {
+            let n = octave(o);
+            sum += amp * (0.5 + (n - 0.5));
+            freq *= 2.0;
+            amp *= 0.5;
+            o += 1;
         }
-        for (o, &(sx, sy)) in OCTAVE_SHIFTS.iter().enumerate().take(octaves) {
+        // The octaves the footprint fades towards their mean.
+        while o < octaves {
             let keep = (1.0 - (freq * footprint - 0.25) * 2.0).clamp(0.0, 1.0) as f32;
             if keep <= 0.0 {
                 // Every finer octave is gone too: they add their mean.
@@ -181,13 +190,11 @@ impl NoiseTable {
                 }
                 break;
             }
-            // The octave's coordinates: base × 2^o plus its offset (as in `fbm`).
-            let ox = (fx << o).wrapping_add(sx);
-            let oy = (fy << o).wrapping_add(sy);
-            let n = self.value_noise_fixed(ox, oy);
+            let n = octave(o);
             sum += amp * (0.5 + (n - 0.5) * keep);
             freq *= 2.0;
             amp *= 0.5;
+            o += 1;
         }
         sum / norm
     }
