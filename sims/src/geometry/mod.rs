@@ -155,6 +155,24 @@ fn in_range(t: f64, t_max: f64) -> bool {
     t > MIN_HIT_DISTANCE && t < t_max
 }
 
+/// Whether `num / denom` (`denom` non-zero) is certainly outside the range
+/// [`in_range`] accepts, decided without the division: a hit behind the origin
+/// (`num / denom <= 0`: the sign alone, exact) or beyond `t_max` by more than rounding
+/// can explain (`|num| > |denom| · t_max · (1 + 1e-6)`: the product's rounding is
+/// below 1e-15 relative, so the exact quotient exceeds `t_max` and its rounding cannot
+/// come back below it). Anything else, NaN included, is left to the division and
+/// [`in_range`], so a ray meets exactly what it met before. Most candidates a ray
+/// tests lie behind its hit so far: this skips their division, the slowest step.
+#[inline]
+fn surely_out_of_range(num: f64, denom: f64, t_max: f64) -> bool {
+    let (num, denom) = if denom < 0.0 {
+        (-num, -denom)
+    } else {
+        (num, denom)
+    };
+    num <= 0.0 || num > denom * t_max * (1.0 + 1.0e-6)
+}
+
 impl Primitive {
     /// The primitive's bounds; `None` for unbounded shapes.
     pub fn bounds(&self) -> Option<Aabb> {
@@ -350,10 +368,11 @@ impl Primitive {
                 ..
             } => {
                 let denom = normal.dot(&ray.dir);
-                if denom == 0.0 {
+                let num = normal.dot(&(corner - ray.origin));
+                if denom == 0.0 || surely_out_of_range(num, denom, t_max) {
                     return None;
                 }
-                let t = normal.dot(&(corner - ray.origin)) / denom;
+                let t = num / denom;
                 if !in_range(t, t_max) {
                     return None;
                 }
@@ -380,10 +399,11 @@ impl Primitive {
                 normal,
             } => {
                 let denom = normal.dot(&ray.dir);
-                if denom == 0.0 {
+                let num = normal.dot(&(origin - ray.origin));
+                if denom == 0.0 || surely_out_of_range(num, denom, t_max) {
                     return None;
                 }
-                let t = normal.dot(&(origin - ray.origin)) / denom;
+                let t = num / denom;
                 if !in_range(t, t_max) {
                     return None;
                 }
@@ -414,12 +434,17 @@ impl Primitive {
                 let s = disc.sqrt();
                 // Numerically stable roots: q = -b - sign(b) s.
                 let q = if b > 0.0 { -b - s } else { -b + s };
+                // The second root is NaN where it is certainly out of range (see
+                // `surely_out_of_range`): it would fail `in_range` either way.
+                let far = oc.norm_squared() - radius * radius;
                 let (mut t0, mut t1) = (
                     q,
-                    if q != 0.0 {
-                        (oc.norm_squared() - radius * radius) / q
-                    } else {
+                    if q == 0.0 {
                         q
+                    } else if surely_out_of_range(far, q, t_max) {
+                        f64::NAN
+                    } else {
+                        far / q
                     },
                 );
                 if t0 > t1 {
@@ -537,7 +562,16 @@ fn intersect_cylinder<const DETAILS: bool>(
         if disc >= 0.0 {
             let s = disc.sqrt();
             let q = if b > 0.0 { -b - s } else { -b + s };
-            let mut roots = [q / a, if q != 0.0 { c / q } else { q / a }];
+            // A root certainly out of range is NaN rather than divided out: it would
+            // fail `in_range` either way, and NaN never wins the ordering below.
+            let root = |num: f64, denom: f64| {
+                if surely_out_of_range(num, denom, limit) {
+                    f64::NAN
+                } else {
+                    num / denom
+                }
+            };
+            let mut roots = [root(q, a), if q != 0.0 { root(c, q) } else { root(q, a) }];
             if roots[0] > roots[1] {
                 roots.swap(0, 1);
             }
@@ -569,7 +603,11 @@ fn intersect_cylinder<const DETAILS: bool>(
     // Caps: z = ±half_height.
     if dz != 0.0 {
         for sign in [-1.0, 1.0] {
-            let t = (sign * half_height - oz) / dz;
+            let num = sign * half_height - oz;
+            if surely_out_of_range(num, dz, limit) {
+                continue;
+            }
+            let t = num / dz;
             if in_range(t, limit) {
                 let (x, y) = (ox + t * dx, oy + t * dy);
                 if x * x + y * y <= radius * radius {

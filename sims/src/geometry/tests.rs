@@ -156,6 +156,48 @@ proptest::proptest! {
     }
 }
 
+/// `t_max` stepped `ulps` representable values up (positive) or down from `t`.
+fn ulps_from(t: f64, ulps: i32) -> f64 {
+    let mut v = t;
+    for _ in 0..ulps.unsigned_abs() {
+        v = if ulps > 0 { v.next_up() } else { v.next_down() };
+    }
+    v
+}
+
+proptest::proptest! {
+    /// The division-free rejection of plane-like hits never drops one the division
+    /// would keep: whenever it says out of range, the quotient is out of range too,
+    /// with `t_max` within a few ulps of the quotient (where rounding decides), at
+    /// the quotient scaled by up to ±30 %, or infinite; and quotients at, just above
+    /// and below zero and `MIN_HIT_DISTANCE`.
+    #[test]
+    fn division_free_rejection_is_conservative(
+        num in -1.0e3f64..1.0e3,
+        denom in -1.0f64..1.0,
+        ulps in -6i32..=6,
+        scale in 0.7f64..1.3,
+        pick in 0u8..4,
+    ) {
+        proptest::prop_assume!(denom != 0.0);
+        let nums = [num, 0.0, -0.0, MIN_HIT_DISTANCE * denom];
+        for num in nums {
+            let q = num / denom;
+            for t_max in [ulps_from(q, ulps), q * scale, f64::INFINITY, ulps_from(q.abs(), ulps)] {
+                if surely_out_of_range(num, denom, t_max) {
+                    proptest::prop_assert!(!in_range(q, t_max), "{num} / {denom} vs {t_max}");
+                }
+            }
+        }
+        // And it does reject what is clearly out: behind the origin, or beyond t_max.
+        let behind = -(1.0 + num.abs()) * denom.signum();
+        proptest::prop_assert!(surely_out_of_range(behind, denom, 1.0e9));
+        let q = (1.0 + num.abs()) * denom.signum() / denom;
+        let beyond = q * [1.01, 2.0, 10.0, 1.0e6][usize::from(pick)];
+        proptest::prop_assert!(surely_out_of_range(beyond * denom, denom, q));
+    }
+}
+
 #[test]
 fn parallelogram_bounds_and_uv() {
     let p = parallelogram(

@@ -171,6 +171,13 @@ fn may_straddle(
         return true;
     }
     let here = centre.get(pixel).copied().flatten();
+    // How far the range changes across one pixel on this pixel's surface: its own
+    // echo's alone, so worked out once rather than per neighbour.
+    let slope_m = here.map_or(0.0, |a| {
+        let cos = a.cos_incidence.clamp(MIN_STRADDLE_COS, 1.0);
+        let tan = (1.0 - cos * cos).max(0.0).sqrt() / cos;
+        a.range_m * pixel_rad * (1.0 + tan)
+    });
     for y in v.saturating_sub(reach_px)..(v + reach_px + 1).min(height) {
         for x in u.saturating_sub(reach_px)..(u + reach_px + 1).min(width) {
             let there = centre.get(y * width + x).copied().flatten();
@@ -181,10 +188,6 @@ fn may_straddle(
                         return true;
                     }
                     let steps = u.abs_diff(x).max(v.abs_diff(y)) as f64;
-                    let cos = a.cos_incidence.clamp(MIN_STRADDLE_COS, 1.0);
-                    let tan = (1.0 - cos * cos).max(0.0).sqrt() / cos;
-                    // How far the range changes across one pixel on this surface.
-                    let slope_m = a.range_m * pixel_rad * (1.0 + tan);
                     if (a.range_m - b.range_m).abs() > 2.0 * slope_m * steps + 1.0e-3 {
                         return true;
                     }
