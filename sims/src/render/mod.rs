@@ -480,11 +480,16 @@ impl BuiltinBackend {
             pixels,
             &mut out,
             |traced, strip| {
-                for t in traced {
-                    if let Some(o) = strip.get_mut(t.local) {
-                        *o = self.world.echo_of_hit(&t.ray, t.hit, beam_rad);
-                    }
-                }
+                self.world.echoes_of_hits(
+                    traced,
+                    |t| (&t.ray, t.hit.as_ref()),
+                    beam_rad,
+                    |i, echo| {
+                        if let Some(o) = traced.get(i).and_then(|t| strip.get_mut(t.local)) {
+                            *o = echo;
+                        }
+                    },
+                );
             },
         );
         out
@@ -588,11 +593,18 @@ impl RenderBackend for BuiltinBackend {
             } else {
                 Occluders::All(&world.shadow_bvh)
             };
-            for t in traced {
-                if let Some(o) = strip.get_mut(t.local) {
-                    *o = world.shade_hit_with(&occluders, &t.ray, t.hit, pixel_rad, specular);
-                }
-            }
+            world.shade_hits_with(
+                &occluders,
+                traced,
+                |t| (&t.ray, t.hit.as_ref()),
+                pixel_rad,
+                specular,
+                |i, radiance| {
+                    if let Some(o) = traced.get(i).and_then(|t| strip.get_mut(t.local)) {
+                        *o = radiance;
+                    }
+                },
+            );
         });
         out
     }
