@@ -121,15 +121,32 @@ impl World {
         pixel_rad: f64,
         specular: Option<f32>,
     ) -> Rgb {
-        let Some(h) = hit else {
-            return self.background;
-        };
-        let Some(material) = self.materials.get(h.material as usize) else {
+        let Some((h, material)) = self.material_of(hit.as_ref()) else {
             return self.background;
         };
         let cos = h.normal.dot(&ray.dir);
-        let normal = if cos > 0.0 { -h.normal } else { h.normal };
         let albedo = material.albedo(h.uv_m, footprint_m(h.distance_m, pixel_rad, cos.abs()));
+        self.shade_surface(occluders, ray, h, material, albedo, specular)
+    }
+
+    /// Radiance towards the eye of the hit `h` of `ray`, of material `material` and
+    /// diffuse reflectance `albedo` there.
+    #[inline]
+    fn shade_surface(
+        &self,
+        occluders: &Occluders<'_>,
+        ray: &Ray,
+        h: &Hit,
+        material: &Material,
+        albedo: Rgb,
+        specular: Option<f32>,
+    ) -> Rgb {
+        // Surfaces are two-sided: the normal is turned towards the eye.
+        let normal = if h.normal.dot(&ray.dir) > 0.0 {
+            -h.normal
+        } else {
+            h.normal
+        };
         self.lighting.shade_with(
             occluders,
             &ShadePoint {
@@ -282,19 +299,7 @@ impl World {
             let (ray, hit) = ray_hit(item);
             let radiance = match self.material_of(hit) {
                 Some((h, material)) => {
-                    let cos = h.normal.dot(&ray.dir);
-                    let normal = if cos > 0.0 { -h.normal } else { h.normal };
-                    self.lighting.shade_with(
-                        occluders,
-                        &ShadePoint {
-                            point: ray.at(h.distance_m),
-                            normal,
-                            to_eye: -ray.dir,
-                            albedo: *albedo,
-                            material,
-                        },
-                        specular,
-                    )
+                    self.shade_surface(occluders, ray, h, material, *albedo, specular)
                 }
                 None => self.background,
             };
