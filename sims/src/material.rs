@@ -114,11 +114,7 @@ fn filtered_square_wave(x: f64, w: f64) -> f64 {
 
 impl Texture {
     pub fn sample(&self, uv: [f64; 2], footprint_m: f64) -> Rgb {
-        let footprint_m = if footprint_m.is_finite() {
-            footprint_m.max(0.0)
-        } else {
-            0.0
-        };
+        let footprint_m = sane_footprint(footprint_m);
         match self {
             Self::Constant(c) => *c,
             Self::Checker {
@@ -165,9 +161,7 @@ impl Texture {
             }
         }
     }
-}
 
-impl Texture {
     /// True for a noise texture, whose lookups are cheaper [`LANES`] at a time
     /// ([`Self::sample_lanes`]).
     pub fn is_noise(&self) -> bool {
@@ -187,15 +181,22 @@ impl Texture {
         else {
             return std::array::from_fn(|l| self.sample(uv[l], footprint_m[l]));
         };
-        // As in `sample`.
-        let footprint: [f64; LANES] = std::array::from_fn(|l| {
-            let f = footprint_m[l];
-            (if f.is_finite() { f.max(0.0) } else { 0.0 }) / scale_m
-        });
+        let footprint: [f64; LANES] =
+            std::array::from_fn(|l| sane_footprint(footprint_m[l]) / scale_m);
         let x = std::array::from_fn(|l| uv[l][0] / scale_m);
         let y = std::array::from_fn(|l| uv[l][1] / scale_m);
         let v = table.fbm_fixed_lanes(&x, &y, &footprint, *octaves);
         std::array::from_fn(|l| ramp(palette, v[l]))
+    }
+}
+
+/// A footprint width as texture lookups take it: negative and non-finite widths are 0.
+#[inline]
+fn sane_footprint(footprint_m: f64) -> f64 {
+    if footprint_m.is_finite() {
+        footprint_m.max(0.0)
+    } else {
+        0.0
     }
 }
 

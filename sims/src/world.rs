@@ -73,16 +73,9 @@ impl World {
     /// [`Self::surface_sample`] for the hit `hit` of `ray`, found by the caller.
     #[inline]
     pub fn echo_of_hit(&self, ray: &Ray, hit: Option<Hit>, beam_rad: f64) -> Option<SurfaceSample> {
-        let h = hit?;
-        let cos = h.normal.dot(&ray.dir).abs().min(1.0);
-        let material = self.materials.get(h.material as usize)?;
-        let footprint = footprint_m(h.distance_m, beam_rad, cos);
-        Some(SurfaceSample {
-            range_m: h.distance_m,
-            cos_incidence: cos,
-            reflectivity: material.lidar_albedo(h.uv_m, footprint),
-            object: h.object,
-        })
+        let (h, material) = self.material_of(hit.as_ref())?;
+        let footprint = footprint_m(h.distance_m, beam_rad, echo_cos(ray, h));
+        Some(echo(ray, h, material.lidar_albedo(h.uv_m, footprint)))
     }
 
     /// Linear radiance seen along `ray` by a pixel `pixel_rad` wide; `specular`
@@ -252,19 +245,17 @@ impl World {
             if material.lidar_reflectivity.is_some() {
                 return None;
             }
-            let cos = h.normal.dot(&ray.dir).abs().min(1.0);
-            Some((h.material, h.uv_m, footprint_m(h.distance_m, beam_rad, cos)))
+            let footprint = footprint_m(h.distance_m, beam_rad, echo_cos(ray, h));
+            Some((h.material, h.uv_m, footprint))
         });
         // Step 2: the echoes (as in `echo_of_hit`).
         for (i, (item, albedo)) in items.iter().zip(&albedos).enumerate() {
             let (ray, hit) = ray_hit(item);
-            let echo = self.material_of(hit).map(|(h, material)| SurfaceSample {
-                range_m: h.distance_m,
-                cos_incidence: h.normal.dot(&ray.dir).abs().min(1.0),
-                reflectivity: material
+            let echo = self.material_of(hit).map(|(h, material)| {
+                let reflectivity = material
                     .lidar_reflectivity
-                    .unwrap_or_else(|| luminance(*albedo)),
-                object: h.object,
+                    .unwrap_or_else(|| luminance(*albedo));
+                echo(ray, h, reflectivity)
             });
             out(i, echo);
         }
@@ -312,6 +303,23 @@ impl World {
     fn material_of<'h>(&self, hit: Option<&'h Hit>) -> Option<(&'h Hit, &Material)> {
         let h = hit?;
         Some((h, self.materials.get(h.material as usize)?))
+    }
+}
+
+/// The incidence cosine a lidar echo reports for the hit `h` of `ray`.
+#[inline]
+fn echo_cos(ray: &Ray, h: &Hit) -> f64 {
+    h.normal.dot(&ray.dir).abs().min(1.0)
+}
+
+/// The lidar echo of the hit `h` of `ray` with the reflectivity there.
+#[inline]
+fn echo(ray: &Ray, h: &Hit, reflectivity: f32) -> SurfaceSample {
+    SurfaceSample {
+        range_m: h.distance_m,
+        cos_incidence: echo_cos(ray, h),
+        reflectivity,
+        object: h.object,
     }
 }
 
