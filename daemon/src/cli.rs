@@ -1,6 +1,6 @@
 //! `texeld run` and `texeld replay`: the session from its config file and command-line
 //! overrides, a runtime, signal handling (SIGINT/SIGTERM: stop sources, drain,
-//! finalise the recording, tell clients, exit 0), and `texeld bench`.
+//! finalise the recording, tell clients, exit 0).
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -188,52 +188,6 @@ pub fn run_command(
         }
         Err(e) => {
             eprintln!("texeld: {e}");
-            ExitCode::FAILURE
-        }
-    }
-}
-
-/// `texeld bench`.
-pub fn bench_command(capture: &Path, speed: f64) -> ExitCode {
-    let rt = match runtime() {
-        Ok(rt) => rt,
-        Err(e) => {
-            eprintln!("texeld bench: {e}");
-            return ExitCode::FAILURE;
-        }
-    };
-    match rt.block_on(crate::bench::run(capture, speed)) {
-        Ok(report) => {
-            print!("{report}");
-            ExitCode::SUCCESS
-        }
-        Err(e) => {
-            eprintln!("texeld bench: {e}");
-            ExitCode::FAILURE
-        }
-    }
-}
-
-/// `texeld bench` on simulator input.
-pub fn bench_sim_command(bench: &crate::bench_sim::SimBench) -> ExitCode {
-    let rt = match runtime() {
-        Ok(rt) => rt,
-        Err(e) => {
-            eprintln!("texeld bench: {e}");
-            return ExitCode::FAILURE;
-        }
-    };
-    if !(bench.rate_hz.is_finite() && bench.rate_hz > 0.0) || bench.frames < 2 {
-        eprintln!("texeld bench: --rate-hz must be positive and --frames at least 2");
-        return ExitCode::from(2);
-    }
-    match rt.block_on(crate::bench_sim::run(bench)) {
-        Ok(report) => {
-            print!("{report}");
-            ExitCode::SUCCESS
-        }
-        Err(e) => {
-            eprintln!("texeld bench: {e}");
             ExitCode::FAILURE
         }
     }

@@ -1,11 +1,8 @@
 //! The Texel daemon's library: sources, the pipeline (sync, fusion, the registration
-//! stage, the model), recording, the viewer stream server and its client, status and
+//! stage, the model), recording, the viewer stream server, status and
 //! configuration; plus the capture tools behind `texeld info` and `texeld export`.
 
-pub mod bench;
-pub mod bench_sim;
 pub mod cli;
-pub mod client;
 pub mod config;
 pub mod export;
 pub mod hub;
@@ -13,10 +10,8 @@ pub mod info;
 pub mod model_export;
 pub mod pipeline;
 pub mod record;
-pub mod register;
 pub mod register_cli;
 pub mod server;
 pub mod source;
 pub mod status;
 pub mod texture;
-pub mod tradeoffs;

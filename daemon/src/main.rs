@@ -54,26 +54,6 @@ enum Command {
         #[command(flatten)]
         overrides: RunOverrides,
     },
-    /// Measure the daemon: on a capture (replay --fast speed against real time,
-    /// end-to-end latency at --speed, memory per scan, texture encoders), or without
-    /// one on simulator input (latency at --rate-hz with registration and a truth
-    /// baseline, replay --fast with registration, memory per scan).
-    Bench {
-        /// The capture (MCAP) file; without one, the simulator renders --scene.
-        capture: Option<PathBuf>,
-        /// Replay speed for the latency run on a capture.
-        #[arg(long, default_value_t = 1.0)]
-        speed: f64,
-        #[arg(long, default_value = "configs/scenes/lab.toml")]
-        scene: PathBuf,
-        #[arg(long, default_value_t = 90)]
-        frames: usize,
-        #[arg(long, default_value_t = 30.0)]
-        rate_hz: f64,
-        /// Where the simulator runs' recordings go.
-        #[arg(long, default_value = "target/bench-sim")]
-        work_dir: PathBuf,
-    },
     /// Show what a capture holds: topics, message counts, duration, frame sizes,
     /// calibrations and the sensor JSON; report damage and spec violations.
     Info {
@@ -112,24 +92,6 @@ enum Command {
         #[arg(long)]
         report: Option<PathBuf>,
     },
-    /// Regenerate a section of docs/tradeoffs.md (what accuracy costs in time) from
-    /// measurements on simulator captures.
-    Tradeoffs {
-        #[arg(value_enum)]
-        section: texel_daemon::tradeoffs::Section,
-        /// Fewer frames and settings, for a quick look.
-        #[arg(long)]
-        quick: bool,
-        /// The repository root (default: the current directory).
-        #[arg(long, default_value = ".")]
-        repo: PathBuf,
-        /// Where rendered captures are kept between runs.
-        #[arg(long, default_value = "target/tradeoffs-cache")]
-        cache: PathBuf,
-        /// The Python with Open3D (default: the venv of scripts/setup.sh).
-        #[arg(long)]
-        python: Option<PathBuf>,
-    },
 }
 
 fn main() -> ExitCode {
@@ -164,22 +126,6 @@ fn main() -> ExitCode {
             };
             cli::run_command(config.as_deref(), Some(replay), &overrides)
         }
-        Command::Bench {
-            capture,
-            speed,
-            scene,
-            frames,
-            rate_hz,
-            work_dir,
-        } => match capture {
-            Some(capture) => cli::bench_command(&capture, speed),
-            None => cli::bench_sim_command(&texel_daemon::bench_sim::SimBench {
-                scene,
-                frames,
-                rate_hz,
-                work_dir,
-            }),
-        },
         Command::Info { capture } => match texel_daemon::info::summarize(&capture) {
             Ok(summary) => {
                 print!("{summary}");
@@ -212,23 +158,6 @@ fn main() -> ExitCode {
             config,
             report,
         } => texel_daemon::register_cli::run(&capture, &out, config.as_deref(), report.as_deref()),
-        Command::Tradeoffs {
-            section,
-            quick,
-            repo,
-            cache,
-            python,
-        } => {
-            let paths = texel_daemon::tradeoffs::Paths { repo, cache };
-            let options = texel_daemon::tradeoffs::RunOptions { quick, python };
-            match texel_daemon::tradeoffs::run(section, &paths, &options) {
-                Ok(()) => ExitCode::SUCCESS,
-                Err(e) => {
-                    eprintln!("texeld tradeoffs: {e:#}");
-                    ExitCode::FAILURE
-                }
-            }
-        }
     }
 }
 
@@ -267,7 +196,7 @@ fn export_model(
     format: texel_daemon::export::ExportFormat,
     out: &std::path::Path,
 ) -> ExitCode {
-    let config = texel_daemon::register::RegistrationConfig::default();
+    let config = texel_register::RegistrationConfig::default();
     match texel_daemon::model_export::export_model(capture, format, out, &config) {
         Ok(s) => {
             println!(

@@ -8,14 +8,14 @@
 use std::path::Path;
 use std::sync::Arc;
 
-use texel::capture::{TexelItem, open_texel_frames};
+use texel::capture::{SensorCache, TexelItem, open_texel_frames};
 use texel::export::{ExportScan, write_gltf, write_ply};
 use texel::model::ModelEvent;
-use texel::{FuseConfig, Pose, Sensor, SensorModel, TexelScan, fuse};
+use texel::{FuseConfig, Pose, TexelScan};
 
 use crate::export::{ExportCommandError, ExportFormat};
 use crate::pipeline::placement::CapturePoses;
-use crate::register::{Registrar, RegistrationConfig};
+use texel_register::{Registrar, RegistrationConfig};
 
 /// Where the poses of an exported model came from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -47,7 +47,7 @@ pub fn export_model(
 ) -> Result<ModelExportSummary, ExportCommandError> {
     let poses = CapturePoses::from_capture(capture)?;
     let registered = poses.texel_count() > 0;
-    let mut sensor_cache: Option<(Arc<SensorModel>, Sensor)> = None;
+    let mut sensors = SensorCache::new();
     let mut placed: Vec<(Arc<TexelScan>, Pose)> = Vec::new();
     let mut registrar: Option<Registrar> = None;
     let mut scans_by_id: Vec<Arc<TexelScan>> = Vec::new();
@@ -65,16 +65,7 @@ pub fn export_model(
         if registered && poses.texel_poses().get(&timestamp_ns).is_none() {
             continue;
         }
-        if sensor_cache
-            .as_ref()
-            .is_none_or(|(m, _)| !Arc::ptr_eq(m, &model) && **m != *model)
-        {
-            sensor_cache = Some((Arc::clone(&model), Sensor::new((*model).clone())));
-        }
-        let Some((_, sensor)) = &sensor_cache else {
-            continue;
-        };
-        let scan = match fuse(&pair.range, pair.eo, sensor, &fuse_config) {
+        let scan = match sensors.fuse(pair, &model, &fuse_config) {
             Ok(scan) => Arc::new(scan),
             Err(e) => {
                 tracing::warn!("frame {index} not fused: {e}");
@@ -92,10 +83,10 @@ pub fn export_model(
                 .truth_poses()
                 .get(&timestamp_ns)
                 .copied()
-                .unwrap_or_else(crate::register_cli::default_anchor);
+                .unwrap_or_else(texel_register::default_anchor);
             Registrar::with_anchor(registration.clone(), anchor)
         });
-        registrar.register(scan, &sensor.model.lidar);
+        registrar.register(scan, &model.lidar);
         for event in registrar.take_events() {
             if let ModelEvent::ScanAdded { scan, .. } = event {
                 scans_by_id.push(scan);

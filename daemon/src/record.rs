@@ -1,5 +1,5 @@
 //! The recorder: a dedicated thread that writes everything received, before any lossy
-//! stage, to a capture (`spec/capture-format.md`): sensor model, raw range and EO
+//! stage, to a capture (docs/capture-format.md): sensor model, raw range and EO
 //! frames, source poses, and the poses the pipeline estimated (`/texel/pose`). A pose
 //! revision is a further `/texel/pose` message with the frame's timestamp in its
 //! `timestamp` field and, as log time, the latest frame time recorded when the

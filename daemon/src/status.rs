@@ -167,18 +167,11 @@ impl LatencyWindow {
     }
 }
 
-/// `(p50, p99)` of `samples` by the nearest-rank method; zeros for no samples.
+/// `(p50, p99)` of `samples` by the nearest-rank method (`texel::stats::quantile`);
+/// zeros for no samples.
 pub fn percentiles(samples: &[f64]) -> (f64, f64) {
-    if samples.is_empty() {
-        return (0.0, 0.0);
-    }
-    let mut sorted = samples.to_vec();
-    sorted.sort_by(f64::total_cmp);
-    let rank = |p: f64| {
-        let i = (p * sorted.len() as f64).ceil() as usize;
-        sorted[i.clamp(1, sorted.len()) - 1]
-    };
-    (rank(0.50), rank(0.99))
+    use texel::stats::quantile;
+    (quantile(samples, 0.50), quantile(samples, 0.99))
 }
 
 /// A queue whose depth the status reports.

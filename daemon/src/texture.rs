@@ -1,5 +1,5 @@
 //! Texture compression for the stream: JPEG through `jpeg-encoder` (SIMD, several
-//! times faster than the `image` crate's encoder on the same image; `texeld bench`
+//! times faster than the `image` crate's encoder on the same image; `texel-bench daemon`
 //! measures both), PNG and raw RGB through `texel::wire::Texture::encode`.
 
 use texel::EoFrame;

@@ -9,7 +9,7 @@ use std::time::Duration;
 
 use texel::capture::PoseTopic;
 use texel::wire::{Limits, Message, decode_frame};
-use texel_daemon::client::{Client, ClientError};
+use texel_client::{Client, ClientError};
 use texel_daemon::config::{RegistrationMode, ReplayConfig, SessionConfig};
 use texel_daemon::pipeline::Session;
 use texel_daemon::source::v4l::{V4lError, V4lSource};

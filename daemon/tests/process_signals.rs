@@ -12,7 +12,7 @@ use std::time::{Duration, Instant};
 
 use texel::capture::{CaptureError, CaptureEvent, CaptureReader, PoseTopic};
 use texel::wire::Message;
-use texel_daemon::client::{BlockingClient, ClientError};
+use texel_client::{BlockingClient, ClientError};
 use texel_e2e::captures;
 
 const PERIOD_NS: u64 = 50_000_000;

@@ -1,6 +1,8 @@
 //! `texeld register` on simulator captures: poses land in the output capture, the
 //! report's errors against `/truth/pose` are small, bad configs are named.
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests panic on failure by design
+// The simulated sources are the `sim` feature (on by default).
+#![cfg(feature = "sim")]
 
 use std::path::{Path, PathBuf};
 use std::process::Command;

@@ -14,7 +14,7 @@ use texel::model::ModelEvent;
 use texel::pose::pose_from_parts;
 use texel::wire::TextureFormat;
 use texel::{Pose, TexelScan};
-use texel_daemon::client::{Client, Replica};
+use texel_client::{Client, Replica};
 use texel_daemon::config::{OverloadPolicy, RegistrationMode, ReplayConfig, SessionConfig};
 use texel_daemon::pipeline::Session;
 use texel_daemon::pipeline::placement::{

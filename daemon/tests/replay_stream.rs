@@ -9,7 +9,7 @@ use std::time::Duration;
 use texel::capture::{CaptureEvent, CaptureReader, PoseTopic};
 use texel::pose::pose_difference;
 use texel::wire::{Message, TextureFormat};
-use texel_daemon::client::{Applied, Client, Replica};
+use texel_client::{Applied, Client, Replica};
 use texel_daemon::config::{OverloadPolicy, RegistrationMode, ReplayConfig, SessionConfig};
 use texel_daemon::pipeline::Session;
 use texel_daemon::status::Counter;

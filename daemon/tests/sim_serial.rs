@@ -6,6 +6,8 @@
 //! independently), each with its EO frame; the status counters equal the device's
 //! injection log; and `configs/sessions/sim-serial.toml` is a valid session.
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests panic on failure by design
+// The simulated sources are the `sim` feature (on by default).
+#![cfg(feature = "sim")]
 
 use std::collections::BTreeMap;
 use std::path::Path;

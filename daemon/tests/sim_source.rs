@@ -4,6 +4,8 @@
 //! `/texel/pose` messages bit for bit; `texeld export` writes the registered model,
 //! read back by trimesh.
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests panic on failure by design
+// The simulated sources are the `sim` feature (on by default).
+#![cfg(feature = "sim")]
 
 use std::path::Path;
 use std::process::Command;
@@ -13,7 +15,7 @@ use texel::Pose;
 use texel::capture::{CaptureEvent, CaptureReader, PoseTopic};
 use texel::pose::pose_difference;
 use texel::wire::TextureFormat;
-use texel_daemon::client::{Client, Replica};
+use texel_client::{Client, Replica};
 use texel_daemon::config::{
     LatePolicy, OverloadPolicy, RegistrationMode, SessionConfig, SimConfig,
 };

@@ -11,7 +11,7 @@ use texel::PinholeCamera;
 use texel::capture::PoseTopic;
 use texel::model::Model;
 use texel::wire::{Message, TextureFormat};
-use texel_daemon::client::{Applied, Client, Replica};
+use texel_client::{Applied, Client, Replica};
 use texel_daemon::config::{
     OverloadPolicy, RegistrationMode, ReplayConfig, SessionConfig, SlowClientPolicy,
 };

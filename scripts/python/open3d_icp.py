@@ -1,6 +1,6 @@
 """Open3D point-to-plane ICP on scan pairs, the peer of Texel's pairwise registration.
 
-Reads a manifest (JSON) that `texeld tradeoffs registration` writes:
+Reads a manifest (JSON) that `texel-bench tradeoffs registration` writes:
 
     {"max_correspondence_distance_m": 0.1, "max_iterations": 30,
      "normal_radius_m": 0.1, "normal_max_nn": 30, "repeats": 3,

@@ -8,7 +8,7 @@
 //!   along the path, with smooth seeded jitter in position and rotation (a sum of
 //!   three sinusoids per axis with seeded frequencies in 0.3-2 Hz and phases).
 
-use nalgebra::{Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Point3, UnitQuaternion, Vector3};
 use texel::Pose;
 
 use crate::rng::{PixelRng, Stream};
@@ -46,31 +46,8 @@ pub struct Trajectory {
     pub start_time_ns: u64,
 }
 
-/// The EO optical frame (x right, y down, z forward) at `eye` looking at `target`
-/// with world `up`; falls back to another up vector when looking along `up`, and to
-/// looking along +x when `target == eye`.
-pub fn look_at(eye: Point3<f64>, target: Point3<f64>, up: Vector3<f64>) -> Pose {
-    let forward = target - eye;
-    let z = if forward.norm() > 1.0e-12 {
-        forward.normalize()
-    } else {
-        Vector3::x()
-    };
-    let mut x = z.cross(&up);
-    if x.norm() < 1.0e-9 {
-        x = z.cross(&Vector3::y());
-        if x.norm() < 1.0e-9 {
-            x = z.cross(&Vector3::x());
-        }
-    }
-    let x = x.normalize();
-    let y = z.cross(&x);
-    let r = Rotation3::from_basis_unchecked(&[x, y, z]);
-    Pose::from_parts(
-        Translation3::from(eye.coords),
-        UnitQuaternion::from_rotation_matrix(&r),
-    )
-}
+/// Poses looking at a point are part of the shared vocabulary.
+pub use texel::pose::look_at;
 
 impl Trajectory {
     /// Seconds after the first frame of frame `i`.

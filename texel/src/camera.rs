@@ -211,7 +211,9 @@ impl PinholeCamera {
         }
     }
 
-    /// Normalised (undistorted, z = 1) coordinates to pixels.
+    /// Normalised (undistorted, z = 1) coordinates to pixels. Inlined: registration
+    /// projects every point of every iteration through it.
+    #[inline]
     pub fn normalized_to_pixel(&self, p: Vector2<f64>) -> Vector2<f64> {
         let d = match &self.distortion {
             Distortion::None => p,

@@ -135,6 +135,7 @@ impl PlumbBob {
 
     /// Distorts a normalised point. Pure arithmetic: finite in, finite out for finite
     /// coefficients (callers check the domain separately).
+    #[inline]
     pub fn distort(&self, p: Vector2<f64>) -> Vector2<f64> {
         let (x, y) = (p.x, p.y);
         let r2 = x * x + y * y;

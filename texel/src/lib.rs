@@ -12,6 +12,7 @@ pub mod pose;
 pub mod rays;
 pub mod scan;
 pub mod sensor;
+pub mod stats;
 pub mod sync;
 pub mod txl1;
 pub mod wire;

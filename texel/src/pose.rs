@@ -1,7 +1,7 @@
 //! Rigid poses in f64, named by what they map: `world_from_eo` takes EO-frame
 //! coordinates to world coordinates.
 
-use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Point3, Quaternion, Rotation3, Translation3, UnitQuaternion, Vector3};
 use thiserror::Error;
 
 /// A rigid transform `a_from_b` in f64.
@@ -85,6 +85,32 @@ pub fn pose_from_rotation_vector(rotation: Vector3<f64>, translation: Vector3<f6
     Isometry3::from_parts(
         Translation3::from(translation),
         UnitQuaternion::from_scaled_axis(rotation),
+    )
+}
+
+/// The EO optical frame (x right, y down, z forward) at `eye` looking at `target`
+/// with world `up`; falls back to another up vector when looking along `up`, and to
+/// looking along +x when `target == eye`.
+pub fn look_at(eye: Point3<f64>, target: Point3<f64>, up: Vector3<f64>) -> Pose {
+    let forward = target - eye;
+    let z = if forward.norm() > 1.0e-12 {
+        forward.normalize()
+    } else {
+        Vector3::x()
+    };
+    let mut x = z.cross(&up);
+    if x.norm() < 1.0e-9 {
+        x = z.cross(&Vector3::y());
+        if x.norm() < 1.0e-9 {
+            x = z.cross(&Vector3::x());
+        }
+    }
+    let x = x.normalize();
+    let y = z.cross(&x);
+    let r = Rotation3::from_basis_unchecked(&[x, y, z]);
+    Pose::from_parts(
+        Translation3::from(eye.coords),
+        UnitQuaternion::from_rotation_matrix(&r),
     )
 }
 

@@ -2,13 +2,13 @@
 //! `texel::fuse` and placed by its `/texel/pose` (registered) or, when the capture has
 //! none, its `/truth/pose`. Damage to the file keeps everything read before it.
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::BTreeMap;
 use std::path::Path;
 use std::sync::Arc;
 
-use texel::capture::{CaptureError, PoseTopic, TexelItem, open_texel_frames};
+use texel::capture::{CaptureError, PoseTopic, SensorCache, TexelItem, open_texel_frames};
 use texel::model::{Model, ModelEvent};
-use texel::{FuseConfig, PinholeCamera, Pose, Sensor, TexelScan};
+use texel::{FuseConfig, PinholeCamera, Pose, TexelScan};
 
 /// A pose is matched to a frame whose timestamp is within this of it.
 pub const POSE_TOLERANCE_NS: u64 = 20_000_000;
@@ -56,7 +56,7 @@ pub struct LoadedCapture {
 pub fn load_capture(path: &Path) -> Result<LoadedCapture, LoadError> {
     let display = path.display().to_string();
     let reader = open_texel_frames(path)?;
-    let mut sensors: HashMap<*const texel::SensorModel, Sensor> = HashMap::new();
+    let mut sensors = SensorCache::new();
     let mut scans: Vec<TexelScan> = Vec::new();
     let mut eo_camera = None;
     let mut registered: BTreeMap<u64, Pose> = BTreeMap::new();
@@ -66,16 +66,12 @@ pub fn load_capture(path: &Path) -> Result<LoadedCapture, LoadError> {
     for item in reader {
         match item {
             Ok(TexelItem::Pair { pair, sensor }) => {
-                let key = Arc::as_ptr(&sensor);
-                let fused = sensors
-                    .entry(key)
-                    .or_insert_with(|| Sensor::new((*sensor).clone()));
                 eo_camera.get_or_insert_with(|| sensor.eo.clone());
-                match texel::fuse(&pair.range, pair.eo, fused, &config) {
+                let timestamp_ns = pair.range.timestamp_ns;
+                match sensors.fuse(pair, &sensor, &config) {
                     Ok(scan) => scans.push(scan),
                     Err(e) => warnings.push(format!(
-                        "{display}: frame at {} ns not fused: {e}",
-                        pair.range.timestamp_ns
+                        "{display}: frame at {timestamp_ns} ns not fused: {e}"
                     )),
                 }
             }

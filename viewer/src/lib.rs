@@ -2,7 +2,6 @@
 //! its CPU reference, capture loading, headless rendering and the window.
 
 pub mod app;
-pub mod bench;
 pub mod camera;
 pub mod capture_load;
 pub mod composite;
@@ -12,4 +11,3 @@ pub mod headless;
 pub mod live;
 pub mod reliability;
 pub mod scenes;
-pub mod tradeoffs;

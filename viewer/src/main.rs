@@ -83,10 +83,6 @@ enum Command {
     Render(RenderArgs),
     /// Open a window on a capture's model.
     Open(OpenArgs),
-    /// Measure frame time and GPU memory (k-buffer against naive layers).
-    Bench(texel_viewer::bench::BenchArgs),
-    /// What rendering quality costs in time: regenerate the rendering section of docs/tradeoffs.md.
-    Tradeoffs(texel_viewer::tradeoffs::TradeoffsArgs),
 }
 
 /// Where the model comes from: exactly one source.
@@ -490,8 +486,6 @@ fn main() -> anyhow::Result<()> {
     match cli.command {
         Some(Command::Render(a)) => render(a),
         Some(Command::Open(a)) => open(a),
-        Some(Command::Bench(a)) => texel_viewer::bench::run(&a),
-        Some(Command::Tradeoffs(a)) => texel_viewer::tradeoffs::run(&a),
         None => match cli.live.connect.clone() {
             Some(addr) => connect(cli.live, addr),
             None => bail!("give --connect HOST:PORT or a command (see --help)"),

@@ -16,7 +16,8 @@
 
 pub mod encode;
 pub mod ingest;
-pub mod placement;
+/// The registration stage lives with registration; the pipeline drives it.
+pub use texel_register::placement;
 pub mod worker;
 
 use std::net::SocketAddr;
@@ -39,7 +40,9 @@ use crate::record::{RecordItem, RecordSummary, Recorder};
 use crate::server::{self, ServeOptions};
 use crate::source::replay::{Pace, ReplaySource};
 use crate::source::serial::SerialSource;
+#[cfg(feature = "sim")]
 use crate::source::sim::SimSource;
+#[cfg(feature = "sim")]
 use crate::source::sim_serial::SimSerialSource;
 use crate::source::v4l::V4lSource;
 use crate::source::v4l_convert::PixelFormat;
@@ -209,6 +212,7 @@ pub fn build_sources(config: &SessionConfig) -> Vec<Box<dyn Source>> {
             },
         }));
     }
+    #[cfg(feature = "sim")]
     for c in &config.source.sim {
         sources.push(Box::new(SimSource {
             name: c.name.clone(),
@@ -224,6 +228,7 @@ pub fn build_sources(config: &SessionConfig) -> Vec<Box<dyn Source>> {
             truth: c.truth,
         }));
     }
+    #[cfg(feature = "sim")]
     for c in &config.source.sim_serial {
         sources.push(Box::new(SimSerialSource::from_config(c)));
     }
@@ -288,11 +293,10 @@ pub fn build_registration(config: &SessionConfig) -> Result<Box<dyn Registration
                         "{} carries /texel/pose: scans are placed there (registration = \"register\" registers them again)",
                         path.display()
                     );
-                    Ok(Box::new(poses))
                 } else {
                     tracing::info!("{} has no /texel/pose: registering", path.display());
-                    Ok(register(poses.into_truth()))
                 }
+                Ok(placement::replay_stage(poses, &config.registration))
             }
         },
     }

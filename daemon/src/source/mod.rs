@@ -4,7 +4,9 @@
 
 pub mod replay;
 pub mod serial;
+#[cfg(feature = "sim")]
 pub mod sim;
+#[cfg(feature = "sim")]
 pub mod sim_serial;
 pub mod v4l;
 pub mod v4l_convert;
@@ -272,4 +274,20 @@ pub(crate) async fn sleep_or_shutdown(
         () = tokio::time::sleep(duration) => false,
         () = shutdown.cancelled() => true,
     }
+}
+
+/// Runs a source's blocking loop (a file read, a simulator, a camera's ioctls) on a
+/// blocking thread; a panic of that thread becomes the source's fatal error, named by
+/// `thread` ("replay thread"), instead of taking the daemon down.
+pub(crate) async fn on_blocking_thread<T: Send + 'static>(
+    source_name: &str,
+    thread: &str,
+    body: impl FnOnce() -> T + Send + 'static,
+) -> Result<T, SourceError> {
+    tokio::task::spawn_blocking(body)
+        .await
+        .map_err(|e| SourceError::Fatal {
+            source_name: source_name.to_string(),
+            message: format!("{thread} failed: {e}"),
+        })
 }

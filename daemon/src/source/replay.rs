@@ -43,14 +43,10 @@ impl Source for ReplaySource {
     fn run(self: Box<Self>, sink: FrameSink, shutdown: CancellationToken) -> SourceFuture {
         Box::pin(async move {
             let name = self.name.clone();
-            let joined = tokio::task::spawn_blocking(move || self.replay(&sink, &shutdown)).await;
-            match joined {
-                Ok(result) => result,
-                Err(e) => Err(SourceError::Fatal {
-                    source_name: name,
-                    message: format!("replay thread failed: {e}"),
-                }),
-            }
+            super::on_blocking_thread(&name, "replay thread", move || {
+                self.replay(&sink, &shutdown)
+            })
+            .await?
         })
     }
 }

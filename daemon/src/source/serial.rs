@@ -1,4 +1,4 @@
-//! The serial lidar source: TXL1 range frames (`spec/serial-lidar-protocol.md`) from a
+//! The serial lidar source: TXL1 range frames (the serial lidar protocol, decoded by `texel::txl1`; docs/daemon.md) from a
 //! serial device. Resynchronises, counts every skipped byte, CRC error and lost
 //! sequence number, and survives the device going silent or away: it is reported and
 //! reopened with backoff, possibly under another name when the path is a glob

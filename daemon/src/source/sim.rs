@@ -79,14 +79,10 @@ impl Source for SimSource {
     fn run(self: Box<Self>, sink: FrameSink, shutdown: CancellationToken) -> SourceFuture {
         Box::pin(async move {
             let name = self.name.clone();
-            let joined = tokio::task::spawn_blocking(move || self.simulate(&sink, &shutdown)).await;
-            match joined {
-                Ok(result) => result,
-                Err(e) => Err(SourceError::Fatal {
-                    source_name: name,
-                    message: format!("simulator thread failed: {e}"),
-                }),
-            }
+            super::on_blocking_thread(&name, "simulator thread", move || {
+                self.simulate(&sink, &shutdown)
+            })
+            .await?
         })
     }
 }

@@ -232,12 +232,10 @@ impl Source for V4lSource {
         Box::pin(async move {
             let name = self.name.clone();
             let metrics = sink.metrics().clone();
-            let result = tokio::task::spawn_blocking(move || self.capture(&sink, &shutdown))
-                .await
-                .map_err(|e| SourceError::Fatal {
-                    source_name: name.clone(),
-                    message: format!("camera thread failed: {e}"),
-                })?;
+            let result = super::on_blocking_thread(&name, "camera thread", move || {
+                self.capture(&sink, &shutdown)
+            })
+            .await?;
             match result {
                 Ok(()) => {
                     metrics.set_state(SourceState::Ended);

@@ -4,6 +4,7 @@
 
 mod convert;
 mod frames;
+mod fused;
 mod images;
 mod reader;
 mod writer;
@@ -13,6 +14,7 @@ pub use convert::{
     timestamp_from_nanos, transform_from_pose,
 };
 pub use frames::{DEFAULT_REPLAY_TOLERANCE_NS, TexelFrameReader, TexelItem};
+pub use fused::SensorCache;
 pub use images::{
     EoEncoding, ImageError, RangeEncoding, decode_compressed, decode_eo, decode_intensity,
     decode_range, encode_compressed, encode_eo, encode_intensity, encode_range,

@@ -8,6 +8,7 @@
 //! [`Limits`]: a server accepts only small client messages.
 
 mod bytes_in;
+pub mod client;
 mod scan;
 mod status;
 

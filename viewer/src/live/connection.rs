@@ -1,5 +1,5 @@
 //! A live connection to a daemon on a thread of its own: connect and handshake with
-//! the daemon's client (`texel_daemon::client`), apply every message to a
+//! the daemon's client (`texel_client`), apply every message to a
 //! [`Replica`] and pass the changes on as [`ViewerEvent`]s; when the connection is
 //! lost, say so and reconnect with exponential backoff (the daemon then sends a
 //! fresh snapshot, which starts with a reset). A refusal (wrong token, wrong
@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 
 use texel::model::ModelEvent;
 use texel::wire::Message;
-use texel_daemon::client::{Applied, BlockingClient, ClientError, Replica};
+use texel_client::{Applied, BlockingClient, ClientError, Replica};
 
 use super::{ConnectionState, ViewerEvent, send};
 
@@ -92,15 +92,6 @@ pub(super) enum Ended {
     Final(String),
     /// The consumer is gone or a stop was requested.
     Stopped,
-}
-
-impl Ended {
-    pub(super) fn describe(self) -> String {
-        match self {
-            Self::Lost(r) | Self::Final(r) => r,
-            Self::Stopped => "stopped".into(),
-        }
-    }
 }
 
 fn run(options: &ConnectOptions, tx: &SyncSender<ViewerEvent>, stop: &AtomicBool) {

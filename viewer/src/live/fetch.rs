@@ -6,7 +6,7 @@
 use std::time::{Duration, Instant};
 
 use texel::model::Model;
-use texel_daemon::client::{Applied, BlockingClient, ClientError, Replica};
+use texel_client::{Applied, BlockingClient, ClientError, Replica};
 
 use super::connection::resolve;
 

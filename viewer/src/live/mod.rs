@@ -1,7 +1,7 @@
 //! The model as it reaches a viewer: [`ViewerEvent`]s (model changes, resets,
 //! connection state, the daemon's status) on one bounded channel, fed by a live
-//! connection to a daemon ([`connection`]), by a capture replayed through the
-//! daemon's pipeline in-process ([`replay`]), or by a loaded capture. The window
+//! connection to a daemon ([`connection`]), by a capture replayed in-process
+//! ([`replay`]: fused and placed here, no daemon), or by a loaded capture. The window
 //! and the headless snapshot writer consume the same channel.
 
 pub mod connection;

@@ -175,7 +175,7 @@ pub fn orbit_pose(model: &Model, index: usize) -> Option<Pose> {
     let radius = ((hi - lo).norm() * 0.6).max(0.5);
     let angle = (index as f64 * 30.0).to_radians();
     let eye = centre + Vector3::new(radius * angle.cos(), radius * angle.sin(), radius * 0.5);
-    Some(sims::trajectory::look_at(
+    Some(texel::pose::look_at(
         Point3::from(eye),
         Point3::from(centre),
         Vector3::z(),

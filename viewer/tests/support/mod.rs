@@ -105,7 +105,16 @@ pub fn write_box_capture(path: &std::path::Path, topic: texel::capture::PoseTopi
 }
 
 pub fn viewer_binary() -> PathBuf {
-    PathBuf::from(env!("CARGO_BIN_EXE_texel-viewer"))
+    // The end-to-end tests (another package) share this module: there the binary is
+    // the workspace's, beside the test executable's folder.
+    match option_env!("CARGO_BIN_EXE_texel-viewer") {
+        Some(path) => PathBuf::from(path),
+        None => {
+            let exe = std::env::current_exe().unwrap_or_default();
+            let dir = exe.parent().and_then(std::path::Path::parent);
+            dir.map(|d| d.join("texel-viewer")).unwrap_or_default()
+        }
+    }
 }
 
 /// An Xvfb server, killed when dropped.

@@ -1,0 +1,10 @@
+//! Texel's tooling, in the `cargo xtask` manner: benchmarks of the daemon and the
+//! viewer, the reports that regenerate `docs/tradeoffs.md` (what accuracy costs in
+//! time, measured against the simulator's truth), and calibration measured against
+//! the simulator. Product crates never depend on this one.
+
+pub mod calibration;
+pub mod daemon_capture;
+pub mod daemon_sim;
+pub mod tradeoffs;
+pub mod viewer_bench;

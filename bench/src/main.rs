@@ -1,0 +1,157 @@
+//! `texel-bench`: benchmarks and reports across Texel's crates (the `cargo xtask`
+//! manner): what the daemon and the viewer cost, what accuracy costs in time
+//! (`docs/tradeoffs.md`), and calibration against the simulator's truth.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use clap::{Parser, Subcommand};
+use texel_bench::calibration::commands::CalibCommand;
+use texel_bench::tradeoffs;
+
+#[derive(Parser)]
+#[command(
+    name = "texel-bench",
+    version,
+    about = "Texel's benchmarks and accuracy-against-time reports"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Measure the daemon: on a capture (replay --fast speed against real time,
+    /// end-to-end latency at --speed, memory per scan, texture encoders), or without
+    /// one on simulator input (latency at --rate-hz with registration and a truth
+    /// baseline, replay --fast with registration, memory per scan).
+    Daemon {
+        /// The capture (MCAP) file; without one, the simulator renders --scene.
+        capture: Option<PathBuf>,
+        /// Replay speed for the latency run on a capture.
+        #[arg(long, default_value_t = 1.0)]
+        speed: f64,
+        #[arg(long, default_value = "configs/scenes/lab.toml")]
+        scene: PathBuf,
+        #[arg(long, default_value_t = 90)]
+        frames: usize,
+        #[arg(long, default_value_t = 30.0)]
+        rate_hz: f64,
+        /// Where the simulator runs' recordings go.
+        #[arg(long, default_value = "target/bench-sim")]
+        work_dir: PathBuf,
+    },
+    /// Measure the viewer: frame time and GPU memory (k-buffer against naive layers).
+    Viewer(texel_bench::viewer_bench::BenchArgs),
+    /// Regenerate a section of docs/tradeoffs.md (what accuracy costs in time) from
+    /// measurements on simulator captures.
+    #[command(subcommand)]
+    Tradeoffs(TradeoffsCommand),
+    /// Calibration against the simulator's truth.
+    #[command(subcommand)]
+    Calib(CalibCommand),
+}
+
+#[derive(Subcommand)]
+enum TradeoffsCommand {
+    /// Registration: accuracy against time for every knob, against Open3D.
+    Registration {
+        /// Fewer frames and settings, for a quick look.
+        #[arg(long)]
+        quick: bool,
+        /// The repository root (default: the current directory).
+        #[arg(long, default_value = ".")]
+        repo: PathBuf,
+        /// Where rendered captures are kept between runs.
+        #[arg(long, default_value = "target/tradeoffs-cache")]
+        cache: PathBuf,
+        /// The Python with Open3D (default: the venv of scripts/setup.sh).
+        #[arg(long)]
+        python: Option<PathBuf>,
+    },
+    /// Rendering: quality against time for every mode and knob.
+    Rendering(tradeoffs::rendering::TradeoffsArgs),
+    /// Calibration: error against truth and time over views and LM iterations.
+    Calibration(tradeoffs::calibration::Args),
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let (name, result) = match cli.command {
+        Command::Daemon {
+            capture,
+            speed,
+            scene,
+            frames,
+            rate_hz,
+            work_dir,
+        } => {
+            let result = match capture {
+                Some(capture) => daemon_on_capture(&capture, speed),
+                None => daemon_on_simulator(&texel_bench::daemon_sim::SimBench {
+                    scene,
+                    frames,
+                    rate_hz,
+                    work_dir,
+                }),
+            };
+            ("daemon", result)
+        }
+        Command::Viewer(args) => ("viewer", texel_bench::viewer_bench::run(&args)),
+        Command::Tradeoffs(TradeoffsCommand::Registration {
+            quick,
+            repo,
+            cache,
+            python,
+        }) => {
+            let paths = tradeoffs::Paths { repo, cache };
+            let options = tradeoffs::RunOptions { quick, python };
+            (
+                "tradeoffs registration",
+                tradeoffs::run(tradeoffs::Section::Registration, &paths, &options),
+            )
+        }
+        Command::Tradeoffs(TradeoffsCommand::Rendering(args)) => {
+            ("tradeoffs rendering", tradeoffs::rendering::run(&args))
+        }
+        Command::Tradeoffs(TradeoffsCommand::Calibration(args)) => {
+            ("tradeoffs calibration", tradeoffs::calibration::run(&args))
+        }
+        Command::Calib(command) => ("calib", texel_bench::calibration::commands::run(command)),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("texel-bench {name}: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn runtime() -> anyhow::Result<tokio::runtime::Runtime> {
+    Ok(tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()?)
+}
+
+/// `texel-bench daemon CAPTURE`.
+fn daemon_on_capture(capture: &std::path::Path, speed: f64) -> anyhow::Result<()> {
+    let report = runtime()?
+        .block_on(texel_bench::daemon_capture::run(capture, speed))
+        .map_err(anyhow::Error::msg)?;
+    print!("{report}");
+    Ok(())
+}
+
+/// `texel-bench daemon` on simulator input.
+fn daemon_on_simulator(bench: &texel_bench::daemon_sim::SimBench) -> anyhow::Result<()> {
+    if !(bench.rate_hz.is_finite() && bench.rate_hz > 0.0) || bench.frames < 2 {
+        anyhow::bail!("--rate-hz must be positive and --frames at least 2");
+    }
+    let report = runtime()?
+        .block_on(texel_bench::daemon_sim::run(bench))
+        .map_err(anyhow::Error::msg)?;
+    print!("{report}");
+    Ok(())
+}

@@ -1,0 +1,294 @@
+//! The registration stage's interface: a fused scan goes in; out come the scan's fate
+//! (placed with an id, or refused with a reason) and every change to the model it
+//! caused, in order: `ScanAdded` for it and for earlier failed scans a retry now
+//! placed, `PoseRevised` for poses global refinement moved. The daemon's pipeline runs it
+//! on its worker thread and knows nothing else about it; the viewer replays a capture
+//! through it in-process.
+//!
+//! Two modes: [`RegistrarStage`] (`registration = "register"`) registers each scan
+//! against the model so far (this crate); [`CapturePoses`]
+//! (`registration = "capture-poses"`) places each scan at its capture's `/texel/pose`
+//! (else `/truth/pose`) at the scan's timestamp.
+
+use std::collections::HashMap;
+use std::path::Path;
+use std::sync::Arc;
+
+use texel::capture::{CaptureError, CaptureEvent, CaptureReader, PoseTopic};
+use texel::model::{ModelEvent, ScanId};
+use texel::{PinholeCamera, Pose, TexelScan};
+
+use crate::{Registrar, RegistrationConfig, RegistrationStatus};
+
+/// What the stage is given with a scan.
+#[derive(Debug, Clone, Copy)]
+pub struct ScanInput<'a> {
+    /// The texel frame's timestamp (its range frame's).
+    pub timestamp_ns: u64,
+    /// The lidar model the scan was taken with.
+    pub lidar: &'a PinholeCamera,
+    /// The true pose at this timestamp when a simulator or capture knows it; only
+    /// ever used to anchor the world frame at the first scan.
+    pub truth: Option<Pose>,
+}
+
+/// Why a scan could not be placed; it stays recorded but does not join the model.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct PlacementFailure {
+    /// Short, stable, for logs: `no-pose`, `too-little-overlap`, `diverged`, ...
+    pub kind: &'static str,
+    pub reason: String,
+}
+
+/// The fate of the scan given to [`Registration::register`].
+#[derive(Debug, Clone, PartialEq)]
+pub enum Placement {
+    /// It joined the model as scan `id`; `degenerate`: the solution was constrained
+    /// in too few directions (kept at the prediction there) but accepted.
+    Placed { id: ScanId, degenerate: bool },
+    /// It did not (it may still join later, after a retry: a `ScanAdded` of a later
+    /// call then carries it).
+    Failed(PlacementFailure),
+}
+
+/// What one call changed.
+#[derive(Debug, Clone)]
+pub struct StageOutput {
+    pub placement: Placement,
+    /// Every change to the model, in order; ids count up from 0 without gaps.
+    pub events: Vec<ModelEvent>,
+    /// Earlier failed scans this call placed (their `ScanAdded` are in `events`).
+    pub recovered: u32,
+}
+
+/// A registration stage. Synchronous: the pipeline calls it from its worker thread.
+pub trait Registration: Send {
+    /// The mode's name for status and logs.
+    fn name(&self) -> &str;
+
+    /// Places one scan.
+    fn register(&mut self, scan: &Arc<TexelScan>, input: ScanInput<'_>) -> StageOutput;
+}
+
+/// Registration proper: a [`Registrar`] behind the stage interface. The world frame
+/// is the first scan's true pose when one is known (a simulator's, or a capture's
+/// `/truth/pose` at that timestamp), else [`crate::default_anchor`], as in
+/// `texeld register`.
+pub struct RegistrarStage {
+    config: RegistrationConfig,
+    registrar: Option<Registrar>,
+    /// True poses by timestamp known before the session (a replayed capture's),
+    /// consulted for the anchor only.
+    truth: HashMap<u64, Pose>,
+}
+
+impl RegistrarStage {
+    pub fn new(config: RegistrationConfig) -> Self {
+        Self {
+            config,
+            registrar: None,
+            truth: HashMap::new(),
+        }
+    }
+
+    /// Knows the true poses a capture carries, to anchor the world where the capture's
+    /// truth has it (a replay sends its truth after the frame it belongs to).
+    pub fn with_truth(mut self, truth: HashMap<u64, Pose>) -> Self {
+        self.truth = truth;
+        self
+    }
+
+    /// The registrar, once the first scan has arrived.
+    pub fn registrar(&self) -> Option<&Registrar> {
+        self.registrar.as_ref()
+    }
+}
+
+impl Registration for RegistrarStage {
+    fn name(&self) -> &str {
+        "register"
+    }
+
+    fn register(&mut self, scan: &Arc<TexelScan>, input: ScanInput<'_>) -> StageOutput {
+        let registrar = match &mut self.registrar {
+            Some(r) => r,
+            None => {
+                let anchor = input
+                    .truth
+                    .or_else(|| self.truth.get(&input.timestamp_ns).copied())
+                    .unwrap_or_else(crate::default_anchor);
+                self.truth = HashMap::new();
+                self.registrar
+                    .insert(Registrar::with_anchor(self.config.clone(), anchor))
+            }
+        };
+        let result = registrar.register(Arc::clone(scan), input.lidar);
+        let recovered = registrar.take_recovered().len() as u32;
+        let events = registrar.take_events();
+        let placement = match (&result.status, result.scan_id) {
+            (RegistrationStatus::Failed { reason }, _) => Placement::Failed(PlacementFailure {
+                kind: failure_kind(reason),
+                reason: reason.to_string(),
+            }),
+            (_, Some(id)) => Placement::Placed {
+                id,
+                degenerate: !result.degenerate.is_empty(),
+            },
+            (_, None) => Placement::Failed(PlacementFailure {
+                kind: "no-id",
+                reason: "the registrar gave the scan no id".into(),
+            }),
+        };
+        StageOutput {
+            placement,
+            events,
+            recovered,
+        }
+    }
+}
+
+fn failure_kind(reason: &crate::FailureReason) -> &'static str {
+    use crate::FailureReason as F;
+    match reason {
+        F::NoPoints { .. } => "no-points",
+        F::TooLittleOverlap { .. } => "too-little-overlap",
+        F::Diverged { .. } => "diverged",
+        F::NonFinite => "non-finite",
+        F::PoorFit { .. } => "poor-fit",
+        F::NoTargets => "no-targets",
+    }
+}
+
+/// Places scans at the poses a capture carries.
+#[derive(Debug, Clone, Default)]
+pub struct CapturePoses {
+    texel: HashMap<u64, Pose>,
+    truth: HashMap<u64, Pose>,
+    next_id: ScanId,
+}
+
+/// The stage a replay of a capture uses when the session does not choose one (the
+/// daemon's `registration = "auto"`): the capture's own `/texel/pose` when it carries
+/// them, else registration anchored at the capture's `/truth/pose`.
+pub fn replay_stage(poses: CapturePoses, config: &RegistrationConfig) -> Box<dyn Registration> {
+    if poses.texel_count() > 0 {
+        Box::new(poses)
+    } else {
+        Box::new(RegistrarStage::new(config.clone()).with_truth(poses.into_truth()))
+    }
+}
+
+impl CapturePoses {
+    /// Reads every pose of a capture (only the pose topics are decoded). A capture
+    /// damaged part-way keeps the poses before the damage.
+    pub fn from_capture(path: &Path) -> Result<Self, CaptureError> {
+        let mut reader = CaptureReader::open(path)?;
+        let mut poses = Self::default();
+        while let Some(next) = reader.next_message() {
+            let Ok(message) = next else {
+                break;
+            };
+            let topic = message.channel.topic.as_str();
+            if topic != PoseTopic::Texel.topic() && topic != PoseTopic::Truth.topic() {
+                continue;
+            }
+            if let Ok(CaptureEvent::Pose {
+                topic,
+                timestamp_ns,
+                world_from_eo,
+            }) = reader.decode(&message)
+            {
+                poses.insert(topic, timestamp_ns, world_from_eo);
+            }
+        }
+        Ok(poses)
+    }
+
+    /// Adds a pose; a later `/texel/pose` at the same timestamp is a revision and wins.
+    pub fn insert(&mut self, topic: PoseTopic, timestamp_ns: u64, world_from_eo: Pose) {
+        match topic {
+            PoseTopic::Texel => self.texel.insert(timestamp_ns, world_from_eo),
+            PoseTopic::Truth => self.truth.insert(timestamp_ns, world_from_eo),
+        };
+    }
+
+    pub fn len(&self) -> usize {
+        self.texel.len().max(self.truth.len())
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.texel.is_empty() && self.truth.is_empty()
+    }
+
+    /// Timestamps with a `/texel/pose` (a registered capture).
+    pub fn texel_count(&self) -> usize {
+        self.texel.len()
+    }
+
+    /// The `/truth/pose` table alone.
+    pub fn into_truth(self) -> HashMap<u64, Pose> {
+        self.truth
+    }
+
+    /// The pose at a timestamp: `/texel/pose` (the last one), else `/truth/pose`.
+    pub fn pose_at(&self, t: u64) -> Option<Pose> {
+        self.lookup(t)
+    }
+
+    /// The `/texel/pose` table alone.
+    pub fn texel_poses(&self) -> &HashMap<u64, Pose> {
+        &self.texel
+    }
+
+    /// The `/truth/pose` table alone.
+    pub fn truth_poses(&self) -> &HashMap<u64, Pose> {
+        &self.truth
+    }
+
+    fn lookup(&self, t: u64) -> Option<Pose> {
+        self.texel.get(&t).or_else(|| self.truth.get(&t)).copied()
+    }
+}
+
+impl Registration for CapturePoses {
+    fn name(&self) -> &str {
+        "capture-poses"
+    }
+
+    fn register(&mut self, scan: &Arc<TexelScan>, input: ScanInput<'_>) -> StageOutput {
+        // The scan frame is the EO frame, so the capture's world_from_eo is the scan's
+        // pose. A live pair may carry the EO timestamp instead of the lidar's.
+        let timestamp_ns = input.timestamp_ns;
+        let pose = self
+            .lookup(timestamp_ns)
+            .or_else(|| self.lookup(scan.texture.timestamp_ns));
+        match pose {
+            Some(world_from_scan) => {
+                let id = self.next_id;
+                self.next_id += 1;
+                StageOutput {
+                    placement: Placement::Placed {
+                        id,
+                        degenerate: false,
+                    },
+                    events: vec![ModelEvent::ScanAdded {
+                        id,
+                        scan: Arc::clone(scan),
+                        world_from_scan,
+                    }],
+                    recovered: 0,
+                }
+            }
+            None => StageOutput {
+                placement: Placement::Failed(PlacementFailure {
+                    kind: "no-pose",
+                    reason: format!(
+                        "no /texel/pose or /truth/pose at {timestamp_ns} ns in the pose capture"
+                    ),
+                }),
+                events: Vec::new(),
+                recovered: 0,
+            },
+        }
+    }
+}

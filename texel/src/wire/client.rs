@@ -1,0 +1,171 @@
+//! The viewer stream's client side without sockets: the handshake messages, a frame
+//! reader that tells "incomplete, read more" from "invalid", and the [`Replica`] that
+//! applies messages to a local [`Model`] (resets and snapshots included), so every
+//! viewer holds the same model as the daemon. Transports (a TCP socket, a WebSocket,
+//! an in-process channel) feed it bytes; `texel-client` has the TCP ones.
+
+use std::time::Duration;
+
+use bytes::BytesMut;
+use thiserror::Error;
+
+use super::{Limits, Message, PROTOCOL_VERSION, Status, WireError, decode_frame};
+use crate::model::{Model, ModelError, ModelEvent, ScanId};
+
+#[derive(Debug, Error)]
+pub enum ClientError {
+    #[error("cannot connect: {0}")]
+    Connect(std::io::Error),
+    #[error("connection: {0}")]
+    Io(std::io::Error),
+    #[error("the server refused the connection: {0}")]
+    Refused(String),
+    #[error("the server sent an invalid message: {0}")]
+    Protocol(#[from] WireError),
+    #[error("unexpected {0} during the handshake")]
+    Handshake(&'static str),
+    #[error("the server closed the connection mid-message")]
+    Truncated,
+    #[error("no answer within {0:?}")]
+    Timeout(Duration),
+}
+
+/// What the server said about itself.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ServerInfo {
+    pub version: u16,
+    pub server_name: String,
+    pub session_name: String,
+}
+
+/// Takes complete frames out of received bytes.
+#[derive(Debug, Default)]
+pub struct FrameReader {
+    /// Bytes received and not yet taken as messages.
+    pub buf: BytesMut,
+}
+
+impl FrameReader {
+    /// The next whole message in the buffer; `Ok(None)`: incomplete, read more.
+    pub fn take_message(&mut self) -> Result<Option<Message>, ClientError> {
+        match decode_frame(&self.buf, &Limits::FROM_SERVER)? {
+            Some((message, used)) => {
+                let _ = self.buf.split_to(used);
+                Ok(Some(message))
+            }
+            None => Ok(None),
+        }
+    }
+}
+
+/// The client's opening message, encoded.
+pub fn hello(token: &str, client_name: &str) -> Result<Vec<u8>, ClientError> {
+    Ok(Message::ClientHello {
+        version: PROTOCOL_VERSION,
+        token: token.to_string(),
+        client_name: client_name.to_string(),
+    }
+    .encode()?)
+}
+
+/// The server's answer to the hello: who it is, or why it refused.
+pub fn welcome(message: Message) -> Result<ServerInfo, ClientError> {
+    match message {
+        Message::ServerHello {
+            version,
+            server_name,
+            session_name,
+        } => Ok(ServerInfo {
+            version,
+            server_name,
+            session_name,
+        }),
+        Message::Refused { reason } | Message::Goodbye { reason } => {
+            Err(ClientError::Refused(reason))
+        }
+        other => Err(ClientError::Handshake(other.kind_name())),
+    }
+}
+
+/// What applying a message did to the replica.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Applied {
+    /// The model was cleared; a snapshot follows.
+    Reset {
+        scan_count: u64,
+    },
+    SnapshotComplete,
+    ScanAdded(ScanId),
+    PoseRevised(ScanId),
+    Status,
+    /// The server ends the stream.
+    Goodbye(String),
+    /// A message that does not change the model (a stray hello).
+    Ignored,
+}
+
+#[derive(Debug, Error)]
+pub enum ReplicaError {
+    #[error(transparent)]
+    Wire(#[from] WireError),
+    #[error(transparent)]
+    Model(#[from] ModelError),
+}
+
+/// A viewer's copy of the daemon's model.
+#[derive(Debug, Default)]
+pub struct Replica {
+    pub model: Model,
+    /// True between `SnapshotComplete` and the next `ModelReset`.
+    pub live: bool,
+    /// How many times the server reset the model (1 for the first snapshot).
+    pub resets: u64,
+    pub status: Option<Status>,
+}
+
+impl Replica {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Applies one message (decoding a scan's texture).
+    pub fn apply(&mut self, message: Message) -> Result<Applied, ReplicaError> {
+        Ok(match message {
+            Message::ModelReset { scan_count } => {
+                self.model = Model::new();
+                self.live = false;
+                self.resets += 1;
+                Applied::Reset { scan_count }
+            }
+            Message::SnapshotComplete { .. } => {
+                self.live = true;
+                Applied::SnapshotComplete
+            }
+            Message::ScanAdded(wire) => {
+                let (id, scan, world_from_scan) = wire.into_scan()?;
+                self.model.apply(ModelEvent::ScanAdded {
+                    id,
+                    scan: std::sync::Arc::new(scan),
+                    world_from_scan,
+                })?;
+                Applied::ScanAdded(id)
+            }
+            Message::PoseRevised {
+                id,
+                world_from_scan,
+            } => {
+                self.model.apply(ModelEvent::PoseRevised {
+                    id,
+                    world_from_scan,
+                })?;
+                Applied::PoseRevised(id)
+            }
+            Message::Status(status) => {
+                self.status = Some(*status);
+                Applied::Status
+            }
+            Message::Goodbye { reason } | Message::Refused { reason } => Applied::Goodbye(reason),
+            Message::ClientHello { .. } | Message::ServerHello { .. } => Applied::Ignored,
+        })
+    }
+}
