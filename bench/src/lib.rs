@@ -3,6 +3,10 @@
 //! time, measured against the simulator's truth), and calibration measured against
 //! the simulator. Product crates never depend on this one.
 
+// Negated comparisons (`!(x < limit)`) are deliberate: a NaN takes the rejecting
+// branch with them.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+
 pub mod calibration;
 pub mod daemon_capture;
 pub mod daemon_sim;

@@ -2,6 +2,7 @@
 //! daemon, the simulator or the hardware crates, and the daemon's library builds
 //! without the simulator. Checked with `cargo tree`, dev-dependencies included, so a
 //! test-only shortcut through the daemon fails here too.
+#![allow(clippy::unwrap_used, clippy::expect_used)] // tests panic on failure by design
 
 use std::process::Command;
 
