@@ -1,5 +1,5 @@
 //! The window under a real X server (Xvfb on a free display): it opens on a capture
-//! replayed through the daemon's pipeline in-process, draws frames through the
+//! replayed in-process (no daemon), draws frames through the
 //! swapchain, and the read-back frame is not blank.
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests panic on failure by design
 
