@@ -16,20 +16,7 @@ use texel::{PinholeCamera, Pose};
 use crate::geometry::{Aabb, Hit, Ray};
 use crate::light::Occluders;
 use crate::material::Rgb;
-use crate::world::World;
-
-/// What a lidar ray brings back from a surface.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct SurfaceSample {
-    /// Radial range along the unit ray, metres.
-    pub range_m: f64,
-    /// |cos| of the angle between the ray and the surface normal, in [0, 1].
-    pub cos_incidence: f64,
-    /// Reflectivity at the lidar's wavelength, in [0, 1].
-    pub reflectivity: f32,
-    /// The object hit.
-    pub object: u32,
-}
+use crate::world::{SurfaceSample, World};
 
 /// Unit rays of a camera's pixels in its optical frame, row-major, computed once per
 /// camera model; with sub-pixel offsets, `offsets.len()` rays per pixel.
