@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 use crate::camera::{CameraError, PinholeCamera};
-use crate::fuse::{FusionTables, LidarPitch};
+use crate::fusion_tables::{FusionTables, LidarPitch};
 use crate::pose::{Pose, PoseError, pose_from_parts, pose_to_parts};
 use crate::rays::RayTable;
 
@@ -316,7 +316,7 @@ impl Sensor {
         let lidar_rays = RayTable::new(&model.lidar);
         let lidar_pitch = LidarPitch::new(&lidar_rays);
         let eo_max_r2 = model.eo.max_radius_squared();
-        let fusion = FusionTables::new(&model, &lidar_rays);
+        let fusion = FusionTables::new(&model.eo_from_lidar, &model.eo, &lidar_rays);
         Self {
             model,
             lidar_rays,
