@@ -1,4 +1,4 @@
-//! Writes a simulation as a capture (`spec/capture-format.md`): the sensor model the
+//! Writes a simulation as a capture (`docs/capture-format.md`): the sensor model the
 //! frames were rendered with (calibrations, `/tf_static`, `/texel/sensor`), then per
 //! frame `/lidar/range` (32FC1, exact), `/eo/image` (rgb8) and `/truth/pose`.
 //! Rendering of frame i + 1 overlaps the compression and writing of frame i.

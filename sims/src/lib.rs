@@ -40,7 +40,7 @@
 //! - Any pose: [`Simulator::render_at`], [`Simulator::range_at`],
 //!   [`Simulator::clean_range_at`], [`Simulator::clean_eo_at`],
 //!   [`Simulator::echoes_at`], [`Simulator::lidar_truth_at`].
-//! - [`render_capture`]: a capture per the spec with a progress callback.
+//! - [`render_capture`]: a capture (`docs/capture-format.md`) with a progress callback.
 //!
 //! # Lens distortion and calibration
 //!

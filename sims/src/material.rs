@@ -10,8 +10,8 @@
 
 use std::sync::Arc;
 
-use crate::noise::LANES;
 pub use crate::noise::NoiseTable;
+use crate::noise::{LANES, fast_floor};
 
 /// Linear RGB in [0, 1].
 pub type Rgb = [f32; 3];
@@ -84,15 +84,6 @@ fn lerp(a: Rgb, b: Rgb, t: f32) -> Rgb {
         a[1] + (b[1] - a[1]) * t,
         a[2] + (b[2] - a[2]) * t,
     ]
-}
-
-/// `x.floor()` without a libm call on targets without SSE4.1 (finite inputs within
-/// ±2⁶³; others saturate, which only shifts a texture pattern).
-#[inline]
-pub(crate) fn fast_floor(x: f64) -> f64 {
-    let i = x as i64;
-    let f = i as f64;
-    if f > x { f - 1.0 } else { f }
 }
 
 /// Integral of the unit square wave (0 on [0,1), 1 on [1,2), period 2) from 0 to x.

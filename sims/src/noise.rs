@@ -1,8 +1,8 @@
 //! Value-noise fBm for procedural textures: the random lattice of one seed, the f64
 //! reference evaluation, and the fixed-point one the renderer samples through (one
-//! point at a time, or four at once in SIMD lanes).
+//! point at a time, or four at once in SIMD lanes); also the fast floor that noise
+//! and checkerboard lookups share.
 
-use crate::material::fast_floor;
 use crate::rng::mix64;
 
 /// Side of the lattice of random values behind value noise; the noise repeats every
@@ -20,6 +20,16 @@ pub struct NoiseTable {
     /// alone). A fixed-size array: any 16-bit cell index is in bounds, checked by the
     /// type rather than per sample.
     corners: Box<[[f32; 4]; LATTICE_LEN]>,
+}
+
+/// `x.floor()` without a libm call on targets without SSE4.1 (finite inputs within
+/// ±2⁶³; others saturate, which only shifts a texture pattern). Defined here, below
+/// [`crate::material`], whose checkerboards use it too.
+#[inline]
+pub(crate) fn fast_floor(x: f64) -> f64 {
+    let i = x as i64;
+    let f = i as f64;
+    if f > x { f - 1.0 } else { f }
 }
 
 /// Points [`NoiseTable::fbm_fixed_lanes`] evaluates at once (four f32 lanes of an

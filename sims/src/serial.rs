@@ -1,5 +1,6 @@
 //! The virtual TXL1 lidar: a simulation's range frames as the byte stream of a serial
-//! lidar (`spec/serial-lidar-protocol.md`), paced at the trajectory's rate, with
+//! lidar (TXL1 as [`texel::txl1`] defines it; the device's use is in
+//! `docs/simulator.md`, virtual serial lidar), paced at the trajectory's rate, with
 //! injected faults (garbage between frames, CRC errors, dropped frames, a stall, a
 //! disconnect), written to any [`Write`] ([`VirtualLidar::run`]) or to a
 //! pseudo-terminal that a reader opens like a real port ([`spawn_pty`]).

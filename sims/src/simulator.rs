@@ -12,11 +12,9 @@ use crate::effects::{Effect, EffectSet};
 use crate::render::eo::Development;
 use crate::render::lidar::{LidarRays, NoiseKey, echoes, render_range};
 use crate::render::mitsuba::{MitsubaBackend, MitsubaRenderer};
-use crate::render::{
-    BackendKind, BuiltinBackend, CameraRays, RenderBackend, SurfaceSample, eo, world_ray,
-};
+use crate::render::{BackendKind, BuiltinBackend, CameraRays, RenderBackend, eo, world_ray};
 use crate::scene::{MAX_EO_SIDE, MAX_LIDAR_SIDE, Scene};
-use crate::world::TruthHit;
+use crate::world::{SurfaceSample, TruthHit};
 
 /// Overrides of a scene's settings, for tests and tools (no file editing needed).
 #[derive(Debug, Clone, Default, PartialEq)]

@@ -8,7 +8,6 @@ use crate::geometry::{Bvh, Hit, Ray};
 use crate::light::{Lighting, Occluders, ShadePoint};
 use crate::material::{Material, Rgb, Texture, luminance};
 use crate::noise::LANES;
-use crate::render::SurfaceSample;
 
 /// The smallest |cos| used to widen a texture footprint at grazing incidence, so the
 /// footprint stays finite.
@@ -37,6 +36,19 @@ pub struct TruthHit {
     /// Index of the object in the scene (see `Scene::objects`).
     pub object: u32,
     pub material: u32,
+}
+
+/// What a lidar ray brings back from a surface.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SurfaceSample {
+    /// Radial range along the unit ray, metres.
+    pub range_m: f64,
+    /// |cos| of the angle between the ray and the surface normal, in [0, 1].
+    pub cos_incidence: f64,
+    /// Reflectivity at the lidar's wavelength, in [0, 1].
+    pub reflectivity: f32,
+    /// The object hit.
+    pub object: u32,
 }
 
 impl World {

@@ -7,6 +7,7 @@ pub mod distortion;
 pub mod export;
 pub mod frames;
 pub mod fuse;
+pub mod fusion_tables;
 pub mod model;
 pub mod pose;
 pub mod rays;

@@ -1,9 +1,26 @@
 //! The lidar's per-pixel unit-ray table, computed once per sensor so that fusion and
-//! the simulator never undistort a pixel per frame.
+//! the simulator never undistort a pixel per frame, and the one unit ray through a
+//! pixel that every ray table (this one, the simulator's cameras') is made of.
 
 use nalgebra::{Vector2, Vector3};
 
 use crate::camera::PinholeCamera;
+
+/// The unit ray through `pixel` (pixel coordinates, centres at integers) in
+/// `camera`'s optical frame, in f32 as ray tables store it; `None` where the pixel
+/// cannot be unprojected (outside the distortion model's valid domain, not finite).
+/// `max_r2` is `camera.max_radius_squared()`, computed once by the caller.
+#[inline]
+pub fn pixel_ray(
+    camera: &PinholeCamera,
+    pixel: Vector2<f64>,
+    max_r2: Option<f64>,
+) -> Option<[f32; 3]> {
+    let p = camera.unproject_with_domain(pixel, max_r2).ok()?;
+    // The z = 1 component keeps the norm >= 1.
+    let r = Vector3::new(p.x, p.y, 1.0).normalize();
+    Some([r.x as f32, r.y as f32, r.z as f32])
+}
 
 /// Unit rays in the lidar optical frame, one per pixel, row-major.
 ///
@@ -27,14 +44,12 @@ impl RayTable {
         for v in 0..camera.height {
             for u in 0..camera.width {
                 let pixel = Vector2::new(f64::from(u), f64::from(v));
-                match camera.unproject_with_domain(pixel, max_r2) {
-                    Ok(p) => {
-                        // The z = 1 component keeps the norm >= 1.
-                        let r = Vector3::new(p.x, p.y, 1.0).normalize();
-                        rays.push([r.x as f32, r.y as f32, r.z as f32]);
+                match pixel_ray(camera, pixel, max_r2) {
+                    Some(r) => {
+                        rays.push(r);
                         valid.push(true);
                     }
-                    Err(_) => {
+                    None => {
                         rays.push([0.0; 3]);
                         valid.push(false);
                     }

@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 use crate::camera::{CameraError, PinholeCamera};
-use crate::fuse::{FusionTables, LidarPitch};
+use crate::fusion_tables::{FusionTables, LidarPitch};
 use crate::pose::{Pose, PoseError, pose_from_parts, pose_to_parts};
 use crate::rays::RayTable;
 
@@ -40,16 +40,17 @@ impl Default for RangeNoise {
     }
 }
 
-/// The `/texel/sensor` JSON message of the capture format. Unknown fields are
-/// ignored; missing fields take the spec's values.
+/// The `/texel/sensor` JSON message of the capture format (`docs/capture-format.md`).
+/// Unknown fields are ignored; missing fields take the values given there.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct SensorInfo {
     pub version: u32,
     pub range_noise_sigma_m: f64,
     pub range_noise_sigma_per_m: f64,
-    /// Constant range bias: a measured range is the true range plus this. Not in the
-    /// spec's field list; a reader without it takes the spec's rule (missing = 0).
+    /// Constant range bias: a measured range is the true range plus this. Not among
+    /// the message's original fields; a reader without it takes it as 0, as
+    /// `docs/capture-format.md` says.
     pub range_bias_m: f64,
     pub min_range_m: f64,
     pub max_range_m: f64,
@@ -316,7 +317,7 @@ impl Sensor {
         let lidar_rays = RayTable::new(&model.lidar);
         let lidar_pitch = LidarPitch::new(&lidar_rays);
         let eo_max_r2 = model.eo.max_radius_squared();
-        let fusion = FusionTables::new(&model, &lidar_rays);
+        let fusion = FusionTables::new(&model.eo_from_lidar, &model.eo, &lidar_rays);
         Self {
             model,
             lidar_rays,

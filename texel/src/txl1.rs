@@ -1,7 +1,16 @@
-//! The TXL1 serial lidar protocol (`spec/serial-lidar-protocol.md`): frame encoding
-//! for the simulator's virtual device, and a streaming decoder for the daemon's serial
-//! source that resynchronises on the magic, tells "incomplete, read more" from
-//! "invalid", and counts every byte and frame it could not use.
+//! The TXL1 serial lidar protocol: frame encoding for the simulator's virtual device
+//! (`docs/simulator.md`), and a streaming decoder for the daemon's serial source
+//! (`docs/daemon.md`) that resynchronises on the magic, tells "incomplete, read more"
+//! from "invalid", and counts every byte and frame it could not use.
+//!
+//! Neither page gives the byte layout, so this module is where it is written down.
+//! All fields are little-endian. A frame is a [`HEADER_LEN`]-byte header: the magic
+//! `TXL1`, version `u8` (1), flags `u8` (bit 0: an intensity block follows; other bits
+//! 0), width and height `u16` (1 to [`MAX_SIDE`]), reserved `u16` (0), seq `u32`,
+//! timestamp `u64` (ns), range unit `u32` (micrometres per count, > 0); then width x
+//! height `u16` range counts, row-major ([`NO_RETURN`], [`INVALID`]), as many `u16`
+//! intensities when flagged; then the CRC-32 (IEEE) of every byte after the magic,
+//! `u32`.
 
 use crate::frames::RangeFrame;
 

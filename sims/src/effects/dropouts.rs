@@ -15,8 +15,8 @@
 use serde::{Deserialize, Serialize};
 
 use super::{EffectParams, ParamDoc, Target, check_range};
-use crate::render::SurfaceSample;
 use crate::rng::PixelRng;
+use crate::world::SurfaceSample;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]

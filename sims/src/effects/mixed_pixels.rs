@@ -24,7 +24,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::{EffectParams, ParamDoc, Target, check_range};
-use crate::render::SurfaceSample;
+use crate::world::SurfaceSample;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]

@@ -11,10 +11,11 @@
 use rayon::prelude::*;
 use texel::{PinholeCamera, Pose, RangeFrame, SensorModel};
 
-use super::{CameraRays, RenderBackend, SurfaceSample};
+use super::{CameraRays, RenderBackend};
 use crate::effects::EffectSet;
 use crate::effects::mixed_pixels::MixedPixels;
 use crate::rng::{FrameRng, Stream};
+use crate::world::SurfaceSample;
 
 /// What the lidar pipeline needs about the lidar, computed once per simulator.
 #[derive(Debug, Clone)]

@@ -20,11 +20,11 @@ use serde_json::json;
 use texel::Pose;
 
 use super::mitsuba_scene::{ExportedScene, export};
-use super::{CameraRays, RenderBackend, SurfaceSample, world_ray};
+use super::{CameraRays, RenderBackend, world_ray};
 use crate::effects::GlobalIllumination;
 use crate::material::{Rgb, luminance};
 use crate::rng::mix64;
-use crate::world::World;
+use crate::world::{SurfaceSample, World};
 
 /// The Python side, written next to the exported scene.
 const SCRIPT: &str = include_str!("../../python/mitsuba_render.py");

@@ -11,25 +11,13 @@ use std::sync::Arc;
 
 use nalgebra::{Vector2, Vector3};
 use rayon::prelude::*;
+use texel::rays::pixel_ray;
 use texel::{PinholeCamera, Pose};
 
 use crate::geometry::{Aabb, Hit, Ray};
 use crate::light::Occluders;
 use crate::material::Rgb;
-use crate::world::World;
-
-/// What a lidar ray brings back from a surface.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct SurfaceSample {
-    /// Radial range along the unit ray, metres.
-    pub range_m: f64,
-    /// |cos| of the angle between the ray and the surface normal, in [0, 1].
-    pub cos_incidence: f64,
-    /// Reflectivity at the lidar's wavelength, in [0, 1].
-    pub reflectivity: f32,
-    /// The object hit.
-    pub object: u32,
-}
+use crate::world::{SurfaceSample, World};
 
 /// Unit rays of a camera's pixels in its optical frame, row-major, computed once per
 /// camera model; with sub-pixel offsets, `offsets.len()` rays per pixel.
@@ -163,14 +151,9 @@ impl CameraRays {
             .flat_map_iter(|i| {
                 let (u, v) = ((i % w) as f64, (i / w) as f64);
                 offsets.iter().map(move |o| {
-                    match camera.unproject_with_domain(Vector2::new(u + o[0], v + o[1]), max_r2) {
-                        Ok(n) => {
-                            // z = 1 keeps the norm >= 1.
-                            let r = Vector3::new(n.x, n.y, 1.0).normalize();
-                            [r.x as f32, r.y as f32, r.z as f32]
-                        }
-                        Err(_) => [0.0; 3],
-                    }
+                    // texel's ray through a pixel, so that these rays are the sensor's
+                    // ray table bit for bit (at zero offset) and fusion's geometry.
+                    pixel_ray(camera, Vector2::new(u + o[0], v + o[1]), max_r2).unwrap_or([0.0; 3])
                 })
             })
             .collect();
@@ -607,5 +590,45 @@ impl RenderBackend for BuiltinBackend {
             );
         });
         out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use texel::rays::RayTable;
+    use texel::{Distortion, PlumbBob};
+
+    use super::*;
+
+    /// A camera's rays through pixel centres are the sensor's ray table to the bit,
+    /// pixels outside the distortion's domain included (zero rays in both).
+    #[test]
+    fn centre_rays_are_texels_ray_table_bit_for_bit() {
+        let camera = PinholeCamera {
+            width: 40,
+            height: 30,
+            fx: 15.0,
+            fy: 15.5,
+            cx: 19.3,
+            cy: 14.6,
+            skew: 0.2,
+            distortion: Distortion::PlumbBob(PlumbBob {
+                k1: -0.35,
+                k2: 0.02,
+                p1: 0.001,
+                p2: -0.002,
+                k3: 0.0,
+            }),
+        };
+        let table = RayTable::new(&camera);
+        let (expected, valid) = table.rays();
+        let ours = CameraRays::new(&camera);
+        let bits = |rays: &[[f32; 3]]| -> Vec<[u32; 3]> {
+            rays.iter().map(|r| r.map(f32::to_bits)).collect()
+        };
+        assert_eq!(bits(&ours.rays), bits(expected));
+        let invalid = valid.iter().filter(|v| !**v).count();
+        assert!(invalid > 0 && invalid < valid.len(), "{invalid} invalid");
     }
 }

@@ -1,4 +1,4 @@
-//! The capture format (`spec/capture-format.md`, version 1): topics, message
+//! The capture format (`docs/capture-format.md`, version 1): topics, message
 //! conversions, a streaming reader that enforces the reading rules, and a writer
 //! that flushes often enough that a crash loses at most a second.
 

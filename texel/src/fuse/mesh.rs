@@ -8,11 +8,12 @@
 //! branch-free loops over arrays (vectorised by the compiler), incomplete cells
 //! included; the full cells' triangles are then appended run by run (slice copies).
 
+use crate::fusion_tables::LidarPitch;
 use crate::scan::{NO_VERTEX, TriangleFlags};
 use crate::sensor::RangeNoise;
 
 use super::rows::Row;
-use super::{FuseConfig, LidarPitch, grade, runs_of_true};
+use super::{FuseConfig, grade, runs_of_true};
 
 /// The stretched-edge rule of the module documentation with its per-call constants,
 /// in f32 (the precision of the ranges and angles it compares).

@@ -42,7 +42,6 @@
 mod isa;
 mod mesh;
 mod rows;
-mod tables;
 
 use std::ops::Range;
 
@@ -56,7 +55,10 @@ use crate::sensor::Sensor;
 
 use mesh::Mesh;
 use rows::{Points, Row};
-pub use tables::{EoProjection, FusionTables, LidarPitch};
+
+// The once-per-sensor tables live below both this module and `sensor`; still
+// reachable under `texel::fuse::`, where they were.
+pub use crate::fusion_tables::{EoProjection, FusionTables, LidarPitch};
 
 /// Parameters of fusion.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

@@ -5,9 +5,10 @@
 //! between it and the next.
 
 use crate::frames::{RangeFrame, is_return};
+use crate::fusion_tables::FusionTables;
 use crate::scan::NO_VERTEX;
 
-use super::{FusionTables, runs_of_true};
+use super::runs_of_true;
 
 /// One row of lidar pixels after placement.
 #[derive(Debug, Clone, Default)]

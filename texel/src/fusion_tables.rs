@@ -1,10 +1,15 @@
 //! What fusion computes once per sensor rather than per frame: the angles between
 //! neighbouring lidar rays (for the stretched-triangle rule), the lidar rays turned
 //! into the EO frame, and the EO camera's projection constants.
+//!
+//! A module of its own below both [`crate::sensor`], whose [`crate::Sensor`] carries
+//! these tables, and [`crate::fuse`](mod@crate::fuse), which reads them; it takes the
+//! cameras and the extrinsic rather than a sensor model so that it depends on
+//! neither.
 
 use crate::camera::{Distortion, MIN_PROJECT_DEPTH, PinholeCamera};
+use crate::pose::Pose;
 use crate::rays::RayTable;
-use crate::sensor::SensorModel;
 
 /// Angles in radians between each lidar pixel's ray and its neighbours' (right,
 /// down, down-right, and from the right neighbour to the down neighbour), row-major;
@@ -65,24 +70,27 @@ impl LidarPitch {
 /// evaluation of [`EoProjection::project`]. Per frame, fusion does arithmetic only.
 ///
 /// The rays are stored as three arrays (x, y, z) so that a row of pixels is three
-/// contiguous runs the placement loop reads with vector loads.
+/// contiguous runs the placement loop reads with vector loads. The fields are
+/// crate-visible because that loop (`fuse::rows`) reads them directly.
 #[derive(Debug, Clone, PartialEq)]
 pub struct FusionTables {
     /// Unit lidar rays turned by `eo_from_lidar`'s rotation (f64, from the f32 ray
     /// table), row-major; zero where the lidar pixel has no ray.
-    pub(super) ray_x: Vec<f64>,
-    pub(super) ray_y: Vec<f64>,
-    pub(super) ray_z: Vec<f64>,
+    pub(crate) ray_x: Vec<f64>,
+    pub(crate) ray_y: Vec<f64>,
+    pub(crate) ray_z: Vec<f64>,
     /// False where the lidar pixel has no ray (outside its distortion domain).
-    pub(super) ray_valid: Vec<bool>,
+    pub(crate) ray_valid: Vec<bool>,
     /// `eo_from_lidar`'s translation: the lidar's centre in the EO frame.
-    pub(super) translation: [f64; 3],
-    pub(super) projection: EoProjection,
+    pub(crate) translation: [f64; 3],
+    pub(crate) projection: EoProjection,
 }
 
 impl FusionTables {
-    pub fn new(model: &SensorModel, rays: &RayTable) -> Self {
-        let rotation = model.eo_from_lidar.rotation.to_rotation_matrix();
+    /// The tables of a sensor whose lidar (ray table `rays`) sits at `eo_from_lidar`
+    /// in the frame of the EO camera `eo`.
+    pub fn new(eo_from_lidar: &Pose, eo: &PinholeCamera, rays: &RayTable) -> Self {
+        let rotation = eo_from_lidar.rotation.to_rotation_matrix();
         let m = rotation.matrix();
         let (table, valid) = rays.rays();
         let turned: Vec<[f64; 3]> = table
@@ -96,14 +104,14 @@ impl FusionTables {
                 [0, 1, 2].map(|row| m[(row, 0)] * r[0] + m[(row, 1)] * r[1] + m[(row, 2)] * r[2])
             })
             .collect();
-        let t = model.eo_from_lidar.translation.vector;
+        let t = eo_from_lidar.translation.vector;
         Self {
             ray_x: turned.iter().map(|r| r[0]).collect(),
             ray_y: turned.iter().map(|r| r[1]).collect(),
             ray_z: turned.iter().map(|r| r[2]).collect(),
             ray_valid: valid.to_vec(),
             translation: [t.x, t.y, t.z],
-            projection: EoProjection::new(&model.eo),
+            projection: EoProjection::new(eo),
         }
     }
 
