@@ -86,7 +86,7 @@ fn every_scan_is_placed_at_the_captures_pose_as_loading_the_file_places_it() {
             ) => {
                 assert_eq!(ia, ib);
                 assert_eq!(pa, pb, "scan {ia} placed elsewhere");
-                assert_eq!(**sa, **sb, "scan {ia} fused differently");
+                assert_eq!(*sa, *sb, "scan {ia} fused differently");
             }
             other => panic!("not a scan: {other:?}"),
         }
