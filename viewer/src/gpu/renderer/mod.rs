@@ -12,13 +12,15 @@ mod painter;
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 
 use bytemuck::{Pod, Zeroable};
-use nalgebra::Point3;
+use glam::{Mat4, UVec4, Vec4};
+use nalgebra::Translation3;
 use texel::Pose;
 use texel::model::{Model, ScanId};
 
 use self::frame::Frame;
 use self::kbuffer::{KBufferShape, PhaseClock};
 use super::pipelines::{OutputPipelines, Pipelines};
+use super::relative::gpu_from_pose_relative;
 use super::scan_data::{GpuScan, ScanUniform};
 use super::targets::{DepthTarget, TargetMemory};
 use super::{GpuContext, GpuError};
@@ -106,10 +108,13 @@ pub struct RenderTarget<'a> {
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
 struct FrameUniform {
-    clip_from_view: [[f32; 4]; 4],
-    background: [f32; 4],
-    params: [f32; 4],
-    counts: [u32; 4],
+    clip_from_view: Mat4,
+    /// rgb: background colour (display values); a: 1.
+    background: Vec4,
+    /// x: blend threshold, y: range-confidence exponent, z: 1 if the target is sRGB.
+    params: Vec4,
+    /// x: mode, y: k, z: visible scans (the naive composite's layers), w: target width.
+    counts: UVec4,
 }
 
 /// An uploaded scan and where the model currently places it.
@@ -119,28 +124,25 @@ struct PlacedScan {
 }
 
 impl PlacedScan {
-    /// This scan's uniform for a camera at `view_from_world`.
+    /// This scan's uniform for a camera at `view_from_world`: only poses relative to the
+    /// camera reach the GPU.
     fn uniform(&self, id: ScanId, view_from_world: &Pose) -> ScanUniform {
-        // f64 until here: the GPU sees the scan relative to the camera only.
-        let view_from_scan = view_from_world * self.world_from_scan;
-        let m = view_from_scan.to_homogeneous();
-        let mut cols = [[0.0f32; 4]; 4];
-        for (c, col) in cols.iter_mut().enumerate() {
-            for (r, v) in col.iter_mut().enumerate() {
-                *v = m[(r, c)] as f32;
-            }
-        }
-        let cop = view_from_scan * Point3::from(self.gpu.cop_scan);
+        let view_from_scan = gpu_from_pose_relative(view_from_world, &self.world_from_scan);
+        // The acquisition COP as the origin of a frame placed in the scan: its position
+        // in the view frame is that frame's translation.
+        let cop = self.gpu.cop_scan;
+        let world_from_cop = self.world_from_scan * Translation3::new(cop.x, cop.y, cop.z);
+        let view_from_cop = gpu_from_pose_relative(view_from_world, &world_from_cop);
         ScanUniform {
-            view_from_scan: cols,
-            cop_view: [cop.x as f32, cop.y as f32, cop.z as f32, 1.0],
-            noise: [
+            view_from_scan,
+            cop_view: view_from_cop.w_axis,
+            noise: Vec4::new(
                 self.gpu.noise.sigma_m.max(0.0) as f32,
                 self.gpu.noise.sigma_per_m.max(0.0) as f32,
                 0.0,
                 0.0,
-            ],
-            ids: [u32::try_from(id).unwrap_or(u32::MAX), 0, 0, 0],
+            ),
+            ids: UVec4::new(u32::try_from(id).unwrap_or(u32::MAX), 0, 0, 0),
         }
     }
 }
@@ -309,19 +311,19 @@ impl Renderer {
         let bg = c.background;
         let frame = FrameUniform {
             clip_from_view: camera.clip_from_view(),
-            background: [bg[0], bg[1], bg[2], 1.0],
-            params: [
+            background: Vec4::new(bg[0], bg[1], bg[2], 1.0),
+            params: Vec4::new(
                 c.effective_threshold(),
                 gamma,
                 if target.format.is_srgb() { 1.0 } else { 0.0 },
                 0.0,
-            ],
-            counts: [
+            ),
+            counts: UVec4::new(
                 c.mode.code(),
                 c.effective_k() as u32,
                 visible.len() as u32,
                 target.width,
-            ],
+            ),
         };
         self.queue
             .write_buffer(&self.frame_uniform, 0, bytemuck::bytes_of(&frame));
