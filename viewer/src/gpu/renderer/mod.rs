@@ -462,3 +462,45 @@ impl Renderer {
         MAX_K
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::gpu::scan_data::{VERTEX_ATTRIBUTES, Vertex};
+    use crate::gpu::shaders;
+
+    /// The size in bytes of struct `name` as WGSL lays it out in module `own`.
+    fn wgsl_size(own: &str, name: &str) -> u32 {
+        let module = naga::front::wgsl::parse_str(&shaders::source(own)).unwrap();
+        module
+            .types
+            .iter()
+            .find_map(|(_, ty)| match &ty.inner {
+                naga::TypeInner::Struct { span, .. } if ty.name.as_deref() == Some(name) => {
+                    Some(*span)
+                }
+                _ => None,
+            })
+            .unwrap()
+    }
+
+    /// The glam-typed uniforms and vertex keep the shaders' layouts (Pod already rules
+    /// out padding; this rules out a size the WGSL does not declare).
+    #[test]
+    fn uniforms_and_vertices_match_the_shaders() {
+        let size = |bytes: usize| u32::try_from(bytes).unwrap();
+        assert_eq!(
+            size(std::mem::size_of::<FrameUniform>()),
+            wgsl_size(shaders::SCAN, "Frame")
+        );
+        assert_eq!(
+            size(std::mem::size_of::<ScanUniform>()),
+            wgsl_size(shaders::SCAN, "Scan")
+        );
+        let last = VERTEX_ATTRIBUTES[VERTEX_ATTRIBUTES.len() - 1];
+        assert_eq!(
+            last.offset + last.format.size(),
+            std::mem::size_of::<Vertex>() as u64
+        );
+    }
+}
