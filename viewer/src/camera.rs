@@ -2,6 +2,7 @@
 //! z forward) and an undistorted pinhole with the principal point at the image centre.
 //! The GPU only ever sees coordinates relative to this camera (see `docs/rendering.md`).
 
+use glam::{DMat4, DVec4, Mat4};
 use nalgebra::{Point3, Vector3};
 use texel::{PinholeCamera, Pose};
 
@@ -87,17 +88,20 @@ impl VirtualCamera {
         self.world_from_eo.rotation * Vector3::z()
     }
 
-    /// Column-major clip-from-view matrix: view x right, y down, z forward; clip y up;
-    /// reverse z with an infinite far plane (depth = near / z, compare Greater).
-    pub fn clip_from_view(&self) -> [[f32; 4]; 4] {
+    /// Clip-from-view matrix: view x right, y down, z forward; clip y up; reverse z with
+    /// an infinite far plane (depth = near / z, compare Greater). Built in f64 from the
+    /// intrinsics: they hold no position, so their rounding to f32 does not grow with the
+    /// distance from the world origin.
+    pub fn clip_from_view(&self) -> Mat4 {
         let fy = 1.0 / self.tan_half_fov_y();
         let fx = fy / self.aspect();
-        [
-            [fx as f32, 0.0, 0.0, 0.0],
-            [0.0, -fy as f32, 0.0, 0.0],
-            [0.0, 0.0, 0.0, 1.0],
-            [0.0, 0.0, self.near_m as f32, 0.0],
-        ]
+        DMat4::from_cols(
+            DVec4::new(fx, 0.0, 0.0, 0.0),
+            DVec4::new(0.0, -fy, 0.0, 0.0),
+            DVec4::new(0.0, 0.0, 0.0, 1.0),
+            DVec4::new(0.0, 0.0, self.near_m, 0.0),
+        )
+        .as_mat4()
     }
 
     /// The pixel (x right, y down, origin at the top-left corner) a view-frame point
@@ -132,12 +136,8 @@ mod tests {
     #[test]
     fn projection_matches_the_pinhole() {
         let cam = VirtualCamera::new(Pose::identity(), 60.0, 160, 120).unwrap();
-        let m = cam.clip_from_view();
-        let p = [0.3f32, -0.2, 2.0, 1.0];
-        let clip: Vec<f32> = (0..4)
-            .map(|r| (0..4).map(|c| m[c][r] * p[c]).sum())
-            .collect();
-        let ndc = [clip[0] / clip[3], clip[1] / clip[3], clip[2] / clip[3]];
+        let clip = cam.clip_from_view() * glam::Vec4::new(0.3, -0.2, 2.0, 1.0);
+        let ndc = clip.truncate() / clip.w;
         let px = cam.project_view(&Vector3::new(0.3, -0.2, 2.0)).unwrap();
         assert!((f64::from(ndc[0] + 1.0) * 80.0 - px[0]).abs() < 1e-3);
         assert!((f64::from(1.0 - ndc[1]) * 60.0 - px[1]).abs() < 1e-3);

@@ -3,6 +3,7 @@
 //! confidence, range confidence, and their product. `scan.wgsl` evaluates the same
 //! formulas per fragment; `docs/rendering.md` gives the reasoning.
 
+use glam::DVec3;
 use texel::TexelScan;
 
 /// Distances below this (metres) are treated as this, so ratios stay finite.
@@ -13,13 +14,14 @@ pub const MIN_DISTANCE_M: f64 = 1.0e-6;
 /// to [0, 1] (beyond 90 degrees the fragment is not used). 0 when either direction
 /// is degenerate (a COP on the surface point).
 pub fn pov_confidence(p: [f64; 3], acquisition_cop: [f64; 3], virtual_cop: [f64; 3]) -> f64 {
-    let a = sub(acquisition_cop, p);
-    let v = sub(virtual_cop, p);
-    let (na, nv) = (norm(a), norm(v));
+    let p = DVec3::from_array(p);
+    let a = DVec3::from_array(acquisition_cop) - p;
+    let v = DVec3::from_array(virtual_cop) - p;
+    let (na, nv) = (a.length(), v.length());
     if na < MIN_DISTANCE_M || nv < MIN_DISTANCE_M {
         return 0.0;
     }
-    (dot(a, v) / (na * nv)).clamp(0.0, 1.0)
+    (a.dot(v) / (na * nv)).clamp(0.0, 1.0)
 }
 
 /// Range confidence `min(1, d_virtual / d_acquisition)^gamma`: 1 while the virtual
@@ -105,25 +107,11 @@ pub fn vertex_accuracy(scan: &TexelScan) -> Vec<f32> {
 /// Range noise sigma of each vertex at its acquisition range (distance from the
 /// acquisition COP), metres; and that range.
 pub fn vertex_acquisition_range(scan: &TexelScan) -> Vec<f32> {
+    let cop = DVec3::from_array(scan.cop_m);
     scan.vertices
         .iter()
-        .map(|v| {
-            let p = [f64::from(v[0]), f64::from(v[1]), f64::from(v[2])];
-            norm(sub(p, scan.cop_m)) as f32
-        })
+        .map(|v| DVec3::from_array(v.map(f64::from)).distance(cop) as f32)
         .collect()
-}
-
-pub(crate) fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-
-pub(crate) fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-pub(crate) fn norm(a: [f64; 3]) -> f64 {
-    dot(a, a).sqrt()
 }
 
 #[cfg(test)]

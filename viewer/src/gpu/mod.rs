@@ -1,15 +1,18 @@
 //! The wgpu side of the viewer: device set-up, per-scan GPU data, long-lived
-//! pipelines, size-dependent targets and the renderer that records every pass into a
-//! given target (window and headless share all of it).
+//! pipelines, size-dependent targets, where f64 poses become camera-relative f32, and
+//! the renderer that records every pass into a given target, one file per compositing
+//! strategy (window and headless share all of it).
 
 mod pipelines;
 mod readback;
+mod relative;
 mod renderer;
 mod scan_data;
 pub mod shaders;
 mod targets;
 
 pub use readback::LayerReadback;
+pub use relative::{gpu_from_pose_relative, pose_relative};
 pub use renderer::{FrameStats, RenderSettings, RenderTarget, Renderer, Strategy};
 pub use targets::TargetMemory;
 

@@ -1,8 +1,6 @@
 //! Long-lived GPU state: shader modules, bind group layouts, the sampler and every
 //! pipeline. Built once per device; pipelines that write the caller's target are
-//! built once per target format.
-
-use std::collections::HashMap;
+//! built once per target format (the renderer keeps them by format).
 
 use super::scan_data::{VERTEX_ATTRIBUTES, Vertex};
 use super::{DEPTH_FORMAT, LAYER_COLOUR_FORMAT, LAYER_DATA_FORMAT, NEAREST_FORMAT, shaders};
@@ -30,7 +28,6 @@ pub(crate) struct Pipelines {
     pub prepass: wgpu::RenderPipeline,
     pub layer: wgpu::RenderPipeline,
     pub merge: wgpu::RenderPipeline,
-    outputs: HashMap<wgpu::TextureFormat, OutputPipelines>,
 }
 
 fn uniform_entry(
@@ -262,43 +259,37 @@ impl Pipelines {
             prepass,
             layer,
             merge,
-            outputs: HashMap::new(),
         }
     }
+}
 
-    /// The pipelines writing into a target of `format` (see [`Self::ensure_output`]).
-    pub fn outputs_for(&self, format: wgpu::TextureFormat) -> Option<&OutputPipelines> {
-        self.outputs.get(&format)
-    }
-
-    /// Builds the pipelines writing into a target of `format` on first use.
-    pub fn ensure_output(&mut self, device: &wgpu::Device, format: wgpu::TextureFormat) {
-        self.outputs
-            .entry(format)
-            .or_insert_with(|| OutputPipelines {
-                painter: scan_render_pipeline(
-                    device,
-                    &self.scan_pipeline_layout,
-                    &self.scan_module,
-                    "painter",
-                    "fs_painter",
-                    &[replace(format)],
-                ),
-                composite_kbuffer: fullscreen_pipeline(
-                    device,
-                    &self.kbuffer_pipeline_layout,
-                    &self.kbuffer_module,
-                    "composite k-buffer",
-                    format,
-                ),
-                composite_naive: fullscreen_pipeline(
-                    device,
-                    &self.naive_pipeline_layout,
-                    &self.naive_module,
-                    "composite naive",
-                    format,
-                ),
-            });
+impl OutputPipelines {
+    /// The pipelines writing into a target of `format`.
+    pub fn new(device: &wgpu::Device, pipelines: &Pipelines, format: wgpu::TextureFormat) -> Self {
+        Self {
+            painter: scan_render_pipeline(
+                device,
+                &pipelines.scan_pipeline_layout,
+                &pipelines.scan_module,
+                "painter",
+                "fs_painter",
+                &[replace(format)],
+            ),
+            composite_kbuffer: fullscreen_pipeline(
+                device,
+                &pipelines.kbuffer_pipeline_layout,
+                &pipelines.kbuffer_module,
+                "composite k-buffer",
+                format,
+            ),
+            composite_naive: fullscreen_pipeline(
+                device,
+                &pipelines.naive_pipeline_layout,
+                &pipelines.naive_module,
+                "composite naive",
+                format,
+            ),
+        }
     }
 }
 

@@ -3,6 +3,7 @@
 //! EO texture and a uniform that a pose or camera change rewrites.
 
 use bytemuck::{Pod, Zeroable};
+use glam::{DVec3, Mat4, UVec4, Vec2, Vec3, Vec4};
 use texel::{RangeNoise, TexelScan};
 use wgpu::util::DeviceExt;
 
@@ -15,8 +16,8 @@ use crate::reliability::{triangle_drawn, vertex_accuracy, vertex_acquisition_ran
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
 pub(crate) struct Vertex {
-    pub position: [f32; 3],
-    pub uv: [f32; 2],
+    pub position: Vec3,
+    pub uv: Vec2,
     pub accuracy: f32,
     pub acquisition_range: f32,
 }
@@ -28,10 +29,13 @@ pub(crate) const VERTEX_ATTRIBUTES: [wgpu::VertexAttribute; 4] =
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
 pub(crate) struct ScanUniform {
-    pub view_from_scan: [[f32; 4]; 4],
-    pub cop_view: [f32; 4],
-    pub noise: [f32; 4],
-    pub ids: [u32; 4],
+    pub view_from_scan: Mat4,
+    /// xyz: the acquisition centre of projection in the view frame; w: 1.
+    pub cop_view: Vec4,
+    /// x: range noise sigma (m), y: its growth per metre of range.
+    pub noise: Vec4,
+    /// x: the scan id.
+    pub ids: UVec4,
 }
 
 pub(crate) struct GpuScan {
@@ -43,7 +47,8 @@ pub(crate) struct GpuScan {
     pub uniform: wgpu::Buffer,
     pub bind_group: wgpu::BindGroup,
     pub bounds: Option<ScanBounds>,
-    pub cop_scan: [f64; 3],
+    /// The acquisition centre of projection, scan frame.
+    pub cop_scan: DVec3,
     pub noise: RangeNoise,
     /// GPU bytes held by this scan.
     pub bytes: u64,
@@ -161,7 +166,7 @@ impl GpuScan {
             uniform,
             bind_group,
             bounds: ScanBounds::of(scan),
-            cop_scan: scan.cop_m,
+            cop_scan: DVec3::from_array(scan.cop_m),
             noise: scan.range_noise,
             bytes,
         })
@@ -205,8 +210,12 @@ fn vertex_data(scan: &TexelScan) -> Vec<Vertex> {
         .iter()
         .enumerate()
         .map(|(i, &position)| Vertex {
-            position,
-            uv: scan.tex_coords.get(i).copied().unwrap_or([0.0, 0.0]),
+            position: Vec3::from_array(position),
+            uv: scan
+                .tex_coords
+                .get(i)
+                .copied()
+                .map_or(Vec2::ZERO, Vec2::from_array),
             accuracy: accuracy.get(i).copied().unwrap_or(0.0),
             acquisition_range: range.get(i).copied().unwrap_or(0.0),
         })
