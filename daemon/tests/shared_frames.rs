@@ -1,13 +1,18 @@
 //! Frames travel by reference: ingest hands the recorder and the pair it forms the
 //! same range and EO frames (one allocation each, no copy), and once the recorder has
-//! let go the EO frame can be taken by value for fusion.
+//! let go the EO frame can be taken by value for fusion. The encode stage writes a
+//! scan's frame from the scan itself, byte for byte what the owned `WireScan` path
+//! writes, for every texture format.
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests panic on failure by design
 
 use std::sync::Arc;
 
+use bytes::Bytes;
 use texel::sync::SharedFrameSync;
-use texel::{FuseConfig, Sensor, fuse};
+use texel::wire::{Message, TextureFormat, WireScan, check_sendable};
+use texel::{FuseConfig, Pose, Sensor, fuse};
 use texel_daemon::config::OverloadPolicy;
+use texel_daemon::pipeline::encode::encode_scan;
 use texel_daemon::pipeline::ingest::Ingest;
 use texel_daemon::record::RecordItem;
 use texel_daemon::source::{SourceEvent, Tagged};
@@ -73,4 +78,24 @@ async fn the_recorder_and_the_pair_share_one_frame() {
     )
     .unwrap();
     assert_eq!(scan.texture.rgb.as_ptr(), pixels);
+}
+
+#[test]
+fn a_scan_frame_is_written_from_the_scan_as_the_owned_path_writes_it() {
+    let model = captures::sensor();
+    let (range, eo) = captures::frame(&model, 5, 2_000);
+    let scan = fuse(&range, eo, &Sensor::new(model), &FuseConfig::default()).unwrap();
+    check_sendable(&scan).unwrap();
+    let world = captures::pose(5);
+    for format in [TextureFormat::Rgb8, TextureFormat::Png, TextureFormat::Jpeg] {
+        let frame = encode_scan(11, &scan, world, format, 90).unwrap();
+        let texture = texel_daemon::texture::encode(&scan.texture, format, 90).unwrap();
+        let owned = WireScan::with_texture(11, &scan, world, texture).unwrap();
+        let expected = Message::ScanAdded(Box::new(owned)).encode().unwrap();
+        assert_eq!(frame, Bytes::from(expected), "{format:?}");
+    }
+    // A pose the decoder would refuse is refused here too.
+    let mut nan = Pose::identity();
+    nan.translation.vector.z = f64::NAN;
+    assert!(encode_scan(11, &scan, nan, TextureFormat::Rgb8, 90).is_err());
 }

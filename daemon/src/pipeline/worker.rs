@@ -4,6 +4,9 @@
 //! changes, in order, to the encode stage. Synchronous, on its own thread, so the
 //! async runtime never waits on computation; wire encoding happens on the encode
 //! thread, so registration latency is not serialised behind JPEG compression.
+//!
+//! A fused scan is checked against the wire's limits here, once (`check_sendable`):
+//! the encode stage writes its frame from the scan without checking its arrays again.
 
 use std::sync::Arc;
 use std::time::Instant;
