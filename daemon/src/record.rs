@@ -26,8 +26,10 @@ use crate::config::{Compression, RecordSection};
 #[derive(Debug)]
 pub enum RecordItem {
     Sensor(Arc<SensorModel>),
-    Range(RangeFrame),
-    Eo(EoFrame),
+    /// The frame the pipeline pairs and fuses, shared rather than copied; the
+    /// recorder lets go of it as soon as it is written.
+    Range(Arc<RangeFrame>),
+    Eo(Arc<EoFrame>),
     Pose {
         topic: PoseTopic,
         timestamp_ns: u64,

@@ -1,6 +1,9 @@
 //! Raw sensor frames as every source yields them (serial lidar, V4L2 camera,
 //! simulator, capture replay): a lidar range frame, an EO colour frame, and a pair
-//! of them taken together.
+//! of them taken together, owned or shared.
+
+use std::borrow::Borrow;
+use std::sync::Arc;
 
 /// One lidar frame: radial range along each pixel's ray, row-major, row 0 at the top.
 #[derive(Debug, Clone, PartialEq)]
@@ -99,17 +102,22 @@ impl EoFrame {
     }
 }
 
-/// A lidar frame and the EO frame taken with it: one texel frame.
+/// A lidar frame and the EO frame taken with it: one texel frame. The frames are
+/// owned by default; [`SharedFramePair`] holds them behind `Arc`s, so one frame can
+/// go to a recorder and to fusion without its pixels being copied.
 #[derive(Debug, Clone, PartialEq)]
-pub struct FramePair {
-    pub range: RangeFrame,
-    pub eo: EoFrame,
+pub struct FramePair<R = RangeFrame, E = EoFrame> {
+    pub range: R,
+    pub eo: E,
 }
 
-impl FramePair {
+/// A pair of frames shared with whoever else holds them (the daemon's recorder).
+pub type SharedFramePair = FramePair<Arc<RangeFrame>, Arc<EoFrame>>;
+
+impl<R: Borrow<RangeFrame>, E> FramePair<R, E> {
     /// The texel frame's timestamp: the lidar's, which fusion's geometry comes from.
     pub fn timestamp_ns(&self) -> u64 {
-        self.range.timestamp_ns
+        self.range.borrow().timestamp_ns
     }
 }
 

@@ -2,9 +2,13 @@
 //! a tolerance, with bounded buffers and counters for what could not be paired.
 //!
 //! Used by live sources (where the two sensors' frames arrive with slightly
-//! different timestamps) and by capture replay alike.
+//! different timestamps) and by capture replay alike. Frames are paired as they come:
+//! owned (the default) or shared behind `Arc`s ([`SharedFrameSync`]), which the
+//! daemon uses so its recorder and fusion hold the same frame, not two copies.
 
+use std::borrow::Borrow;
 use std::collections::VecDeque;
+use std::sync::Arc;
 
 use crate::frames::{EoFrame, FramePair, RangeFrame};
 
@@ -20,18 +24,22 @@ pub struct SyncCounters {
     pub late_eo: u64,
 }
 
-/// The synchroniser's state.
+/// The synchroniser's state, holding range frames as `R` and EO frames as `E`
+/// (owned frames, or `Arc`s of them).
 #[derive(Debug)]
-pub struct FrameSync {
+pub struct FrameSync<R = RangeFrame, E = EoFrame> {
     tolerance_ns: u64,
     max_pending: usize,
-    ranges: VecDeque<RangeFrame>,
-    eos: VecDeque<EoFrame>,
+    ranges: VecDeque<R>,
+    eos: VecDeque<E>,
     last_paired_ns: Option<u64>,
     counters: SyncCounters,
 }
 
-impl FrameSync {
+/// A synchroniser of shared frames: pairs hold the same allocations as were pushed.
+pub type SharedFrameSync = FrameSync<Arc<RangeFrame>, Arc<EoFrame>>;
+
+impl<R: Borrow<RangeFrame>, E: Borrow<EoFrame>> FrameSync<R, E> {
     /// `tolerance_ns`: the largest timestamp difference of a pair. `max_pending`:
     /// how many unpaired frames of each kind wait for a partner (at least 1).
     pub fn new(tolerance_ns: u64, max_pending: usize) -> Self {
@@ -72,37 +80,47 @@ impl FrameSync {
     /// Drops queued frames older than a pair just made at `t` (they can no longer
     /// pair with anything newer without crossing it).
     fn drop_older_than(&mut self, t: u64) {
-        while self.ranges.front().is_some_and(|f| f.timestamp_ns < t) {
+        while self
+            .ranges
+            .front()
+            .is_some_and(|f| f.borrow().timestamp_ns < t)
+        {
             self.ranges.pop_front();
             self.counters.unpaired_range += 1;
         }
-        while self.eos.front().is_some_and(|f| f.timestamp_ns < t) {
+        while self
+            .eos
+            .front()
+            .is_some_and(|f| f.borrow().timestamp_ns < t)
+        {
             self.eos.pop_front();
             self.counters.unpaired_eo += 1;
         }
     }
 
-    fn emit(&mut self, range: RangeFrame, eo: EoFrame) -> FramePair {
-        let t = range.timestamp_ns.min(eo.timestamp_ns);
-        self.last_paired_ns = Some(range.timestamp_ns.max(eo.timestamp_ns));
+    fn emit(&mut self, range: R, eo: E) -> FramePair<R, E> {
+        let (tr, te) = (range.borrow().timestamp_ns, eo.borrow().timestamp_ns);
+        let t = tr.min(te);
+        self.last_paired_ns = Some(tr.max(te));
         self.counters.paired += 1;
         self.drop_older_than(t);
         FramePair { range, eo }
     }
 
     /// Offers a range frame; returns a pair if it completes one.
-    pub fn push_range(&mut self, frame: RangeFrame) -> Option<FramePair> {
-        if self.is_late(frame.timestamp_ns) {
+    pub fn push_range(&mut self, frame: R) -> Option<FramePair<R, E>> {
+        let t = frame.borrow().timestamp_ns;
+        if self.is_late(t) {
             self.counters.late_range += 1;
             return None;
         }
-        match self.nearest(self.eos.iter().map(|f| f.timestamp_ns), frame.timestamp_ns) {
+        match self.nearest(self.eos.iter().map(|f| f.borrow().timestamp_ns), t) {
             Some(i) => {
                 let eo = self.eos.remove(i)?;
                 Some(self.emit(frame, eo))
             }
             None => {
-                insert_sorted(&mut self.ranges, frame, |f| f.timestamp_ns);
+                insert_sorted(&mut self.ranges, frame, |f| f.borrow().timestamp_ns);
                 if self.ranges.len() > self.max_pending {
                     self.ranges.pop_front();
                     self.counters.unpaired_range += 1;
@@ -113,21 +131,19 @@ impl FrameSync {
     }
 
     /// Offers an EO frame; returns a pair if it completes one.
-    pub fn push_eo(&mut self, frame: EoFrame) -> Option<FramePair> {
-        if self.is_late(frame.timestamp_ns) {
+    pub fn push_eo(&mut self, frame: E) -> Option<FramePair<R, E>> {
+        let t = frame.borrow().timestamp_ns;
+        if self.is_late(t) {
             self.counters.late_eo += 1;
             return None;
         }
-        match self.nearest(
-            self.ranges.iter().map(|f| f.timestamp_ns),
-            frame.timestamp_ns,
-        ) {
+        match self.nearest(self.ranges.iter().map(|f| f.borrow().timestamp_ns), t) {
             Some(i) => {
                 let range = self.ranges.remove(i)?;
                 Some(self.emit(range, frame))
             }
             None => {
-                insert_sorted(&mut self.eos, frame, |f| f.timestamp_ns);
+                insert_sorted(&mut self.eos, frame, |f| f.borrow().timestamp_ns);
                 if self.eos.len() > self.max_pending {
                     self.eos.pop_front();
                     self.counters.unpaired_eo += 1;
@@ -193,6 +209,22 @@ mod tests {
         // A range frame from before the pair is late.
         assert!(s.push_range(range(90)).is_none());
         assert_eq!(s.counters().late_range, 1);
+    }
+
+    #[test]
+    fn shared_frames_are_paired_without_copies() {
+        let mut s = SharedFrameSync::new(5, 4);
+        let (r, e) = (Arc::new(range(10)), Arc::new(eo(12)));
+        // What a recorder would hold while the pair goes on to fusion.
+        let (recorded_r, recorded_e) = (Arc::clone(&r), Arc::clone(&e));
+        assert!(s.push_range(r).is_none());
+        let pair = s.push_eo(e).unwrap();
+        assert_eq!(pair.timestamp_ns(), 10);
+        assert!(Arc::ptr_eq(&pair.range, &recorded_r));
+        assert!(Arc::ptr_eq(&pair.eo, &recorded_e));
+        // Once the other holder lets go, the frame can be taken back by value.
+        drop(recorded_e);
+        assert_eq!(Arc::try_unwrap(pair.eo).unwrap(), eo(12));
     }
 
     #[test]

@@ -4,16 +4,18 @@
 //! precedes its scan. It runs beside registration: a JPEG of a 640x480 texture costs
 //! about as much as registering a scan, and the two now overlap instead of adding up.
 //!
-//! A texture that cannot be compressed is sent as raw RGB instead (which cannot fail
-//! for a scan the worker let through, see `texel::wire::check_sendable`), so one bad
-//! texture never breaks the ids of later scans.
+//! A frame is written straight from the shared scan (`texel::wire::WireScanRef`): the
+//! mesh arrays are read in place, not copied, and not checked again (the worker
+//! checked them once with `texel::wire::check_sendable`). A texture that cannot be
+//! compressed is sent as raw RGB instead (which cannot fail for a scan the worker let
+//! through), so one bad texture never breaks the ids of later scans.
 
 use std::sync::Arc;
 use std::time::Instant;
 
 use bytes::Bytes;
 use texel::model::ScanId;
-use texel::wire::{Message, Texture, TextureFormat, WireScan};
+use texel::wire::{TextureFormat, TextureRef, WireScanRef};
 use texel::{Pose, TexelScan};
 use tokio::sync::mpsc;
 
@@ -106,7 +108,9 @@ impl Encoder {
     }
 }
 
-/// The `ScanAdded` frame of a scan, its texture in `format`.
+/// The `ScanAdded` frame of a scan that passed `texel::wire::check_sendable`, its
+/// texture in `format`. Raw RGB is read from the scan's own pixels; a compressed
+/// texture is made once and borrowed.
 pub fn encode_scan(
     id: ScanId,
     scan: &TexelScan,
@@ -114,12 +118,18 @@ pub fn encode_scan(
     format: TextureFormat,
     jpeg_quality: u8,
 ) -> Result<Bytes, String> {
-    let texture: Texture =
-        crate::texture::encode(&scan.texture, format, jpeg_quality).map_err(|e| e.to_string())?;
-    let wire =
-        WireScan::with_texture(id, scan, world_from_scan, texture).map_err(|e| e.to_string())?;
-    let bytes = Message::ScanAdded(Box::new(wire))
-        .encode()
+    let compressed;
+    let texture = match format {
+        TextureFormat::Rgb8 => TextureRef::rgb8(&scan.texture).map_err(|e| e.to_string())?,
+        TextureFormat::Png | TextureFormat::Jpeg => {
+            compressed = crate::texture::encode(&scan.texture, format, jpeg_quality)
+                .map_err(|e| e.to_string())?;
+            compressed.view()
+        }
+    };
+    let frame = WireScanRef::new(id, scan, world_from_scan, texture)
+        .and_then(|view| view.encode())
         .map_err(|e| e.to_string())?;
-    Ok(Bytes::from(bytes))
+    // Sized exactly, so the shared bytes hold no spare capacity.
+    Ok(Bytes::from(frame))
 }

@@ -1,14 +1,16 @@
 //! The ingest stage: every source event is recorded first (nothing received is lost),
 //! then range and EO frames are paired by timestamp (`texel::sync`), and each pair is
-//! handed to the worker under the session's overload policy.
+//! handed to the worker under the session's overload policy. Frames are shared: the
+//! recorder and the pair hold the same frame, never a copy.
 
 use std::collections::VecDeque;
 use std::sync::Arc;
 use std::time::Instant;
 
 use texel::capture::PoseTopic;
-use texel::sync::FrameSync;
-use texel::{FramePair, Pose, SensorModel};
+use texel::frames::SharedFramePair;
+use texel::sync::SharedFrameSync;
+use texel::{Pose, SensorModel};
 use tokio::sync::mpsc;
 
 use crate::config::OverloadPolicy;
@@ -19,7 +21,8 @@ use crate::status::{Counter, Metrics, Stage};
 /// One texel frame on its way to fusion and registration.
 #[derive(Debug)]
 pub struct PairJob {
-    pub pair: FramePair,
+    /// The frames, shared with the recorder until it has written them.
+    pub pair: SharedFramePair,
     pub sensor: Arc<SensorModel>,
     /// When the pair's range frame reached ingest.
     pub received: Instant,
@@ -76,7 +79,7 @@ pub struct Ingest {
     pub events: mpsc::Receiver<Tagged>,
     pub record: Option<mpsc::Sender<RecordItem>>,
     pub pairs: mpsc::Sender<PairJob>,
-    pub sync: FrameSync,
+    pub sync: SharedFrameSync,
     pub policy: OverloadPolicy,
     pub sensor: Option<Arc<SensorModel>>,
     pub metrics: Arc<Metrics>,
@@ -150,7 +153,7 @@ impl Ingest {
                 }
                 SourceEvent::Range(frame) => {
                     arrivals.note(frame.timestamp_ns);
-                    self.record(RecordItem::Range(frame.clone())).await;
+                    self.record(RecordItem::Range(Arc::clone(&frame))).await;
                     let fits = self.sensor.as_ref().is_none_or(|m| {
                         (frame.width, frame.height) == (m.lidar.width, m.lidar.height)
                     });
@@ -162,7 +165,7 @@ impl Ingest {
                     }
                 }
                 SourceEvent::Eo(frame) => {
-                    self.record(RecordItem::Eo(frame.clone())).await;
+                    self.record(RecordItem::Eo(Arc::clone(&frame))).await;
                     let fits = self
                         .sensor
                         .as_ref()

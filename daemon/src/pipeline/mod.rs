@@ -26,7 +26,7 @@ use std::time::Duration;
 
 use bytes::Bytes;
 use texel::SensorModel;
-use texel::sync::FrameSync;
+use texel::sync::SharedFrameSync;
 use texel::wire::Message;
 use thiserror::Error;
 use tokio::net::TcpListener;
@@ -362,7 +362,7 @@ async fn run(
         events: events_rx,
         record: record_tx.clone(),
         pairs: pairs_tx,
-        sync: FrameSync::new(tolerance_ns, config.sync.max_pending),
+        sync: SharedFrameSync::new(tolerance_ns, config.sync.max_pending),
         policy: config.pipeline.overload,
         sensor,
         metrics: Arc::clone(&metrics),

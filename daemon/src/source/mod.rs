@@ -29,8 +29,9 @@ pub enum SourceEvent {
     /// The sensor model the following frames were taken with (a replayed capture
     /// carries its own; live sessions take it from the session's sensor file).
     Sensor(Arc<SensorModel>),
-    Range(RangeFrame),
-    Eo(EoFrame),
+    /// Frames are shared from here on: the recorder and fusion hold the same one.
+    Range(Arc<RangeFrame>),
+    Eo(Arc<EoFrame>),
     /// A pose the source knows (a replayed capture's `/truth/pose` or `/texel/pose`);
     /// recorded as it is, never used to place scans unless the session says so.
     Pose {

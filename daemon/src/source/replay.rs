@@ -149,7 +149,7 @@ impl ReplaySource {
             if pacer.wait_for(frame.timestamp_ns, shutdown) {
                 return Some(false);
             }
-            Some(send(SourceEvent::Range(frame)))
+            Some(send(SourceEvent::Range(Arc::new(frame))))
         };
         for next in reader.by_ref() {
             let event = match next {
@@ -214,7 +214,7 @@ impl ReplaySource {
                 CaptureEvent::Eo(frame) => {
                     parts.changed().is_none_or(|m| send(SourceEvent::Sensor(m)))
                         && !pacer.wait_for(frame.timestamp_ns, shutdown)
-                        && send(SourceEvent::Eo(frame))
+                        && send(SourceEvent::Eo(Arc::new(frame)))
                 }
                 CaptureEvent::Pose {
                     topic,

@@ -5,6 +5,7 @@
 //! (`/dev/ttyACM*`), keeping every frame already received.
 
 use std::path::PathBuf;
+use std::sync::Arc;
 use std::time::Duration;
 
 use texel::txl1::{Txl1Counters, Txl1Decoder};
@@ -92,7 +93,7 @@ impl SerialSource {
             decoder.push(&buf[..n]);
             while let Some(frame) = decoder.next_frame() {
                 if sink
-                    .send(SourceEvent::Range(frame.to_range_frame()))
+                    .send(SourceEvent::Range(Arc::new(frame.to_range_frame())))
                     .await
                     .is_err()
                 {

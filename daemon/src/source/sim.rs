@@ -319,9 +319,11 @@ impl SimSource {
         {
             return false;
         }
-        sink.blocking_send(SourceEvent::Range(frame.pair.range))
+        sink.blocking_send(SourceEvent::Range(Arc::new(frame.pair.range)))
             .is_ok()
-            && sink.blocking_send(SourceEvent::Eo(frame.pair.eo)).is_ok()
+            && sink
+                .blocking_send(SourceEvent::Eo(Arc::new(frame.pair.eo)))
+                .is_ok()
     }
 }
 

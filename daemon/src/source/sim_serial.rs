@@ -249,7 +249,7 @@ impl EoRenderer {
                 Ok(Ok(frame)) => {
                     if self
                         .sink
-                        .send(SourceEvent::Eo(frame.pair.eo))
+                        .send(SourceEvent::Eo(Arc::new(frame.pair.eo)))
                         .await
                         .is_err()
                     {

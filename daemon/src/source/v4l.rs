@@ -6,6 +6,7 @@
 
 use std::io;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::time::Duration;
 
 use thiserror::Error;
@@ -205,7 +206,10 @@ impl V4lSource {
                 timestamp_ns,
             ) {
                 Ok(frame) => {
-                    if sink.blocking_send(SourceEvent::Eo(frame)).is_err() {
+                    if sink
+                        .blocking_send(SourceEvent::Eo(Arc::new(frame)))
+                        .is_err()
+                    {
                         break;
                     }
                 }

@@ -13,7 +13,8 @@ mod scan;
 mod status;
 
 pub use scan::{
-    MAX_GRID_SIDE, MAX_TEXTURE_BYTES, Texture, TextureFormat, WireScan, check_sendable,
+    MAX_GRID_SIDE, MAX_TEXTURE_BYTES, Texture, TextureFormat, TextureRef, WireScan, WireScanRef,
+    check_sendable,
 };
 pub use status::{QueueStatus, RecordingStatus, SourceStatus, StageLatency, Status};
 
@@ -227,16 +228,24 @@ impl Message {
                 put_string(&mut out, "Goodbye.reason", reason, MAX_REASON_LEN)?;
             }
         }
-        let body_len = out.len() - LENGTH_PREFIX;
-        if body_len > MAX_SERVER_FRAME_LEN as usize {
-            return Err(WireError::encode(
-                self.kind_name(),
-                format!("{body_len} bytes exceed the frame limit {MAX_SERVER_FRAME_LEN}"),
-            ));
-        }
-        out[..LENGTH_PREFIX].copy_from_slice(&(body_len as u32).to_le_bytes());
-        Ok(out)
+        finish_frame(out, self.kind_name())
     }
+}
+
+/// Fills in the length prefix of a frame written after [`LENGTH_PREFIX`] placeholder
+/// bytes; refuses a body beyond [`MAX_SERVER_FRAME_LEN`].
+fn finish_frame(mut out: Vec<u8>, what: &'static str) -> Result<Vec<u8>, WireError> {
+    let body_len = out.len().saturating_sub(LENGTH_PREFIX);
+    if body_len > MAX_SERVER_FRAME_LEN as usize {
+        return Err(WireError::encode(
+            what,
+            format!("{body_len} bytes exceed the frame limit {MAX_SERVER_FRAME_LEN}"),
+        ));
+    }
+    if let Some(prefix) = out.get_mut(..LENGTH_PREFIX) {
+        prefix.copy_from_slice(&(body_len as u32).to_le_bytes());
+    }
+    Ok(out)
 }
 
 /// The length of the frame at the start of `buf` (prefix included) if its prefix is

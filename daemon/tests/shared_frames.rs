@@ -1,0 +1,101 @@
+//! Frames travel by reference: ingest hands the recorder and the pair it forms the
+//! same range and EO frames (one allocation each, no copy), and once the recorder has
+//! let go the EO frame can be taken by value for fusion. The encode stage writes a
+//! scan's frame from the scan itself, byte for byte what the owned `WireScan` path
+//! writes, for every texture format.
+#![allow(clippy::unwrap_used, clippy::expect_used)] // tests panic on failure by design
+
+use std::sync::Arc;
+
+use bytes::Bytes;
+use texel::sync::SharedFrameSync;
+use texel::wire::{Message, TextureFormat, WireScan, check_sendable};
+use texel::{FuseConfig, Pose, Sensor, fuse};
+use texel_daemon::config::OverloadPolicy;
+use texel_daemon::pipeline::encode::encode_scan;
+use texel_daemon::pipeline::ingest::Ingest;
+use texel_daemon::record::RecordItem;
+use texel_daemon::source::{SourceEvent, Tagged};
+use texel_daemon::status::Metrics;
+use texel_e2e::captures;
+use tokio::sync::mpsc;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_recorder_and_the_pair_share_one_frame() {
+    let model = Arc::new(captures::sensor());
+    let (range, eo) = captures::frame(&model, 3, 1_000);
+    let (range, eo) = (Arc::new(range), Arc::new(eo));
+    let (events_tx, events) = mpsc::channel(8);
+    let (record_tx, mut record_rx) = mpsc::channel(8);
+    let (pairs, mut pairs_rx) = mpsc::channel(8);
+    let ingest = Ingest {
+        events,
+        record: Some(record_tx),
+        pairs,
+        sync: SharedFrameSync::new(0, 4),
+        policy: OverloadPolicy::Backpressure,
+        sensor: Some(Arc::clone(&model)),
+        metrics: Metrics::new(),
+    };
+    let task = tokio::spawn(ingest.run());
+    for event in [
+        SourceEvent::Range(Arc::clone(&range)),
+        SourceEvent::Eo(Arc::clone(&eo)),
+    ] {
+        events_tx.send(Tagged { source: 0, event }).await.unwrap();
+    }
+    drop(events_tx);
+    let job = pairs_rx.recv().await.unwrap();
+    task.await.unwrap();
+
+    let mut recorded = Vec::new();
+    while let Some(item) = record_rx.recv().await {
+        recorded.push(item);
+    }
+    let [
+        RecordItem::Sensor(_),
+        RecordItem::Range(recorded_range),
+        RecordItem::Eo(recorded_eo),
+    ] = recorded.as_slice()
+    else {
+        panic!("recorded {recorded:?}");
+    };
+    assert!(Arc::ptr_eq(recorded_range, &range));
+    assert!(Arc::ptr_eq(recorded_eo, &eo));
+    assert!(Arc::ptr_eq(&job.pair.range, &range));
+    assert!(Arc::ptr_eq(&job.pair.eo, &eo));
+
+    // The recorder has written both and the source let go: fusion takes the very
+    // frame, pixels and all, as the scan's texture.
+    drop((recorded, eo));
+    let pixels = job.pair.eo.rgb.as_ptr();
+    let eo = Arc::try_unwrap(job.pair.eo).unwrap();
+    let scan = fuse(
+        &job.pair.range,
+        eo,
+        &Sensor::new((*model).clone()),
+        &FuseConfig::default(),
+    )
+    .unwrap();
+    assert_eq!(scan.texture.rgb.as_ptr(), pixels);
+}
+
+#[test]
+fn a_scan_frame_is_written_from_the_scan_as_the_owned_path_writes_it() {
+    let model = captures::sensor();
+    let (range, eo) = captures::frame(&model, 5, 2_000);
+    let scan = fuse(&range, eo, &Sensor::new(model), &FuseConfig::default()).unwrap();
+    check_sendable(&scan).unwrap();
+    let world = captures::pose(5);
+    for format in [TextureFormat::Rgb8, TextureFormat::Png, TextureFormat::Jpeg] {
+        let frame = encode_scan(11, &scan, world, format, 90).unwrap();
+        let texture = texel_daemon::texture::encode(&scan.texture, format, 90).unwrap();
+        let owned = WireScan::with_texture(11, &scan, world, texture).unwrap();
+        let expected = Message::ScanAdded(Box::new(owned)).encode().unwrap();
+        assert_eq!(frame, Bytes::from(expected), "{format:?}");
+    }
+    // A pose the decoder would refuse is refused here too.
+    let mut nan = Pose::identity();
+    nan.translation.vector.z = f64::NAN;
+    assert!(encode_scan(11, &scan, nan, TextureFormat::Rgb8, 90).is_err());
+}
