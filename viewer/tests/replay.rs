@@ -52,7 +52,10 @@ fn drain(rx: &Receiver<ViewerEvent>) -> (Model, String) {
             }
             _ => {}
         }
-        assert!(apply_to_model(&mut model, &event), "{event:?} does not apply");
+        assert!(
+            apply_to_model(&mut model, &event),
+            "{event:?} does not apply"
+        );
     }
 }
 
