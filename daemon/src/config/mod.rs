@@ -475,9 +475,15 @@ impl SessionConfig {
             .map(|c| c.name.as_str())
             .chain(s.v4l.iter().map(|c| c.name.as_str()))
             .chain(s.replay.iter().map(|c| c.name.as_str()))
-            .chain(s.sim.iter().map(|c| c.name.as_str()))
-            .chain(s.sim_serial.iter().map(|c| c.name.as_str()))
             .collect();
+        // Without the feature a session naming a simulator was refused above.
+        #[cfg(feature = "sim")]
+        names.extend(
+            s.sim
+                .iter()
+                .map(|c| c.name.as_str())
+                .chain(s.sim_serial.iter().map(|c| c.name.as_str())),
+        );
         names.sort_unstable();
         if let Some(w) = names.windows(2).find(|w| w[0] == w[1]) {
             return Err(invalid(
