@@ -432,7 +432,7 @@ impl App {
             && (self.viewer.model.len() >= *min_scans
                 || self.started.elapsed() > std::time::Duration::from_secs(60))
         {
-            let image = read_frame(&w.gpu, &frame.texture, w.config.format)?;
+            let image = read_frame(&w.gpu, &frame.texture)?;
             image
                 .save(path)
                 .with_context(|| format!("writing {}", path.display()))?;
@@ -452,71 +452,19 @@ impl App {
     }
 }
 
-/// Reads the swapchain image back as RGBA8 (BGRA formats are swizzled).
-fn read_frame(
-    gpu: &GpuContext,
-    texture: &wgpu::Texture,
-    format: wgpu::TextureFormat,
-) -> anyhow::Result<image::RgbaImage> {
+/// Reads the swapchain image back as RGBA8 (BGRA formats are swizzled), opaque.
+fn read_frame(gpu: &GpuContext, texture: &wgpu::Texture) -> anyhow::Result<image::RgbaImage> {
     anyhow::ensure!(
         texture.usage().contains(wgpu::TextureUsages::COPY_SRC),
         "the surface cannot be read back (no COPY_SRC)"
     );
-    let size = texture.size();
-    let row = (size.width * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT)
-        * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
-    let buffer = gpu.device.create_buffer(&wgpu::BufferDescriptor {
-        label: Some("screenshot"),
-        size: u64::from(row) * u64::from(size.height),
-        usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
-        mapped_at_creation: false,
-    });
-    let mut encoder = gpu
-        .device
-        .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
-    encoder.copy_texture_to_buffer(
-        wgpu::TexelCopyTextureInfo {
-            texture,
-            mip_level: 0,
-            origin: wgpu::Origin3d::ZERO,
-            aspect: wgpu::TextureAspect::All,
-        },
-        wgpu::TexelCopyBufferInfo {
-            buffer: &buffer,
-            layout: wgpu::TexelCopyBufferLayout {
-                offset: 0,
-                bytes_per_row: Some(row),
-                rows_per_image: Some(size.height),
-            },
-        },
-        size,
-    );
-    gpu.queue.submit(Some(encoder.finish()));
-    let slice = buffer.slice(..);
-    let (tx, rx) = std::sync::mpsc::channel();
-    slice.map_async(wgpu::MapMode::Read, move |r| {
-        let _ = tx.send(r);
-    });
-    gpu.wait_idle()?;
-    rx.recv()?.context("mapping the screenshot")?;
-    let mapped = slice.get_mapped_range().context("mapping the screenshot")?;
-    let bgra = matches!(
-        format,
-        wgpu::TextureFormat::Bgra8Unorm | wgpu::TextureFormat::Bgra8UnormSrgb
-    );
-    let mut pixels = Vec::with_capacity((size.width * size.height * 4) as usize);
-    for r in mapped.chunks_exact(row as usize) {
-        for p in r[..(size.width * 4) as usize].chunks_exact(4) {
-            if bgra {
-                pixels.extend_from_slice(&[p[2], p[1], p[0], 255]);
-            } else {
-                pixels.extend_from_slice(&[p[0], p[1], p[2], 255]);
-            }
-        }
+    let mut image = crate::gpu::read_rgba_texture(&gpu.device, &gpu.queue, texture)
+        .context("reading the screenshot back")?;
+    // The swapchain's alpha is whatever the compositor left; a screenshot is opaque.
+    for p in image.pixels_mut() {
+        p[3] = 255;
     }
-    drop(mapped);
-    buffer.unmap();
-    image::RgbaImage::from_raw(size.width, size.height, pixels).context("screenshot size")
+    Ok(image)
 }
 
 impl ApplicationHandler for App {

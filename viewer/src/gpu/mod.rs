@@ -11,7 +11,7 @@ mod scan_data;
 pub mod shaders;
 mod targets;
 
-pub use readback::LayerReadback;
+pub use readback::{LayerReadback, read_rgba_texture};
 pub use relative::{gpu_from_pose_relative, pose_relative};
 pub use renderer::{FrameStats, RenderSettings, RenderTarget, Renderer, Strategy};
 pub use targets::TargetMemory;

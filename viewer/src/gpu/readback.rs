@@ -127,6 +127,34 @@ fn map_rows(
     Ok(out)
 }
 
+/// Reads a 2-D colour texture of four bytes a pixel (RGBA8 or BGRA8, either colour
+/// space) back as an RGBA image, BGRA swizzled: the one read-back of rendered frames,
+/// for headless images and the window's screenshot alike.
+pub fn read_rgba_texture(
+    device: &wgpu::Device,
+    queue: &wgpu::Queue,
+    texture: &wgpu::Texture,
+) -> Result<image::RgbaImage, GpuError> {
+    let size = texture.size();
+    let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+        label: Some("read-back"),
+    });
+    let (buffer, row) = copy_texture(device, &mut encoder, texture, 1, 4);
+    queue.submit(Some(encoder.finish()));
+    let mut rows = map_rows(device, &buffer, row, size.width * 4, size.height, 1)?;
+    let mut pixels = rows.pop().unwrap_or_default();
+    if matches!(
+        texture.format(),
+        wgpu::TextureFormat::Bgra8Unorm | wgpu::TextureFormat::Bgra8UnormSrgb
+    ) {
+        for p in pixels.chunks_exact_mut(4) {
+            p.swap(0, 2);
+        }
+    }
+    image::RgbaImage::from_raw(size.width, size.height, pixels)
+        .ok_or_else(|| GpuError::Readback("image size mismatch".into()))
+}
+
 impl Renderer {
     /// Renders a frame into an offscreen RGBA8 image (the headless path: the same
     /// passes as the window, into a texture instead of a swapchain image).
@@ -161,17 +189,7 @@ impl Renderer {
                 height,
             },
         )?;
-        let mut encoder = self
-            .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                label: Some("read-back"),
-            });
-        let (buffer, row) = copy_texture(&self.device, &mut encoder, &texture, 1, 4);
-        self.queue.submit(Some(encoder.finish()));
-        let mut rows = map_rows(&self.device, &buffer, row, width * 4, height, 1)?;
-        let pixels = rows.pop().unwrap_or_default();
-        let image = image::RgbaImage::from_raw(width, height, pixels)
-            .ok_or_else(|| GpuError::Readback("image size mismatch".into()))?;
+        let image = read_rgba_texture(&self.device, &self.queue, &texture)?;
         Ok((image, stats))
     }
 
