@@ -1,5 +1,5 @@
 //! The rendering trade-offs as a printed table, a Markdown section and a Pareto plot
-//! (time per frame against RMSE; the daemon's plotting helper draws it).
+//! (time per frame against RMSE; `crate::tradeoffs::plot` draws it).
 
 use std::fmt::Write;
 use std::path::Path;
