@@ -6,14 +6,14 @@
 
 use std::process::Command;
 
-/// Every package in `package`'s dependency tree (normal, build and dev edges), with
-/// `extra` arguments for `cargo tree`.
-fn tree(package: &str, extra: &[&str]) -> Vec<String> {
+/// Every package in `package`'s dependency tree along `edges`, with `extra` arguments
+/// for `cargo tree`.
+fn tree_along(edges: &str, package: &str, extra: &[&str]) -> Vec<String> {
     let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
     let out = Command::new(cargo)
         .current_dir(texel_e2e::repo_root())
         .args(["tree", "--offline", "--locked", "--prefix", "none"])
-        .args(["--edges", "normal,build,dev", "-p", package])
+        .args(["--edges", edges, "-p", package])
         .args(extra)
         .output()
         .expect("cargo tree runs");
@@ -27,6 +27,11 @@ fn tree(package: &str, extra: &[&str]) -> Vec<String> {
         .filter_map(|line| line.split_whitespace().next())
         .map(str::to_string)
         .collect()
+}
+
+/// Every package in `package`'s dependency tree, dev-dependencies included.
+fn tree(package: &str, extra: &[&str]) -> Vec<String> {
+    tree_along("normal,build,dev", package, extra)
 }
 
 fn assert_free_of(package: &str, extra: &[&str], forbidden: &[&str]) {
@@ -66,21 +71,7 @@ fn the_daemon_builds_without_the_simulator() {
 fn registration_and_the_shared_vocabulary_stay_free_of_services() {
     // Dev-dependencies aside (registration's tests use the simulator for truth).
     for package in ["texel", "texel-register", "texel-client"] {
-        let packages = {
-            let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
-            let out = Command::new(cargo)
-                .current_dir(texel_e2e::repo_root())
-                .args(["tree", "--offline", "--locked", "--prefix", "none"])
-                .args(["--edges", "normal,build", "-p", package])
-                .output()
-                .expect("cargo tree runs");
-            assert!(
-                out.status.success(),
-                "{}",
-                String::from_utf8_lossy(&out.stderr)
-            );
-            String::from_utf8_lossy(&out.stdout).to_string()
-        };
+        let packages = tree_along("normal,build", package, &[]);
         // The client's async transport is an opt-in feature; the others take none.
         let services: &[&str] = if package == "texel-client" {
             &["texel-bench", "wgpu"]
@@ -89,9 +80,7 @@ fn registration_and_the_shared_vocabulary_stay_free_of_services() {
         };
         for name in DAEMON_AND_HARDWARE.iter().chain(services) {
             assert!(
-                !packages
-                    .lines()
-                    .any(|l| l.split_whitespace().next() == Some(name)),
+                !packages.iter().any(|p| p == name),
                 "{package} depends on {name}"
             );
         }
