@@ -7,12 +7,12 @@
 use std::path::Path;
 use std::sync::Arc;
 
-use texel::capture::{CaptureError, TexelItem, open_texel_frames};
+use texel::capture::{CaptureError, SensorCache, TexelItem, open_texel_frames};
 
 use crate::pipeline::placement::CapturePoses;
 use texel::export::{ExportError, ExportScan, write_gltf, write_ply};
 use texel::fuse::FuseError;
-use texel::{FuseConfig, Pose, Sensor, SensorModel, TexelScan, fuse};
+use texel::{FuseConfig, Pose, SensorModel, TexelScan};
 use thiserror::Error;
 
 /// Output formats.
@@ -119,8 +119,8 @@ pub fn export_frame(
             });
         }
     };
-    let sensor = Sensor::new((*sensor_model).clone());
-    let scan: TexelScan = fuse(&pair.range, pair.eo, &sensor, &FuseConfig::default())
+    let scan: TexelScan = SensorCache::new()
+        .fuse(pair, &sensor_model, &FuseConfig::default())
         .map_err(|source| ExportCommandError::Fuse { index, source })?;
     let scans = [ExportScan {
         scan: &scan,

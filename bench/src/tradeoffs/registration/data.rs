@@ -8,8 +8,8 @@ use std::sync::Arc;
 
 use anyhow::{Context, Result, bail};
 use nalgebra::{Translation3, UnitQuaternion, Vector3};
-use texel::capture::{PoseTopic, TexelItem, open_texel_frames};
-use texel::{FuseConfig, PinholeCamera, Pose, Sensor, TexelScan, fuse};
+use texel::capture::{PoseTopic, SensorCache, TexelItem, open_texel_frames};
+use texel::{FuseConfig, PinholeCamera, Pose, TexelScan};
 
 /// A fused capture with its true poses.
 pub struct Sequence {
@@ -113,18 +113,22 @@ pub fn read_sequence(capture: &Path, scene: &str) -> Result<Sequence> {
             Ok(TexelItem::Pose { .. }) => {}
         }
     }
-    let Some((_, model)) = pairs.first() else {
+    let Some((_, first_model)) = pairs.first() else {
         bail!("{}: no texel frames", capture.display());
     };
-    let sensor = Sensor::new((**model).clone());
+    let lidar = first_model.lidar.clone();
+    // Each frame is fused with its own sensor model (a capture may change it midway);
+    // the cache rebuilds the ray tables only when the model changes.
+    let mut sensors = SensorCache::new();
     let mut scans = Vec::with_capacity(pairs.len());
     let mut truth = Vec::with_capacity(pairs.len());
-    for (pair, _) in pairs {
+    for (pair, model) in pairs {
         let t = pair.timestamp_ns();
         let Some(pose) = truth_by_time.get(&t) else {
             bail!("{}: frame at {t} ns has no /truth/pose", capture.display());
         };
-        let scan = fuse(&pair.range, pair.eo, &sensor, &FuseConfig::default())
+        let scan = sensors
+            .fuse(pair, &model, &FuseConfig::default())
             .with_context(|| format!("fusing the frame at {t} ns"))?;
         scans.push(Arc::new(scan));
         truth.push(*pose);
@@ -137,7 +141,7 @@ pub fn read_sequence(capture: &Path, scene: &str) -> Result<Sequence> {
         scene: scene.to_string(),
         scans,
         truth,
-        lidar: sensor.model.lidar.clone(),
+        lidar,
         path_length_m,
     })
 }
@@ -228,7 +232,7 @@ pub fn perturbed_pairs(
         let render = |pose: &Pose, noise_frame: u64| -> Result<Arc<TexelScan>> {
             let pair = sim.render_at(pose, noise_frame, noise_frame * 100_000_000);
             Ok(Arc::new(
-                fuse(&pair.range, pair.eo, &sensor, &FuseConfig::default())
+                texel::fuse(&pair.range, pair.eo, &sensor, &FuseConfig::default())
                     .with_context(|| format!("fusing a {scene} pair"))?,
             ))
         };
