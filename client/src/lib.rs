@@ -7,7 +7,8 @@ use std::time::Duration;
 
 use texel::wire::Message;
 pub use texel::wire::client::{
-    Applied, ClientError, FrameReader, Replica, ReplicaError, ServerInfo, hello, welcome,
+    Applied, ClientError, FrameReader, Replica, ReplicaError, ServerInfo, Update, hello, update,
+    welcome,
 };
 
 #[cfg(feature = "tokio")]

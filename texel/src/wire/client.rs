@@ -1,7 +1,8 @@
 //! The viewer stream's client side without sockets: the handshake messages, a frame
-//! reader that tells "incomplete, read more" from "invalid", and the [`Replica`] that
-//! applies messages to a local [`Model`] (resets and snapshots included), so every
-//! viewer holds the same model as the daemon. Transports (a TCP socket, a WebSocket,
+//! reader that tells "incomplete, read more" from "invalid", the [`Update`] each
+//! message asks for, and the [`Replica`] that applies them to a local [`Model`]
+//! (resets and snapshots included), so every viewer holds the same model as the
+//! daemon. Transports (a TCP socket, a WebSocket,
 //! an in-process channel) feed it bytes; `texel-client` has the TCP ones.
 
 use std::time::Duration;
@@ -130,42 +131,79 @@ impl Replica {
 
     /// Applies one message (decoding a scan's texture).
     pub fn apply(&mut self, message: Message) -> Result<Applied, ReplicaError> {
-        Ok(match message {
-            Message::ModelReset { scan_count } => {
+        Ok(match update(message)? {
+            Update::Reset { scan_count } => {
                 self.model = Model::new();
                 self.live = false;
                 self.resets += 1;
                 Applied::Reset { scan_count }
             }
-            Message::SnapshotComplete { .. } => {
+            Update::SnapshotComplete { .. } => {
                 self.live = true;
                 Applied::SnapshotComplete
             }
-            Message::ScanAdded(wire) => {
-                let (id, scan, world_from_scan) = wire.into_scan()?;
-                self.model.apply(ModelEvent::ScanAdded {
-                    id,
-                    scan: std::sync::Arc::new(scan),
-                    world_from_scan,
-                })?;
-                Applied::ScanAdded(id)
+            Update::Model(event) => {
+                let applied = match &event {
+                    ModelEvent::ScanAdded { id, .. } => Applied::ScanAdded(*id),
+                    ModelEvent::PoseRevised { id, .. } => Applied::PoseRevised(*id),
+                };
+                self.model.apply(event)?;
+                applied
             }
-            Message::PoseRevised {
-                id,
-                world_from_scan,
-            } => {
-                self.model.apply(ModelEvent::PoseRevised {
-                    id,
-                    world_from_scan,
-                })?;
-                Applied::PoseRevised(id)
-            }
-            Message::Status(status) => {
+            Update::Status(status) => {
                 self.status = Some(*status);
                 Applied::Status
             }
-            Message::Goodbye { reason } | Message::Refused { reason } => Applied::Goodbye(reason),
-            Message::ClientHello { .. } | Message::ServerHello { .. } => Applied::Ignored,
+            Update::Goodbye(reason) => Applied::Goodbye(reason),
+            Update::Ignored => Applied::Ignored,
         })
     }
+}
+
+/// What a server message asks of a client's model, decoded (a scan's texture
+/// included) but not applied: a client that keeps its model elsewhere (the viewer's
+/// window, a browser) forwards these instead of holding a [`Replica`] as a second copy.
+#[derive(Debug, Clone)]
+pub enum Update {
+    /// Forget the model; a snapshot of `scan_count` scans follows.
+    Reset {
+        scan_count: u64,
+    },
+    /// The snapshot is complete; live updates follow.
+    SnapshotComplete {
+        scan_count: u64,
+    },
+    /// A scan joins the model or moves.
+    Model(ModelEvent),
+    Status(Box<Status>),
+    /// The server ends the stream (a goodbye, or a refusal after the handshake).
+    Goodbye(String),
+    /// A message that does not concern the model (a stray hello).
+    Ignored,
+}
+
+/// Decodes one server message into the [`Update`] it asks for.
+pub fn update(message: Message) -> Result<Update, WireError> {
+    Ok(match message {
+        Message::ModelReset { scan_count } => Update::Reset { scan_count },
+        Message::SnapshotComplete { scan_count } => Update::SnapshotComplete { scan_count },
+        Message::ScanAdded(wire) => {
+            let (id, scan, world_from_scan) = wire.into_scan()?;
+            Update::Model(ModelEvent::ScanAdded {
+                id,
+                scan: std::sync::Arc::new(scan),
+                world_from_scan,
+            })
+        }
+        Message::PoseRevised {
+            id,
+            world_from_scan,
+        } => Update::Model(ModelEvent::PoseRevised {
+            id,
+            world_from_scan,
+        }),
+        Message::Status(status) => Update::Status(status),
+        Message::Goodbye { reason } | Message::Refused { reason } => Update::Goodbye(reason),
+        Message::ClientHello { .. } | Message::ServerHello { .. } => Update::Ignored,
+    })
 }

@@ -1,6 +1,7 @@
 //! A live connection to a daemon on a thread of its own: connect and handshake with
-//! the daemon's client (`texel_client`), apply every message to a
-//! [`Replica`] and pass the changes on as [`ViewerEvent`]s; when the connection is
+//! the daemon's client (`texel_client`), decode every message and pass what it asks
+//! of the model on as a [`ViewerEvent`] (the consumer holds the only model); when the
+//! connection is
 //! lost, say so and reconnect with exponential backoff (the daemon then sends a
 //! fresh snapshot, which starts with a reset). A refusal (wrong token, wrong
 //! version) ends the thread: retrying cannot fix it.
@@ -11,9 +12,8 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::SyncSender;
 use std::time::{Duration, Instant};
 
-use texel::model::ModelEvent;
 use texel::wire::Message;
-use texel_client::{Applied, BlockingClient, ClientError, Replica};
+use texel_client::{BlockingClient, ClientError, Update, update};
 
 use super::{ConnectionState, ViewerEvent, send};
 
@@ -192,7 +192,6 @@ fn connect_once(
     ) {
         return (Ended::Stopped, true);
     }
-    let mut replica = Replica::new();
     let mut last_heard = Instant::now();
     loop {
         if stop.load(Ordering::Acquire) {
@@ -216,7 +215,7 @@ fn connect_once(
             Err(e) => return (Ended::Lost(e.to_string()), true),
         };
         last_heard = Instant::now();
-        match forward(&mut replica, message, tx) {
+        match forward(message, tx) {
             Ok(true) => {}
             Ok(false) => return (Ended::Stopped, true),
             Err(ended) => return (ended, true),
@@ -224,53 +223,25 @@ fn connect_once(
     }
 }
 
-/// Applies one message and forwards what it changed. `Ok(false)`: the consumer is
-/// gone.
-pub(super) fn forward(
-    replica: &mut Replica,
-    message: Message,
-    tx: &SyncSender<ViewerEvent>,
-) -> Result<bool, Ended> {
+/// Decodes one message and forwards what it asks of the model (the window's model
+/// is the only copy: this thread keeps none). `Ok(false)`: the consumer is gone.
+pub(super) fn forward(message: Message, tx: &SyncSender<ViewerEvent>) -> Result<bool, Ended> {
     let received = Instant::now();
-    let applied = replica
-        .apply(message)
-        .map_err(|e| Ended::Lost(format!("bad message from the daemon: {e}")))?;
-    let event = match applied {
-        Applied::Reset { .. } => ViewerEvent::Reset,
-        Applied::SnapshotComplete => ViewerEvent::SnapshotComplete {
-            scans: replica.model.len() as u64,
-        },
-        Applied::ScanAdded(id) | Applied::PoseRevised(id) => {
-            let Some(s) = replica.model.get(id) else {
-                return Ok(true);
-            };
-            let event = if matches!(applied, Applied::ScanAdded(_)) {
-                ModelEvent::ScanAdded {
-                    id,
-                    scan: Arc::clone(&s.scan),
-                    world_from_scan: s.world_from_scan,
-                }
-            } else {
-                ModelEvent::PoseRevised {
-                    id,
-                    world_from_scan: s.world_from_scan,
-                }
-            };
-            ViewerEvent::Model { event, received }
+    let update =
+        update(message).map_err(|e| Ended::Lost(format!("bad message from the daemon: {e}")))?;
+    let event = match update {
+        Update::Reset { .. } => ViewerEvent::Reset,
+        Update::SnapshotComplete { scan_count } => {
+            ViewerEvent::SnapshotComplete { scans: scan_count }
         }
-        Applied::Status => match &replica.status {
-            Some(status) => ViewerEvent::Status {
-                status: Box::new(status.clone()),
-                received,
-            },
-            None => return Ok(true),
-        },
-        Applied::Goodbye(reason) => {
+        Update::Model(event) => ViewerEvent::Model { event, received },
+        Update::Status(status) => ViewerEvent::Status { status, received },
+        Update::Goodbye(reason) => {
             return Err(Ended::Lost(format!(
                 "the daemon ended the stream: {reason}"
             )));
         }
-        Applied::Ignored => return Ok(true),
+        Update::Ignored => return Ok(true),
     };
     Ok(send(tx, event))
 }
