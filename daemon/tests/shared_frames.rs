@@ -1,6 +1,6 @@
 //! Frames travel by reference: ingest hands the recorder and the pair it forms the
-//! same range and EO frames (one allocation each, no copy), and once the recorder has
-//! let go the EO frame can be taken by value for fusion. The encode stage writes a
+//! same range and EO frames (one allocation each, no copy), and fusion shares that EO
+//! frame as the scan's texture whether or not the recorder has let go. The encode stage writes a
 //! scan's frame from the scan itself, byte for byte what the owned `WireScan` path
 //! writes, for every texture format.
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests panic on failure by design
@@ -65,19 +65,23 @@ async fn the_recorder_and_the_pair_share_one_frame() {
     assert!(Arc::ptr_eq(&job.pair.range, &range));
     assert!(Arc::ptr_eq(&job.pair.eo, &eo));
 
-    // The recorder has written both and the source let go: fusion takes the very
-    // frame, pixels and all, as the scan's texture.
-    drop((recorded, eo));
-    let pixels = job.pair.eo.rgb.as_ptr();
-    let eo = Arc::try_unwrap(job.pair.eo).unwrap();
+    // The recorder has not let go yet: fusion still shares the very frame, pixels and
+    // all, as the scan's texture (no copy whoever else holds it).
     let scan = fuse(
         &job.pair.range,
-        eo,
+        Arc::clone(&job.pair.eo),
         &Sensor::new((*model).clone()),
         &FuseConfig::default(),
     )
     .unwrap();
-    assert_eq!(scan.texture.rgb.as_ptr(), pixels);
+    assert!(Arc::ptr_eq(&scan.texture, recorded_eo));
+    assert!(Arc::ptr_eq(&scan.texture, &eo));
+    drop(recorded);
+    assert_eq!(
+        Arc::strong_count(&eo),
+        3,
+        "the source, the pair and the scan"
+    );
 }
 
 #[test]

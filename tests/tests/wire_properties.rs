@@ -335,7 +335,7 @@ fn a_fused_scan_round_trips_exactly_with_lossless_textures_and_closely_with_jpeg
             })
             .unwrap();
         if format == TextureFormat::Jpeg {
-            let EoFrame { rgb, .. } = &got.texture;
+            let EoFrame { rgb, .. } = &*got.texture;
             let mean = rgb
                 .iter()
                 .zip(&scan.texture.rgb)

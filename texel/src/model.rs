@@ -144,12 +144,12 @@ mod tests {
             triangles: vec![],
             triangle_accuracy: vec![],
             triangle_flags: vec![],
-            texture: EoFrame {
+            texture: std::sync::Arc::new(EoFrame {
                 width: 1,
                 height: 1,
                 rgb: vec![0; 3],
                 timestamp_ns: 0,
-            },
+            }),
             cop_m: [0.0; 3],
             scan_from_lidar: Pose::identity(),
             range_noise: RangeNoise::default(),

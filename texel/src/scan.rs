@@ -2,6 +2,8 @@
 //! per-triangle normal accuracy and flags (Killpack & Budge 2016, Sec. 3). It is what
 //! registration, the model, the stream and the viewer all carry.
 
+use std::sync::Arc;
+
 use crate::frames::EoFrame;
 use crate::pose::Pose;
 use crate::sensor::RangeNoise;
@@ -67,8 +69,9 @@ pub struct TexelScan {
     /// direction to the acquisition centre of projection (0 for degenerate ones).
     pub triangle_accuracy: Vec<f32>,
     pub triangle_flags: Vec<TriangleFlags>,
-    /// The full-resolution EO image, moved in from the frame (not copied).
-    pub texture: EoFrame,
+    /// The full-resolution EO image, shared with the frame it came from (never
+    /// copied: the recorder may still be writing the same pixels).
+    pub texture: Arc<EoFrame>,
     /// The acquisition centre of projection in the scan frame (the EO camera centre).
     pub cop_m: [f64; 3],
     /// The lidar's pose in the scan frame (`eo_from_lidar`).

@@ -13,6 +13,7 @@
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
+use std::sync::Arc;
 
 use proptest::prelude::*;
 use texel::pose::{pose_from_parts, pose_to_parts};
@@ -235,12 +236,12 @@ fn scan_strategy() -> impl Strategy<Value = TexelScan> {
                             triangles,
                             triangle_accuracy,
                             triangle_flags: flags.into_iter().map(TriangleFlags).collect(),
-                            texture: EoFrame {
+                            texture: Arc::new(EoFrame {
                                 width: tw,
                                 height: th,
                                 rgb,
                                 timestamp_ns: t_eo,
-                            },
+                            }),
                             cop_m,
                             scan_from_lidar,
                             range_noise: RangeNoise {
@@ -458,11 +459,11 @@ impl Break {
             Self::NonFiniteLidarPose => scan.scan_from_lidar.translation.vector.y = f64::NAN,
             Self::GridTooWide => scan.grid_width = 1025,
             Self::EmptyTexture => {
-                scan.texture.width = 0;
-                scan.texture.rgb.clear();
+                Arc::make_mut(&mut scan.texture).width = 0;
+                Arc::make_mut(&mut scan.texture).rgb.clear();
             }
             Self::InconsistentTexture => {
-                scan.texture.rgb.pop();
+                Arc::make_mut(&mut scan.texture).rgb.pop();
             }
             Self::ShortPerVertexArray if n > 0 => {
                 scan.vertex_textured.pop();

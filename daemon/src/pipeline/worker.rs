@@ -13,7 +13,7 @@ use std::time::Instant;
 
 use texel::capture::PoseTopic;
 use texel::model::{ModelEvent, ScanId};
-use texel::{EoFrame, FuseConfig, Pose, Sensor, SensorModel, TexelScan, fuse};
+use texel::{FuseConfig, Pose, Sensor, SensorModel, TexelScan, fuse};
 use tokio::sync::mpsc;
 
 use super::encode::Publish;
@@ -66,8 +66,8 @@ impl Worker {
     fn process(&mut self, job: PairJob, sensor: &Sensor, timestamps: &mut Vec<u64>) -> bool {
         let timestamp_ns = job.pair.timestamp_ns();
         let started = Instant::now();
-        let eo = owned_eo(job.pair.eo, timestamp_ns);
-        let scan = match fuse(&job.pair.range, eo, sensor, &self.fuse) {
+        // The scan shares the EO frame as its texture (the recorder may still hold it).
+        let scan = match fuse(&job.pair.range, job.pair.eo, sensor, &self.fuse) {
             Ok(scan) => Arc::new(scan),
             Err(e) => {
                 self.metrics.add(Counter::FuseFailures, 1);
@@ -190,18 +190,4 @@ impl Worker {
             world_from_scan,
         })
     }
-}
-
-/// The EO frame to fuse, by value: the scan keeps it as its texture. The recorder
-/// holds the only other reference and drops it once the frame is written, so the
-/// frame is normally taken as it is. Only while the recorder has not written it yet
-/// are the pixels copied: the scan's texture must own its pixels, and the recorder
-/// still reads them.
-fn owned_eo(eo: Arc<EoFrame>, timestamp_ns: u64) -> EoFrame {
-    Arc::try_unwrap(eo).unwrap_or_else(|shared| {
-        tracing::debug!(
-            "EO frame at {timestamp_ns} ns still queued for recording: its texture is copied"
-        );
-        EoFrame::clone(&shared)
-    })
 }

@@ -72,6 +72,8 @@ mod tests {
 
     use proptest::prelude::*;
 
+    use std::sync::Arc;
+
     use super::Isa;
     use crate::camera::{Distortion, PinholeCamera};
     use crate::distortion::PlumbBob;
@@ -168,8 +170,8 @@ mod tests {
                 timestamp_ns: 9,
             };
             let config = FuseConfig::default();
-            let baseline = fuse_with(Isa::Baseline, &frame, eo.clone(), &s, &config).unwrap();
-            let detected = fuse_with(Isa::detect(), &frame, eo, &s, &config).unwrap();
+            let baseline = fuse_with(Isa::Baseline, &frame, Arc::new(eo.clone()), &s, &config).unwrap();
+            let detected = fuse_with(Isa::detect(), &frame, Arc::new(eo), &s, &config).unwrap();
             prop_assert!(baseline.vertex_count() > 0);
             prop_assert_eq!(bits(&baseline), bits(&detected));
         }

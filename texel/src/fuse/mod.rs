@@ -44,6 +44,7 @@ mod mesh;
 mod rows;
 
 use std::ops::Range;
+use std::sync::Arc;
 
 use nalgebra::Vector2;
 use serde::{Deserialize, Serialize};
@@ -131,18 +132,18 @@ pub enum FuseError {
 /// array of the scan is allocated once at its final size.
 pub fn fuse(
     range: &RangeFrame,
-    eo: EoFrame,
+    eo: impl Into<Arc<EoFrame>>,
     sensor: &Sensor,
     config: &FuseConfig,
 ) -> Result<TexelScan, FuseError> {
-    fuse_with(isa::Isa::detect(), range, eo, sensor, config)
+    fuse_with(isa::Isa::detect(), range, eo.into(), sensor, config)
 }
 
 /// [`fuse`] with its row loop built for `isa`.
 fn fuse_with(
     isa: isa::Isa,
     range: &RangeFrame,
-    eo: EoFrame,
+    eo: Arc<EoFrame>,
     sensor: &Sensor,
     config: &FuseConfig,
 ) -> Result<TexelScan, FuseError> {

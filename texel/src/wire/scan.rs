@@ -8,6 +8,8 @@
 //! after [`check_sendable`] checked the scan's arrays once where it was made. Both
 //! write their bytes with the same code.
 
+use std::sync::Arc;
+
 use super::bytes_in::{BodyReader, PutLe};
 use super::{LENGTH_PREFIX, WireError, finish_frame, kind, put_pose, read_pose};
 use crate::camera::MAX_IMAGE_SIDE;
@@ -593,7 +595,7 @@ impl WireScan {
             triangles: self.triangles,
             triangle_accuracy: self.triangle_accuracy,
             triangle_flags: self.triangle_flags,
-            texture,
+            texture: Arc::new(texture),
             cop_m: self.cop_m,
             scan_from_lidar: self.scan_from_lidar,
             range_noise: self.range_noise,
