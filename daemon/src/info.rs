@@ -40,6 +40,10 @@ pub struct CaptureSummary {
     pub poses: BTreeMap<&'static str, u64>,
     pub violations: Vec<String>,
     pub violation_count: u64,
+    /// Stretches of the file read around (offsets, reason, the log times lost): the
+    /// first ones in full, all of them counted.
+    pub damaged: Vec<String>,
+    pub damaged_count: u64,
     /// The error that ended reading early (truncation, corruption), if any.
     pub fatal: Option<String>,
 }
@@ -47,7 +51,7 @@ pub struct CaptureSummary {
 impl CaptureSummary {
     /// True when the capture was read to its end and follows the format.
     pub fn is_clean(&self) -> bool {
-        self.fatal.is_none() && self.violation_count == 0
+        self.fatal.is_none() && self.violation_count == 0 && self.damaged_count == 0
     }
 
     pub fn duration_s(&self) -> f64 {
@@ -87,6 +91,13 @@ pub fn summarize(path: &Path) -> Result<CaptureSummary, CaptureError> {
     while let Some(next) = reader.next_message() {
         let message = match next {
             Ok(m) => m,
+            Err(e @ CaptureError::Damaged { .. }) => {
+                summary.damaged_count += 1;
+                if summary.damaged.len() < MAX_LISTED_VIOLATIONS {
+                    summary.damaged.push(e.to_string());
+                }
+                continue;
+            }
             Err(e) => {
                 summary.fatal = Some(e.to_string());
                 break;
@@ -234,6 +245,12 @@ impl fmt::Display for CaptureSummary {
                     "  ... and {} more",
                     self.violation_count as usize - self.violations.len()
                 )?;
+            }
+        }
+        if self.damaged_count > 0 {
+            writeln!(out, "damaged stretches read around: {}", self.damaged_count)?;
+            for d in &self.damaged {
+                writeln!(out, "  {d}")?;
             }
         }
         if let Some(e) = &self.fatal {

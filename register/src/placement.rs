@@ -185,8 +185,11 @@ impl CapturePoses {
         let mut reader = CaptureReader::open(path)?;
         let mut poses = Self::default();
         while let Some(next) = reader.next_message() {
-            let Ok(message) = next else {
-                break;
+            let message = match next {
+                Ok(m) => m,
+                // A damaged stretch was read around: the poses after it still count.
+                Err(e) if !e.is_fatal() => continue,
+                Err(_) => break,
             };
             let topic = message.channel.topic.as_str();
             if topic != PoseTopic::Texel.topic() && topic != PoseTopic::Truth.topic() {

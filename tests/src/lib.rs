@@ -165,8 +165,34 @@ pub mod captures {
         period_ns: u64,
         poses: Option<PoseTopic>,
     ) {
-        let mut w =
-            CaptureWriter::create(path, WriterOptions::default()).unwrap_or_else(|e| panic!("{e}"));
+        write_with_options(path, m, frames, period_ns, poses, WriterOptions::default());
+    }
+
+    /// As [`write`], in chunks of about `chunk_size_bytes` (small chunks give damage
+    /// somewhere to land without taking the whole capture).
+    pub fn write_chunked(
+        path: &Path,
+        frames: u32,
+        period_ns: u64,
+        poses: Option<PoseTopic>,
+        chunk_size_bytes: u64,
+    ) {
+        let options = WriterOptions {
+            chunk_size_bytes,
+            ..WriterOptions::default()
+        };
+        write_with_options(path, &sensor(), frames, period_ns, poses, options);
+    }
+
+    fn write_with_options(
+        path: &Path,
+        m: &SensorModel,
+        frames: u32,
+        period_ns: u64,
+        poses: Option<PoseTopic>,
+        options: WriterOptions,
+    ) {
+        let mut w = CaptureWriter::create(path, options).unwrap_or_else(|e| panic!("{e}"));
         w.write_sensor(m, timestamp(0, period_ns))
             .unwrap_or_else(|e| panic!("{e}"));
         for i in 0..frames {

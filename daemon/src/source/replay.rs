@@ -5,7 +5,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use texel::capture::{CaptureEvent, CaptureReader};
+use texel::capture::{CaptureError, CaptureEvent, CaptureReader};
 use texel::{PinholeCamera, Pose, RangeFrame, SensorInfo, SensorModel};
 use tokio_util::sync::CancellationToken;
 
@@ -161,6 +161,13 @@ impl ReplaySource {
                     metrics.set_state(SourceState::Failed);
                     tracing::warn!(source = %self.name, "capture ends early: {e}");
                     return Err(self.fatal(e.to_string()));
+                }
+                Err(e @ CaptureError::Damaged { .. }) => {
+                    // Read around: the frames after it still replay.
+                    metrics.add_counter("damaged_stretches", 1);
+                    metrics.report_error(e.to_string());
+                    tracing::warn!(source = %self.name, "{e}");
+                    continue;
                 }
                 Err(e) => {
                     metrics.add_counter("capture_errors", 1);

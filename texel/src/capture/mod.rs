@@ -7,6 +7,8 @@ mod frames;
 mod fused;
 mod images;
 mod reader;
+mod records;
+mod summary;
 mod writer;
 
 pub use convert::{
@@ -23,13 +25,12 @@ pub use reader::{CaptureEvent, CaptureReader, ReadPosition};
 pub use writer::{CaptureWriter, DEFAULT_FLUSH_INTERVAL, WriterOptions};
 
 use std::fs::File;
-use std::io::BufReader;
 use std::path::Path;
 
 use thiserror::Error;
 
 /// Opens a capture file as a stream of texel frames and poses.
-pub fn open_texel_frames(path: &Path) -> Result<TexelFrameReader<BufReader<File>>, CaptureError> {
+pub fn open_texel_frames(path: &Path) -> Result<TexelFrameReader<File>, CaptureError> {
     Ok(TexelFrameReader::new(
         CaptureReader::open(path)?,
         DEFAULT_REPLAY_TOLERANCE_NS,
@@ -153,6 +154,20 @@ pub enum CaptureError {
         offset: u64,
         source: mcap::McapError,
     },
+    /// A stretch of the file that could not be read (a chunk that fails its CRC,
+    /// damaged framing); reading went on after it.
+    #[error(
+        "{path}: bytes {offset}..{end} are damaged and were skipped ({reason}); {}",
+        describe_lost(*.lost_log_time_ns)
+    )]
+    Damaged {
+        path: String,
+        offset: u64,
+        end: u64,
+        /// The log times of the messages lost with it, where known.
+        lost_log_time_ns: Option<(u64, u64)>,
+        reason: String,
+    },
     /// A message that breaks the capture format; reading can go on past it.
     #[error("{path}: topic {topic} at log time {log_time_ns} ns: {message}")]
     Spec {
@@ -166,9 +181,19 @@ pub enum CaptureError {
 }
 
 impl CaptureError {
-    /// True when reading cannot continue after this error (the file itself is
-    /// damaged); false for a single message that breaks the spec.
+    /// True when reading cannot continue after this error (the file ends, is not
+    /// MCAP, cannot be read); false for a single message that breaks the spec and for
+    /// a damaged stretch that was read around.
     pub fn is_fatal(&self) -> bool {
-        !matches!(self, Self::Spec { .. })
+        !matches!(self, Self::Spec { .. } | Self::Damaged { .. })
+    }
+}
+
+/// The messages a damaged stretch cost, in words.
+fn describe_lost(lost_log_time_ns: Option<(u64, u64)>) -> String {
+    match lost_log_time_ns {
+        Some((a, u64::MAX)) => format!("messages logged after {a} ns are lost"),
+        Some((a, b)) => format!("messages logged {a}..{b} ns are lost"),
+        None => "no message is known to be lost".into(),
     }
 }

@@ -2,29 +2,32 @@
 //! decodes each known topic into the project's types and enforces the reading rules:
 //! a frame before its calibration or of another size is an error naming the topic and
 //! log time, and a truncated file yields every complete message before the cut, then
-//! an error saying where the file ends.
+//! an error saying where the file ends. Damage inside the file is read around
+//! (`records`): each stretch skipped is reported, with the log times it cost, and
+//! reading goes on.
 
 use std::fs::File;
-use std::io::{BufReader, Read};
+use std::io::{Read, Seek, SeekFrom};
 use std::path::Path;
 
 use foxglove::messages::{CameraCalibration, CompressedImage, FrameTransform, RawImage};
-use mcap::McapError;
-use mcap::sans_io::{LinearReaderOptions, MessageReadEvent, MessageReader};
 
 use super::convert::{camera_from_calibration, nanos_from_timestamp, pose_from_transform};
 use super::images::{decode_compressed, decode_eo, decode_intensity, decode_range};
+use super::records::{RecordReader, Step};
+use super::summary::SummaryIndex;
 use super::{CaptureError, PoseTopic, frame_ids, topics};
 use crate::camera::PinholeCamera;
 use crate::frames::{EoFrame, RangeFrame};
 use crate::pose::Pose;
 use crate::sensor::SensorInfo;
 
-/// No record may be longer than this; larger claims are refused before any
-/// allocation (a 16384² RGBA image is 1 GiB, far beyond any texel camera).
-const RECORD_LENGTH_LIMIT: usize = 512 << 20;
+/// No record may be longer than this, nor longer than the rest of the file; larger
+/// claims are refused before any allocation (a 16384² RGBA image is 1 GiB, far beyond
+/// any texel camera).
+const RECORD_LENGTH_LIMIT: u64 = 512 << 20;
 
-const MCAP_MAGIC: &[u8] = b"\x89MCAP0\r\n";
+pub(super) const MCAP_MAGIC: &[u8] = b"\x89MCAP0\r\n";
 
 /// One decoded message of a capture.
 #[derive(Debug, Clone)]
@@ -77,8 +80,7 @@ pub struct ReadPosition {
 
 /// Streams a capture.
 pub struct CaptureReader<R: Read> {
-    source: R,
-    reader: MessageReader,
+    records: RecordReader<R>,
     path: String,
     file_len: Option<u64>,
     position: ReadPosition,
@@ -88,20 +90,20 @@ pub struct CaptureReader<R: Read> {
     eo_calibration: Option<PinholeCamera>,
 }
 
-impl CaptureReader<BufReader<File>> {
+impl CaptureReader<File> {
+    /// Opens a capture file; its summary, when it has a sound one, is read first so
+    /// that damage can be read around and its cost told in log times.
     pub fn open(path: &Path) -> Result<Self, CaptureError> {
         let display = path.display().to_string();
         let io = |source| CaptureError::Io {
             path: display.clone(),
             source,
         };
-        let file = File::open(path).map_err(io)?;
+        let mut file = File::open(path).map_err(io)?;
         let len = file.metadata().map_err(io)?.len();
-        Ok(Self::new(
-            BufReader::with_capacity(1 << 20, file),
-            Some(len),
-            display,
-        ))
+        let summary = SummaryIndex::read(&mut file, len);
+        file.seek(SeekFrom::Start(0)).map_err(io)?;
+        Ok(Self::with_summary(file, Some(len), display, summary))
     }
 }
 
@@ -109,12 +111,17 @@ impl<R: Read> CaptureReader<R> {
     /// Reads from any byte source; `file_len` (when known) sharpens truncation
     /// reports; `name` identifies the capture in errors.
     pub fn new(source: R, file_len: Option<u64>, name: String) -> Self {
-        let options = LinearReaderOptions::default()
-            .with_prevalidate_chunk_crcs(true)
-            .with_record_length_limit(RECORD_LENGTH_LIMIT);
+        Self::with_summary(source, file_len, name, None)
+    }
+
+    fn with_summary(
+        source: R,
+        file_len: Option<u64>,
+        name: String,
+        summary: Option<SummaryIndex>,
+    ) -> Self {
         Self {
-            source,
-            reader: MessageReader::new_with_options(options),
+            records: RecordReader::new(source, 0, file_len, RECORD_LENGTH_LIMIT, summary),
             path: name,
             file_len,
             position: ReadPosition::default(),
@@ -148,68 +155,37 @@ impl<R: Read> CaptureReader<R> {
         }
     }
 
-    /// Checks the magic ourselves so that a file that is not MCAP at all is told
-    /// apart from one that is cut short.
+    /// Checks the magic, so that a file that is not MCAP at all is told apart from
+    /// one that is cut short.
     fn check_magic(&mut self) -> Result<(), CaptureError> {
-        let mut head = [0u8; 8];
-        let mut filled = 0;
-        while filled < head.len() {
-            let n = self
-                .source
-                .read(&mut head[filled..])
-                .map_err(|e| self.io_error(e))?;
-            if n == 0 {
-                break;
-            }
-            filled += n;
-        }
+        let head = self
+            .records
+            .take_magic(MCAP_MAGIC.len())
+            .map_err(|e| self.io_error(e))?;
+        self.position.bytes_read = self.records.bytes_read();
         // An empty file is a recording cut before its first byte, not another format.
-        if head[..filled] != MCAP_MAGIC[..filled] {
+        if head[..] != MCAP_MAGIC[..head.len()] {
             return Err(CaptureError::NotMcap {
                 path: self.path.clone(),
             });
         }
-        self.reader.insert(filled).copy_from_slice(&head[..filled]);
-        self.reader.notify_read(filled);
-        self.position.bytes_read = filled as u64;
-        if filled < head.len() {
-            // Shorter than the magic: nothing more to feed.
-            self.reader.insert(0);
-            self.reader.notify_read(0);
+        if head.len() < MCAP_MAGIC.len() {
+            return Err(self.truncated());
         }
         Ok(())
     }
 
-    fn classify(&self, error: McapError) -> CaptureError {
-        let file_len = self.file_len.unwrap_or(self.position.bytes_read);
-        let truncated = match &error {
-            McapError::UnexpectedEof => true,
-            // A chunk still being written when the recorder died carries a
-            // placeholder length far past the end of the file.
-            McapError::RecordTooLarge { len, .. } => *len > file_len,
-            McapError::BadFooter => true,
-            _ => false,
-        };
-        if truncated {
-            CaptureError::Truncated {
-                path: self.path.clone(),
-                file_len,
-                messages: self.position.messages,
-            }
-        } else if matches!(error, McapError::BadMagic) && self.position.messages == 0 {
-            CaptureError::NotMcap {
-                path: self.path.clone(),
-            }
-        } else {
-            CaptureError::Mcap {
-                path: self.path.clone(),
-                offset: self.position.bytes_read,
-                source: error,
-            }
+    fn truncated(&self) -> CaptureError {
+        CaptureError::Truncated {
+            path: self.path.clone(),
+            file_len: self.file_len.unwrap_or(self.position.bytes_read),
+            messages: self.position.messages,
         }
     }
 
-    /// The next raw message, `None` at the end of the file, or the error that ends it.
+    /// The next raw message, `None` at the end of the file. A damaged stretch of the
+    /// file yields a [`CaptureError::Damaged`] and reading goes on after it; a
+    /// truncation or an I/O error ends the file.
     pub fn next_message(&mut self) -> Option<Result<mcap::Message<'static>, CaptureError>> {
         if self.done {
             return None;
@@ -221,33 +197,32 @@ impl<R: Read> CaptureReader<R> {
                 return Some(Err(e));
             }
         }
-        loop {
-            match self.reader.next_event() {
-                None => {
-                    self.done = true;
-                    return None;
-                }
-                Some(Err(e)) => {
-                    self.done = true;
-                    return Some(Err(self.classify(e)));
-                }
-                Some(Ok(MessageReadEvent::ReadRequest(need))) => {
-                    let buf = self.reader.insert(need);
-                    let n = match self.source.read(buf) {
-                        Ok(n) => n,
-                        Err(e) => {
-                            self.done = true;
-                            return Some(Err(self.io_error(e)));
-                        }
-                    };
-                    self.reader.notify_read(n);
-                    self.position.bytes_read += n as u64;
-                }
-                Some(Ok(MessageReadEvent::Message(message))) => {
-                    self.position.messages += 1;
-                    self.position.last_log_time_ns = Some(message.log_time);
-                    return Some(Ok(message));
-                }
+        let step = self.records.next_step();
+        self.position.bytes_read = self.records.bytes_read();
+        match step {
+            Step::Message(message) => {
+                self.position.messages += 1;
+                self.position.last_log_time_ns = Some(message.log_time);
+                Some(Ok(message))
+            }
+            Step::Damaged(damage) => Some(Err(CaptureError::Damaged {
+                path: self.path.clone(),
+                offset: damage.offset,
+                end: damage.end,
+                lost_log_time_ns: damage.lost_log_time_ns,
+                reason: damage.reason,
+            })),
+            Step::End => {
+                self.done = true;
+                None
+            }
+            Step::Truncated => {
+                self.done = true;
+                Some(Err(self.truncated()))
+            }
+            Step::Io(e) => {
+                self.done = true;
+                Some(Err(self.io_error(e)))
             }
         }
     }
