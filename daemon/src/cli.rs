@@ -1,6 +1,8 @@
 //! `texeld run` and `texeld replay`: the session from its config file and command-line
 //! overrides, a runtime, signal handling (SIGINT/SIGTERM: stop sources, drain,
-//! finalise the recording, tell clients, exit 0).
+//! finalise the recording, tell clients, exit 0). Exit codes: 0 done, 1 failed while
+//! running (a source or the recording failed), 2 bad configuration (the session
+//! file, its options or a file it names); the reason is the last line on stderr.
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -91,6 +93,7 @@ pub fn build_config(
     }
     let origin = file.map_or_else(|| "command line".to_string(), |p| p.display().to_string());
     config.validate(&origin).map_err(|e| e.to_string())?;
+    config.check_files(&origin).map_err(|e| e.to_string())?;
     Ok(config)
 }
 
@@ -166,6 +169,19 @@ pub fn run_command(
     rt.shutdown_timeout(std::time::Duration::from_millis(200));
     match result {
         Ok(summary) => {
+            let failed: Vec<String> = summary
+                .status
+                .sources
+                .iter()
+                .filter(|s| s.state == "failed")
+                .map(|s| {
+                    format!(
+                        "source {} failed: {}",
+                        s.name,
+                        s.last_error.as_deref().unwrap_or("no reason given")
+                    )
+                })
+                .collect();
             println!(
                 "texeld: {} scans in the model{}",
                 summary.scans,
@@ -178,12 +194,18 @@ pub fn run_command(
                         r.path.display()
                     ))
             );
-            match summary.recording.and_then(|r| r.first_error) {
-                Some(e) => {
-                    eprintln!("texeld: recording failed: {e}");
-                    ExitCode::FAILURE
-                }
-                None => ExitCode::SUCCESS,
+            let recording_failed = summary.recording.and_then(|r| r.first_error);
+            if let Some(e) = &recording_failed {
+                eprintln!("texeld: recording failed: {e}");
+            }
+            // The reason comes last on stderr.
+            for f in &failed {
+                eprintln!("texeld: {f}");
+            }
+            if failed.is_empty() && recording_failed.is_none() {
+                ExitCode::SUCCESS
+            } else {
+                ExitCode::FAILURE
             }
         }
         Err(e) => {

@@ -376,6 +376,60 @@ impl SessionConfig {
     }
 
     /// Checks what the types cannot.
+    /// Checks the files the session names, before anything starts: replay captures,
+    /// simulator scenes, the sensor file and the pose capture must be readable files,
+    /// and the recording's folder must exist. The error names the key and the file.
+    pub fn check_files(&self, origin: &str) -> Result<(), ConfigError> {
+        let invalid = |key: String, message: String| ConfigError::Invalid {
+            path: origin.to_string(),
+            key,
+            message,
+        };
+        let must_be_file = |key: String, path: &Path| -> Result<(), ConfigError> {
+            match std::fs::metadata(path) {
+                Ok(m) if m.is_file() => Ok(()),
+                Ok(_) => Err(invalid(key, format!("{} is not a file", path.display()))),
+                Err(e) => Err(invalid(key, format!("cannot read {}: {e}", path.display()))),
+            }
+        };
+        for (i, r) in self.source.replay.iter().enumerate() {
+            must_be_file(format!("source.replay[{i}].capture"), &r.capture)?;
+        }
+        #[cfg(feature = "sim")]
+        {
+            for (i, c) in self.source.sim.iter().enumerate() {
+                must_be_file(format!("source.sim[{i}].scene"), &c.setup().scene)?;
+            }
+            for (i, c) in self.source.sim_serial.iter().enumerate() {
+                must_be_file(format!("source.sim_serial[{i}].scene"), &c.setup().scene)?;
+            }
+        }
+        if let Some(sensor) = &self.session.sensor {
+            must_be_file("session.sensor".into(), sensor)?;
+        }
+        if let Some(poses) = &self.pipeline.pose_capture {
+            must_be_file("pipeline.pose_capture".into(), poses)?;
+        }
+        if let Some(record) = &self.record.path {
+            if record.is_dir() {
+                return Err(invalid(
+                    "record.path".into(),
+                    format!("{} is a folder, not a capture file", record.display()),
+                ));
+            }
+            let folder = record.parent().filter(|p| !p.as_os_str().is_empty());
+            if let Some(folder) = folder
+                && !folder.is_dir()
+            {
+                return Err(invalid(
+                    "record.path".into(),
+                    format!("the folder {} does not exist", folder.display()),
+                ));
+            }
+        }
+        Ok(())
+    }
+
     pub fn validate(&self, origin: &str) -> Result<(), ConfigError> {
         let invalid = |key: &str, message: String| ConfigError::Invalid {
             path: origin.to_string(),

@@ -80,11 +80,22 @@ impl SensorParts {
     }
 }
 
+/// A frame dated further than this from the one before it (ahead or back, in
+/// capture time) is not waited for: the clock restarts at it. A capture's frames
+/// come tens of milliseconds apart; a pause in a recording of more than this is
+/// replayed without its wait, and a corrupt timestamp (years ahead) cannot stall the
+/// replay.
+pub const MAX_PACED_GAP_NS: u64 = 5_000_000_000;
+
 /// Wall-clock pacing against the capture's timestamps.
 struct Pacer<'a> {
     pace: Pace,
+    /// A capture timestamp and the instant it was due: the clock frames are paced by.
     origin: Option<(u64, Instant)>,
+    /// The previous frame's timestamp.
+    last_ns: Option<u64>,
     metrics: &'a super::SourceMetrics,
+    source_name: &'a str,
 }
 
 impl Pacer<'_> {
@@ -93,6 +104,22 @@ impl Pacer<'_> {
         let Pace::Speed(speed) = self.pace else {
             return shutdown.is_cancelled();
         };
+        let previous = self.last_ns.replace(timestamp_ns);
+        let out_of_pace = previous.is_some_and(|p| timestamp_ns.abs_diff(p) > MAX_PACED_GAP_NS);
+        if out_of_pace {
+            // Counted, named and replayed at once; the clock restarts here.
+            self.metrics.add_counter("timestamps_out_of_pace", 1);
+            let message = format!(
+                "frame at {timestamp_ns} ns is {:.3} s from the one before it \
+                 (more than {} s): replayed without waiting",
+                (timestamp_ns as f64 - previous.unwrap_or(0) as f64) * 1e-9,
+                MAX_PACED_GAP_NS / 1_000_000_000
+            );
+            tracing::warn!(source = %self.source_name, "{message}");
+            self.metrics.report_error(message);
+            self.origin = Some((timestamp_ns, Instant::now()));
+            return shutdown.is_cancelled();
+        }
         let (t0, wall0) = match self.origin {
             Some(o) => o,
             None => {
@@ -102,9 +129,10 @@ impl Pacer<'_> {
                 o
             }
         };
-        // Timestamps that go backwards are not waited for.
+        // Timestamps that go backwards are not waited for; forwards, at most the gap
+        // limit past the previous frame (checked above), so the wait is bounded.
         let offset_s = timestamp_ns.saturating_sub(t0) as f64 * 1e-9 / speed;
-        let due = wall0 + Duration::from_secs_f64(offset_s.min(1e9));
+        let due = wall0 + Duration::from_secs_f64(offset_s.clamp(0.0, 1e6));
         loop {
             if shutdown.is_cancelled() {
                 return true;
@@ -139,7 +167,9 @@ impl ReplaySource {
         let mut pacer = Pacer {
             pace: self.pace,
             origin: None,
+            last_ns: None,
             metrics,
+            source_name: &self.name,
         };
         // A range frame waits for its intensity (same timestamp, next message).
         let mut held: Option<RangeFrame> = None;
@@ -154,6 +184,15 @@ impl ReplaySource {
         for next in reader.by_ref() {
             let event = match next {
                 Ok(event) => event,
+                Err(e @ CaptureError::Truncated { messages, .. }) if messages > 0 => {
+                    // A recording cut short: everything before the cut was replayed,
+                    // which is all there is to replay.
+                    flush_held(&mut held, &mut pacer);
+                    metrics.add_counter("truncated", 1);
+                    metrics.report_error(e.to_string());
+                    tracing::warn!(source = %self.name, "{e}");
+                    break;
+                }
                 Err(e) if e.is_fatal() => {
                     // Everything complete before the damage was replayed.
                     flush_held(&mut held, &mut pacer);
