@@ -91,6 +91,26 @@ fn a_paced_replay_does_not_hang_on_a_frame_dated_years_ahead() {
         stdout.contains(&format!("{} scans", frames - 1)),
         "{stdout}{stderr}"
     );
+
+    // The same capture replayed by a session file, paced (not `fast`).
+    let session = dir.path().join("paced.toml");
+    std::fs::write(
+        &session,
+        format!(
+            "[session]\nexit_when_sources_end = true\n\n\
+             [pipeline]\nregistration = \"capture-poses\"\n\n\
+             [[source.replay]]\nname = \"paced\"\ncapture = {:?}\nspeed = 1.0\n",
+            path_str(&capture)
+        ),
+    )
+    .unwrap();
+    let out = texeld(
+        &["run", "--config", path_str(&session), "--no-serve"],
+        Duration::from_secs(60),
+    );
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(0), "{stderr}");
+    assert!(stderr.contains("replayed without waiting"), "{stderr}");
 }
 
 #[test]
