@@ -348,3 +348,65 @@ fn shared_capture() -> &'static (Vec<u8>, Vec<mcap::records::ChunkIndex>, u64) {
         std::sync::OnceLock::new();
     CAPTURE.get_or_init(chunked_capture)
 }
+
+/// What every input must give, whatever its bytes: an answer (events, then at most one
+/// fatal error, which is the last item), in bounded work, with no panic. The fuzz
+/// target `capture_reader` runs the same check under libFuzzer.
+fn read_anything(bytes: &[u8]) -> usize {
+    let mut items = 0;
+    let mut ended = false;
+    for item in CaptureReader::new(Cursor::new(bytes), Some(bytes.len() as u64), "x".into()) {
+        assert!(!ended, "an item after a fatal error");
+        items += 1;
+        if let Err(e) = item {
+            ended = e.is_fatal();
+            // Every error names the file.
+            assert!(e.to_string().starts_with("x:"), "{e}");
+        }
+        assert!(items <= bytes.len() + 1, "more items than bytes");
+    }
+    items
+}
+
+#[test]
+fn mutated_captures_and_random_bytes_always_get_an_answer() {
+    let (bytes, _, _) = shared_capture();
+    let mut state: u64 = 0x2545_F491_4F6C_DD1D;
+    let mut next = move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        state
+    };
+    let mut answered = 0;
+    for case in 0..2_000u32 {
+        let mut input = bytes.clone();
+        match case % 4 {
+            // Flips.
+            0 => {
+                for _ in 0..1 + next() % 16 {
+                    let at = (next() % input.len() as u64) as usize;
+                    input[at] ^= (next() as u8) | 1;
+                }
+            }
+            // A cut.
+            1 => input.truncate((next() % input.len() as u64) as usize),
+            // A stretch overwritten with chunk-like bytes (opcode 6, lengths).
+            2 => {
+                let at = (next() % input.len() as u64) as usize;
+                for (k, b) in input.iter_mut().skip(at).take(64).enumerate() {
+                    *b = if k % 9 == 0 { 0x06 } else { next() as u8 };
+                }
+            }
+            // Random bytes after the magic.
+            _ => {
+                let len = (next() % 4096) as usize;
+                input.truncate(8);
+                input.extend((0..len).map(|_| next() as u8));
+            }
+        }
+        read_anything(&input);
+        answered += 1;
+    }
+    assert_eq!(answered, 2_000);
+}
