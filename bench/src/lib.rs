@@ -8,6 +8,7 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 pub mod calibration;
+pub mod capture_read;
 pub mod daemon_capture;
 pub mod daemon_sim;
 pub mod tradeoffs;

@@ -42,6 +42,8 @@ enum Command {
         #[arg(long, default_value = "target/bench-sim")]
         work_dir: PathBuf,
     },
+    /// Measure the capture reader against the mcap crate's own reader.
+    CaptureRead(texel_bench::capture_read::Args),
     /// Measure the viewer: frame time and GPU memory (k-buffer against naive layers).
     Viewer(texel_bench::viewer_bench::BenchArgs),
     /// Regenerate a section of docs/tradeoffs.md (what accuracy costs in time) from
@@ -99,6 +101,7 @@ fn main() -> ExitCode {
             ("daemon", result)
         }
         Command::Viewer(args) => ("viewer", texel_bench::viewer_bench::run(&args)),
+        Command::CaptureRead(args) => ("capture-read", texel_bench::capture_read::run(&args)),
         Command::Tradeoffs(TradeoffsCommand::Registration {
             quick,
             repo,
