@@ -218,6 +218,11 @@ async fn silent_connections_do_not_lock_out_a_viewer() {
         .await
         .expect("the viewer's stream stalled during the flood");
         assert_eq!(m.clients.load(Ordering::Relaxed), 1);
+        // A viewer on another address is untouched by the flood: in at the first
+        // attempt.
+        let mut elsewhere = connect_from("127.0.0.2", addr).await;
+        complete_handshake_with(&mut elsewhere, token.unwrap_or("")).await;
+        assert_eq!(m.clients.load(Ordering::Relaxed), 2);
         if token.is_some() {
             wait_for("a wrong-token flooder is refused", || {
                 flood.stats.wrong_token_refusals.load(Ordering::Relaxed) > 0
@@ -384,7 +389,11 @@ async fn refusal(stream: &mut TcpStream) -> String {
 
 /// Sends a hello on a pending connection and expects the welcome and a snapshot.
 async fn complete_handshake(stream: &mut TcpStream) {
-    let hello = texel_client::hello("", "late").unwrap();
+    complete_handshake_with(stream, "").await;
+}
+
+async fn complete_handshake_with(stream: &mut TcpStream, token: &str) {
+    let hello = texel_client::hello(token, "late").unwrap();
     stream.write_all(&hello).await.unwrap();
     let mut buf = Vec::new();
     let mut kinds = Vec::new();
