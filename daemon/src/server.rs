@@ -1,28 +1,35 @@
 //! The viewer stream server (`docs/wire-protocol.md`): `run(listener, ...)` accepts
-//! connections up to a limit, checks each client's hello (version, token compared in
-//! constant time), sends the model so far as a snapshot, then live updates from its
-//! bounded queue. A client that falls behind is resynchronised or disconnected by
-//! policy. Closing the hub ends every client's stream with the rest of its queue and
-//! a goodbye saying why; `shutdown` then stops accepting and waits a bounded time.
+//! connections, gives each a pending place (bounded in total and per address,
+//! `pending`) while it has the handshake timeout to deliver a valid hello
+//! (`handshake`), and only then a viewer slot: unauthenticated connections never
+//! hold a slot, so they cannot lock out those with the token. A viewer gets the model
+//! so far as a snapshot, then live updates from its bounded queue; one that falls
+//! behind or stops reading is resynchronised or dropped by policy (`stream`). Closing
+//! the hub ends every viewer's stream with the rest of its queue and a goodbye saying
+//! why; `shutdown` then stops accepting and waits a bounded time.
+
+mod handshake;
+mod pending;
+mod stream;
 
 use std::net::SocketAddr;
-use std::sync::Arc;
 use std::sync::atomic::Ordering;
-use std::time::Duration;
+use std::sync::{Arc, Weak};
+use std::time::{Duration, Instant};
 
-use bytes::{Bytes, BytesMut};
-use subtle::ConstantTimeEq;
-use texel::wire::{Limits, Message, PROTOCOL_VERSION, decode_frame};
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use tokio::net::tcp::{OwnedReadHalf, OwnedWriteHalf};
+use bytes::BytesMut;
+use texel::wire::{Message, PROTOCOL_VERSION};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::Semaphore;
 use tokio::task::JoinSet;
 use tokio_util::sync::CancellationToken;
 
 use crate::config::{ServeSection, SlowClientPolicy};
-use crate::hub::{Hub, HubError};
-use crate::status::{Counter, Metrics};
+use crate::hub::Hub;
+use crate::status::{Counter, Metrics, QueueProbe};
+use handshake::HelloOutcome;
+use pending::{Admission, PendingHandshakes, PendingLimits};
+use stream::{End, StreamSettings};
 
 /// How the server treats clients.
 #[derive(Debug, Clone)]
@@ -33,9 +40,13 @@ pub struct ServeOptions {
     pub slow_client: SlowClientPolicy,
     pub max_resyncs: u32,
     pub handshake_timeout: Duration,
+    pub max_pending_handshakes: usize,
+    pub max_pending_handshakes_per_address: usize,
+    /// The longest a write to a viewer may go without progress.
+    pub write_timeout: Duration,
     pub server_name: String,
     pub session_name: String,
-    /// How long the goodbye to each client may take at shutdown.
+    /// How long the goodbye (or refusal) to each client may take.
     pub goodbye_timeout: Duration,
 }
 
@@ -47,11 +58,26 @@ impl ServeOptions {
             slow_client: serve.slow_client,
             max_resyncs: serve.max_resyncs,
             handshake_timeout: Duration::from_millis(serve.handshake_timeout_ms),
+            max_pending_handshakes: serve.max_pending_handshakes,
+            max_pending_handshakes_per_address: serve.max_pending_handshakes_per_address,
+            write_timeout: Duration::from_millis(serve.write_timeout_ms),
             server_name: concat!("texeld ", env!("CARGO_PKG_VERSION")).to_string(),
             session_name: session_name.to_string(),
             goodbye_timeout: Duration::from_millis(500),
         }
     }
+}
+
+/// What every connection task shares.
+struct Shared {
+    hub: Arc<Hub>,
+    options: ServeOptions,
+    metrics: Arc<Metrics>,
+    slots: Arc<Semaphore>,
+    /// Stops accepting and ends pending handshakes.
+    shutdown: CancellationToken,
+    /// Cancelled only if viewers do not finish in time after `shutdown`.
+    hard_stop: CancellationToken,
 }
 
 /// Accepts viewers until `shutdown`; then waits (bounded by the goodbye timeout,
@@ -63,14 +89,29 @@ pub async fn run(
     metrics: Arc<Metrics>,
     shutdown: CancellationToken,
 ) {
-    let options = Arc::new(options);
-    // Cancelled only if clients do not finish in time after `shutdown`.
-    let hard_stop = CancellationToken::new();
-    let slots = Arc::new(Semaphore::new(options.max_clients));
+    let pending = PendingHandshakes::new(PendingLimits {
+        total: options.max_pending_handshakes,
+        per_address: options.max_pending_handshakes_per_address,
+    });
+    let shared = Arc::new(Shared {
+        slots: Arc::new(Semaphore::new(options.max_clients)),
+        hub,
+        options,
+        metrics,
+        shutdown,
+        hard_stop: CancellationToken::new(),
+    });
+    // The status shows the pending handshakes as a queue, until the server ends.
+    let probe: Weak<PendingHandshakes> = Arc::downgrade(&pending);
+    shared.metrics.add_queue(QueueProbe {
+        name: "pending_handshakes",
+        capacity: shared.options.max_pending_handshakes,
+        depth: Box::new(move || probe.upgrade().map(|p| p.count())),
+    });
     let mut tasks = JoinSet::new();
     loop {
         let accepted = tokio::select! {
-            () = shutdown.cancelled() => break,
+            () = shared.shutdown.cancelled() => break,
             a = listener.accept() => a,
         };
         let (stream, peer) = match accepted {
@@ -85,46 +126,26 @@ pub async fn run(
         // Reap finished connection tasks so the set stays small.
         while tasks.try_join_next().is_some() {}
         let _ = stream.set_nodelay(true);
-        match Arc::clone(&slots).try_acquire_owned() {
-            Ok(permit) => {
-                let (hub, options, metrics, stop) = (
-                    Arc::clone(&hub),
-                    Arc::clone(&options),
-                    Arc::clone(&metrics),
-                    hard_stop.clone(),
-                );
-                tasks.spawn(async move {
-                    metrics.clients.fetch_add(1, Ordering::Relaxed);
-                    serve_client(stream, peer, &hub, &options, &metrics, &stop).await;
-                    metrics.clients.fetch_sub(1, Ordering::Relaxed);
-                    drop(permit);
-                });
-            }
-            Err(_) => {
-                metrics.add(Counter::ClientsRefused, 1);
-                tracing::warn!(%peer, "refused: {} clients already connected", options.max_clients);
-                let reason = format!("server full: {} clients connected", options.max_clients);
-                let timeout = options.goodbye_timeout;
-                tasks.spawn(async move {
-                    let mut stream = stream;
-                    let _ = tokio::time::timeout(
-                        timeout,
-                        send_and_close(&mut stream, Message::Refused { reason }),
-                    )
-                    .await;
-                });
-            }
+        let (ticket, admission) = pending.admit(peer.ip(), Instant::now());
+        if let Admission::EvictedOldest(source) = admission {
+            shared.metrics.add(Counter::HandshakesEvicted, 1);
+            // Debug only: under a flood this is every connection; the counter shows it.
+            tracing::debug!(%peer, "evicted the oldest pending handshake from {source:?}");
         }
+        let shared = Arc::clone(&shared);
+        tasks.spawn(async move { connection(stream, peer, ticket, &shared).await });
     }
-    // Connection tasks end by themselves once the hub is closed (they send what is
-    // queued, then a goodbye); a client too slow for that is cut short.
-    let drained = tokio::time::timeout(options.goodbye_timeout, async {
+    // Pending handshakes end with `shutdown`; viewers end by themselves once the hub is
+    // closed (they send what is queued, then a goodbye); one too slow for that is cut
+    // short.
+    let timeout = shared.options.goodbye_timeout;
+    let drained = tokio::time::timeout(timeout, async {
         while tasks.join_next().await.is_some() {}
     })
     .await;
     if drained.is_err() {
-        hard_stop.cancel();
-        let cut = tokio::time::timeout(options.goodbye_timeout, async {
+        shared.hard_stop.cancel();
+        let cut = tokio::time::timeout(timeout, async {
             while tasks.join_next().await.is_some() {}
         })
         .await;
@@ -134,254 +155,124 @@ pub async fn run(
     }
 }
 
-async fn send_and_close(stream: &mut TcpStream, message: Message) {
-    if let Ok(bytes) = message.encode() {
-        let _ = stream.write_all(&bytes).await;
-    }
-    let _ = stream.shutdown().await;
-}
-
-/// How a connection ended, for the log.
-enum End {
-    ClientLeft,
-    Shutdown,
-    Error(String),
-}
-
-/// Reads one client message (the hello), bounded by the client limits.
-async fn read_message(rd: &mut OwnedReadHalf, buf: &mut BytesMut) -> Result<Message, String> {
-    loop {
-        match decode_frame(buf, &Limits::FROM_CLIENT) {
-            Ok(Some((message, used))) => {
-                let _ = buf.split_to(used);
-                return Ok(message);
-            }
-            Ok(None) => {}
-            Err(e) => return Err(format!("invalid message: {e}")),
-        }
-        match rd.read_buf(buf).await {
-            Ok(0) => return Err("closed before its hello".into()),
-            Ok(_) => {}
-            Err(e) => return Err(format!("read failed: {e}")),
-        }
-    }
-}
-
-async fn write_frame(
-    wr: &mut OwnedWriteHalf,
-    frame: &[u8],
-    shutdown: &CancellationToken,
-) -> Result<(), End> {
-    tokio::select! {
-        r = wr.write_all(frame) => r.map_err(|e| End::Error(format!("write failed: {e}"))),
-        () = shutdown.cancelled() => Err(End::Shutdown),
-    }
-}
-
-async fn goodbye(wr: &mut OwnedWriteHalf, reason: &str, timeout: Duration) {
-    let message = Message::Goodbye {
-        reason: reason.to_string(),
-    };
-    if let Ok(bytes) = message.encode() {
-        let _ = tokio::time::timeout(timeout, async {
-            let _ = wr.write_all(&bytes).await;
-            let _ = wr.shutdown().await;
-        })
-        .await;
-    }
-}
-
-/// Checks the hello: protocol version and token.
-fn admit(hello: Message, options: &ServeOptions) -> Result<String, String> {
-    let Message::ClientHello {
-        version,
-        token,
-        client_name,
-    } = hello
-    else {
-        return Err(format!("expected ClientHello, got {}", hello.kind_name()));
-    };
-    if version != PROTOCOL_VERSION {
-        return Err(format!(
-            "protocol version {version} is not supported; this server speaks {PROTOCOL_VERSION}"
-        ));
-    }
-    if let Some(expected) = &options.token {
-        // Constant time in the token's contents, so timing reveals nothing of it.
-        let ok: bool = expected.as_bytes().ct_eq(token.as_bytes()).into();
-        if !ok {
-            return Err("wrong token".into());
-        }
-    }
-    Ok(client_name)
-}
-
-async fn serve_client(
+/// One connection: the handshake in its pending place, then a viewer slot.
+async fn connection(
     stream: TcpStream,
     peer: SocketAddr,
-    hub: &Hub,
-    options: &ServeOptions,
-    metrics: &Metrics,
-    shutdown: &CancellationToken,
+    ticket: pending::PendingTicket,
+    shared: &Shared,
 ) {
+    let (options, metrics) = (&shared.options, &shared.metrics);
     let (mut rd, mut wr) = stream.into_split();
     let mut inbuf = BytesMut::with_capacity(1024);
-    // 1. Handshake, bounded in time and size.
-    let hello =
-        match tokio::time::timeout(options.handshake_timeout, read_message(&mut rd, &mut inbuf))
-            .await
-        {
-            Ok(Ok(m)) => m,
-            Ok(Err(e)) => {
-                metrics.add(Counter::ClientsRefused, 1);
-                tracing::warn!(%peer, "refused: {e}");
-                refuse(&mut wr, &e, options).await;
+    let outcome = handshake::read_hello(
+        &mut rd,
+        &mut inbuf,
+        options.handshake_timeout,
+        &ticket.evicted,
+        &shared.shutdown,
+    )
+    .await;
+    // Hello or not, the connection no longer waits for one.
+    drop(ticket);
+    let refusal = match outcome {
+        HelloOutcome::Hello(hello) => match handshake::admit(hello, options.token.as_deref()) {
+            Ok(client_name) => {
+                let Ok(slot) = Arc::clone(&shared.slots).try_acquire_owned() else {
+                    metrics.add(Counter::ClientsRefused, 1);
+                    tracing::warn!(%peer, "refused: {} viewers already connected", options.max_clients);
+                    let reason = format!("server full: {} clients connected", options.max_clients);
+                    handshake::refuse(&mut wr, &reason, options.goodbye_timeout).await;
+                    return;
+                };
+                metrics.clients.fetch_add(1, Ordering::Relaxed);
+                serve_viewer(&mut rd, &mut wr, &mut inbuf, peer, &client_name, shared).await;
+                metrics.clients.fetch_sub(1, Ordering::Relaxed);
+                drop(slot);
                 return;
             }
-            Err(_) => {
+            Err(reason) => {
                 metrics.add(Counter::ClientsRefused, 1);
-                tracing::warn!(%peer, "refused: no hello within {:?}", options.handshake_timeout);
-                refuse(&mut wr, "no hello in time", options).await;
-                return;
+                tracing::warn!(%peer, "refused: {reason}");
+                reason
             }
-        };
-    let client_name = match admit(hello, options) {
-        Ok(name) => name,
-        Err(reason) => {
+        },
+        HelloOutcome::Invalid(reason) => {
             metrics.add(Counter::ClientsRefused, 1);
             tracing::warn!(%peer, "refused: {reason}");
-            refuse(&mut wr, &reason, options).await;
-            return;
+            reason
         }
+        HelloOutcome::TimedOut => {
+            metrics.add(Counter::HandshakeTimeouts, 1);
+            let ms = options.handshake_timeout.as_millis();
+            tracing::debug!(%peer, "closed: no hello within {ms} ms");
+            format!("no hello within {ms} ms")
+        }
+        HelloOutcome::Evicted => "too many pending handshakes from your address; retry".into(),
+        HelloOutcome::Shutdown => "the daemon is shutting down".into(),
+    };
+    handshake::refuse(&mut wr, &refusal, options.goodbye_timeout).await;
+}
+
+/// An admitted viewer holding a slot: welcome, stream, goodbye.
+async fn serve_viewer(
+    rd: &mut tokio::net::tcp::OwnedReadHalf,
+    wr: &mut tokio::net::tcp::OwnedWriteHalf,
+    inbuf: &mut BytesMut,
+    peer: SocketAddr,
+    client_name: &str,
+    shared: &Shared,
+) {
+    let (options, metrics) = (&shared.options, &shared.metrics);
+    let settings = StreamSettings {
+        slow_client: options.slow_client,
+        max_resyncs: options.max_resyncs,
+        write_timeout: options.write_timeout,
+        shutdown: &shared.hard_stop,
     };
     let welcome = Message::ServerHello {
         version: PROTOCOL_VERSION,
         server_name: options.server_name.clone(),
         session_name: options.session_name.clone(),
     };
-    let Ok(welcome) = welcome.encode() else {
-        return;
-    };
-    if write_frame(&mut wr, &welcome, shutdown).await.is_err() {
-        return;
-    }
-    tracing::info!(%peer, client = %client_name, "viewer connected");
-    // 2. Snapshot, then live updates; again after every resync.
-    let end = stream_model(
-        &mut rd, &mut wr, &mut inbuf, hub, options, metrics, shutdown,
-    )
-    .await;
-    match end {
-        End::ClientLeft => tracing::info!(%peer, "viewer left"),
-        End::Shutdown => {
-            let reason = hub
-                .closed_reason()
-                .unwrap_or_else(|| "the daemon is shutting down".into());
-            goodbye(&mut wr, &reason, options.goodbye_timeout).await;
-            tracing::info!(%peer, "viewer told: {reason}");
-        }
-        End::Error(e) => {
-            goodbye(&mut wr, &e, options.goodbye_timeout).await;
-            tracing::warn!(%peer, "viewer dropped: {e}");
-        }
-    }
-}
-
-async fn refuse(wr: &mut OwnedWriteHalf, reason: &str, options: &ServeOptions) {
-    let message = Message::Refused {
-        reason: reason
-            .chars()
-            .take(texel::wire::MAX_REASON_LEN / 4)
-            .collect(),
-    };
-    if let Ok(bytes) = message.encode() {
-        let _ = tokio::time::timeout(options.goodbye_timeout, async {
-            let _ = wr.write_all(&bytes).await;
-            let _ = wr.shutdown().await;
-        })
-        .await;
-    }
-}
-
-async fn stream_model(
-    rd: &mut OwnedReadHalf,
-    wr: &mut OwnedWriteHalf,
-    inbuf: &mut BytesMut,
-    hub: &Hub,
-    options: &ServeOptions,
-    metrics: &Metrics,
-    shutdown: &CancellationToken,
-) -> End {
-    let mut resyncs = 0u32;
-    loop {
-        let mut sub = match hub.subscribe() {
-            Ok(s) => s,
-            Err(HubError::Closed) => return End::Shutdown,
-            Err(e) => return End::Error(e.to_string()),
-        };
-        let client_id = sub.client_id;
-        let result = async {
-            for frame in &sub.snapshot {
-                write_frame(wr, frame, shutdown).await?;
-            }
-            loop {
-                let next: Option<Bytes> = tokio::select! {
-                    f = sub.live.recv() => f,
-                    r = rd.read_buf(inbuf) => {
-                        client_input(r, inbuf)?;
-                        continue;
-                    }
-                    () = shutdown.cancelled() => return Err(End::Shutdown),
-                };
-                if sub.lagged.load(Ordering::Acquire) {
-                    return Ok(());
+    let end = match welcome.encode() {
+        Ok(welcome) => {
+            match stream::write_frame(wr, &welcome, settings.write_timeout, settings.shutdown).await
+            {
+                Ok(()) => {
+                    tracing::info!(%peer, client = %client_name, "viewer connected");
+                    // Snapshot, then live updates; again after every resync.
+                    stream::stream_model(rd, wr, inbuf, &shared.hub, &settings, || {
+                        metrics.add(Counter::ClientsResynced, 1);
+                    })
+                    .await
                 }
-                match next {
-                    Some(frame) => {
-                        write_frame(wr, &frame, shutdown).await?;
-                        if sub.live.is_empty() {
-                            // Caught up: earlier resyncs are forgiven.
-                            resyncs = 0;
-                        }
-                    }
-                    // The hub dropped this feed: cut off for lagging, or closed.
-                    None if sub.lagged.load(Ordering::Acquire) => return Ok(()),
-                    None => return Err(End::Shutdown),
-                }
+                Err(end) => end,
             }
         }
-        .await;
-        hub.unsubscribe(client_id);
-        // `Ok` means the client's queue overflowed.
-        if let Err(end) = result {
-            return end;
+        Err(e) => End::Error(format!("cannot encode the welcome: {e}")),
+    };
+    match &end {
+        End::ClientLeft => {
+            tracing::info!(%peer, "viewer left");
+            return;
         }
-        resyncs += 1;
-        if options.slow_client == SlowClientPolicy::Disconnect || resyncs > options.max_resyncs {
+        End::Shutdown => {}
+        End::TooSlow(_) => metrics.add(Counter::ClientsDropped, 1),
+        End::Stalled(_) => {
             metrics.add(Counter::ClientsDropped, 1);
-            return End::Error(format!(
-                "too slow: fell behind {resyncs} time(s) in a row; disconnected"
-            ));
+            metrics.add(Counter::ClientsWriteTimeouts, 1);
         }
-        metrics.add(Counter::ClientsResynced, 1);
+        End::Error(_) => {}
     }
-}
-
-/// Handles bytes from a client after the handshake: a goodbye or end of stream ends
-/// the connection; anything else is a protocol error.
-fn client_input(read: std::io::Result<usize>, inbuf: &mut BytesMut) -> Result<(), End> {
-    match read {
-        Ok(0) => return Err(End::ClientLeft),
-        Ok(_) => {}
-        Err(e) => return Err(End::Error(format!("read failed: {e}"))),
-    }
-    match decode_frame(inbuf, &Limits::FROM_CLIENT) {
-        Ok(None) => Ok(()),
-        Ok(Some((Message::Goodbye { .. }, _))) => Err(End::ClientLeft),
-        Ok(Some((m, _))) => Err(End::Error(format!(
-            "unexpected {} from the client",
-            m.kind_name()
-        ))),
-        Err(e) => Err(End::Error(format!("invalid message: {e}"))),
+    let reason = match end {
+        End::Shutdown => shared.hub.closed_reason().unwrap_or_else(|| end.reason()),
+        _ => end.reason(),
+    };
+    // Bounded: a stalled viewer would not take the goodbye either.
+    stream::goodbye(wr, &reason, options.goodbye_timeout).await;
+    match end {
+        End::Shutdown => tracing::info!(%peer, "viewer told: {reason}"),
+        _ => tracing::warn!(%peer, "viewer dropped: {reason}"),
     }
 }

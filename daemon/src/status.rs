@@ -38,12 +38,21 @@ pub enum Counter {
     PoseRevisions,
     RecordErrors,
     ClientsResynced,
+    /// Viewers disconnected as too slow: fell behind too often, or stalled.
     ClientsDropped,
+    /// Of those, viewers whose write made no progress within the write timeout.
+    ClientsWriteTimeouts,
+    /// Connections refused for their hello (invalid, wrong version or token) or for
+    /// a full server.
     ClientsRefused,
+    /// Connections closed for not sending a hello within the handshake timeout.
+    HandshakeTimeouts,
+    /// Pending handshakes closed to make room for a newer connection.
+    HandshakesEvicted,
 }
 
 impl Counter {
-    pub const ALL: [Counter; 20] = [
+    pub const ALL: [Counter; 23] = [
         Self::Paired,
         Self::UnpairedRange,
         Self::UnpairedEo,
@@ -63,7 +72,10 @@ impl Counter {
         Self::RecordErrors,
         Self::ClientsResynced,
         Self::ClientsDropped,
+        Self::ClientsWriteTimeouts,
         Self::ClientsRefused,
+        Self::HandshakeTimeouts,
+        Self::HandshakesEvicted,
     ];
 
     pub fn name(self) -> &'static str {
@@ -87,7 +99,10 @@ impl Counter {
             Self::RecordErrors => "record_errors",
             Self::ClientsResynced => "clients_resynced",
             Self::ClientsDropped => "clients_dropped",
+            Self::ClientsWriteTimeouts => "clients_write_timeouts",
             Self::ClientsRefused => "clients_refused",
+            Self::HandshakeTimeouts => "handshake_timeouts",
+            Self::HandshakesEvicted => "handshakes_evicted",
         }
     }
 }

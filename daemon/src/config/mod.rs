@@ -305,7 +305,17 @@ pub struct ServeSection {
     pub max_resyncs: u32,
     pub texture: TextureFormat,
     pub jpeg_quality: u8,
+    /// How long a connection has to deliver its hello; it holds no viewer slot
+    /// meanwhile, only a pending place (below).
     pub handshake_timeout_ms: u64,
+    /// Connections waiting for their hello, in all.
+    pub max_pending_handshakes: usize,
+    /// Connections waiting for their hello from one address (one IPv6 /64), so a
+    /// flood from one address cannot take every pending place.
+    pub max_pending_handshakes_per_address: usize,
+    /// How long a write to a viewer may go without the socket taking a byte before
+    /// the viewer is dropped as stalled.
+    pub write_timeout_ms: u64,
 }
 
 impl Default for ServeSection {
@@ -320,7 +330,15 @@ impl Default for ServeSection {
             max_resyncs: 3,
             texture: TextureFormat::Jpeg,
             jpeg_quality: 90,
-            handshake_timeout_ms: 5000,
+            // A hello is one small frame sent right after connecting: a couple of
+            // round trips even on a slow link. Short, so silent connections free
+            // their pending places quickly.
+            handshake_timeout_ms: 2000,
+            max_pending_handshakes: 64,
+            max_pending_handshakes_per_address: 8,
+            // Long enough for a viewer that pauses (a busy UI thread) and for a
+            // frame on a slow link, which still takes bytes as it goes.
+            write_timeout_ms: 10_000,
         }
     }
 }
@@ -570,6 +588,14 @@ impl SessionConfig {
             ("record.queue", self.record.queue),
             ("serve.max_clients", self.serve.max_clients),
             ("serve.client_queue", self.serve.client_queue),
+            (
+                "serve.max_pending_handshakes",
+                self.serve.max_pending_handshakes,
+            ),
+            (
+                "serve.max_pending_handshakes_per_address",
+                self.serve.max_pending_handshakes_per_address,
+            ),
         ] {
             if v == 0 {
                 return Err(invalid(key, "must be at least 1".into()));
@@ -587,6 +613,7 @@ impl SessionConfig {
         if self.status.interval_ms == 0 {
             return Err(invalid("status.interval_ms", "must be positive".into()));
         }
+        validate_serve_limits(&self.serve).map_err(|(k, m)| invalid(k, m))?;
         if !(1..=100).contains(&self.serve.jpeg_quality) {
             return Err(invalid(
                 "serve.jpeg_quality",
@@ -615,6 +642,45 @@ impl SessionConfig {
         }
         Ok(())
     }
+}
+
+/// The longest handshake timeout: a silent connection holds its pending place this
+/// long, so a larger value mostly helps a flood.
+const MAX_HANDSHAKE_TIMEOUT_MS: u64 = 60_000;
+/// The longest write timeout: ten minutes of a viewer reading nothing is a dead one.
+const MAX_WRITE_TIMEOUT_MS: u64 = 600_000;
+
+/// Checks the server's connection limits (counts of zero are refused with the other
+/// queue sizes); the error names the key.
+fn validate_serve_limits(serve: &ServeSection) -> Result<(), (&'static str, String)> {
+    if !(1..=MAX_HANDSHAKE_TIMEOUT_MS).contains(&serve.handshake_timeout_ms) {
+        return Err((
+            "serve.handshake_timeout_ms",
+            format!(
+                "must be in 1..={MAX_HANDSHAKE_TIMEOUT_MS}, got {}",
+                serve.handshake_timeout_ms
+            ),
+        ));
+    }
+    if !(1..=MAX_WRITE_TIMEOUT_MS).contains(&serve.write_timeout_ms) {
+        return Err((
+            "serve.write_timeout_ms",
+            format!(
+                "must be in 1..={MAX_WRITE_TIMEOUT_MS}, got {}",
+                serve.write_timeout_ms
+            ),
+        ));
+    }
+    if serve.max_pending_handshakes_per_address > serve.max_pending_handshakes {
+        return Err((
+            "serve.max_pending_handshakes_per_address",
+            format!(
+                "must not exceed serve.max_pending_handshakes ({}), got {}",
+                serve.max_pending_handshakes, serve.max_pending_handshakes_per_address
+            ),
+        ));
+    }
+    Ok(())
 }
 
 /// Checks a serial line's timing settings; the error names the key.

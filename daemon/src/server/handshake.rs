@@ -1,0 +1,106 @@
+//! The handshake of a pending connection: its hello, read within the handshake timeout
+//! (or cut short when its pending place is taken to make room, or at shutdown) and
+//! bounded in size by the client frame limit, then checked: protocol version and
+//! token, compared in constant time.
+
+use std::time::Duration;
+
+use bytes::BytesMut;
+use subtle::ConstantTimeEq;
+use texel::wire::{Limits, Message, PROTOCOL_VERSION, decode_frame};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::tcp::{OwnedReadHalf, OwnedWriteHalf};
+use tokio_util::sync::CancellationToken;
+
+/// How waiting for a hello ended.
+pub enum HelloOutcome {
+    Hello(Message),
+    /// Not a valid frame, or the connection failed or closed first.
+    Invalid(String),
+    TimedOut,
+    /// The pending place was taken for a newer connection.
+    Evicted,
+    Shutdown,
+}
+
+/// Waits for the hello, at most `timeout`.
+pub async fn read_hello(
+    rd: &mut OwnedReadHalf,
+    buf: &mut BytesMut,
+    timeout: Duration,
+    evicted: &CancellationToken,
+    shutdown: &CancellationToken,
+) -> HelloOutcome {
+    tokio::select! {
+        r = tokio::time::timeout(timeout, read_message(rd, buf)) => match r {
+            Ok(Ok(m)) => HelloOutcome::Hello(m),
+            Ok(Err(e)) => HelloOutcome::Invalid(e),
+            Err(_) => HelloOutcome::TimedOut,
+        },
+        () = evicted.cancelled() => HelloOutcome::Evicted,
+        () = shutdown.cancelled() => HelloOutcome::Shutdown,
+    }
+}
+
+/// Reads one client message, bounded by the client limits: the decoder refuses a
+/// frame longer than the limit before waiting for it, so `buf` stays small.
+async fn read_message(rd: &mut OwnedReadHalf, buf: &mut BytesMut) -> Result<Message, String> {
+    loop {
+        match decode_frame(buf, &Limits::FROM_CLIENT) {
+            Ok(Some((message, used))) => {
+                let _ = buf.split_to(used);
+                return Ok(message);
+            }
+            Ok(None) => {}
+            Err(e) => return Err(format!("invalid message: {e}")),
+        }
+        match rd.read_buf(buf).await {
+            Ok(0) => return Err("closed before its hello".into()),
+            Ok(_) => {}
+            Err(e) => return Err(format!("read failed: {e}")),
+        }
+    }
+}
+
+/// Checks the hello: protocol version and token (required when `token` is set).
+pub fn admit(hello: Message, token: Option<&str>) -> Result<String, String> {
+    let Message::ClientHello {
+        version,
+        token: given,
+        client_name,
+    } = hello
+    else {
+        return Err(format!("expected ClientHello, got {}", hello.kind_name()));
+    };
+    if version != PROTOCOL_VERSION {
+        return Err(format!(
+            "protocol version {version} is not supported; this server speaks {PROTOCOL_VERSION}"
+        ));
+    }
+    if let Some(expected) = token {
+        // Constant time in the token's contents, so timing reveals nothing of it.
+        let ok: bool = expected.as_bytes().ct_eq(given.as_bytes()).into();
+        if !ok {
+            return Err("wrong token".into());
+        }
+    }
+    Ok(client_name)
+}
+
+/// Sends `Refused { reason }` and closes, giving up after `timeout` (a client that
+/// does not read is not waited for).
+pub async fn refuse(wr: &mut OwnedWriteHalf, reason: &str, timeout: Duration) {
+    let message = Message::Refused {
+        reason: reason
+            .chars()
+            .take(texel::wire::MAX_REASON_LEN / 4)
+            .collect(),
+    };
+    if let Ok(bytes) = message.encode() {
+        let _ = tokio::time::timeout(timeout, async {
+            let _ = wr.write_all(&bytes).await;
+            let _ = wr.shutdown().await;
+        })
+        .await;
+    }
+}
