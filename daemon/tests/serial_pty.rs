@@ -2,7 +2,9 @@
 //! with injected garbage, a CRC error, a bad header, dropped sequence numbers, a stall
 //! and a disconnect after which the device reappears under another name matched by
 //! the configured glob. Every valid frame is received and recorded, and the counters
-//! equal what was injected.
+//! equal what was injected. A hostile flood (a bogus header claiming the largest frame,
+//! its span full of false magics) neither loses the frames after it nor keeps the
+//! source from reporting a stall or stopping at shutdown.
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests panic on failure by design
 
 use std::path::{Path, PathBuf};
@@ -10,9 +12,9 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use serialport::{SerialPort, TTYPort};
-use std::io::Write;
+use std::io::{Read, Write};
 use texel::capture::{CaptureEvent, CaptureReader, PoseTopic};
-use texel::txl1::Txl1Frame;
+use texel::txl1::{HEADER_LEN, MAGIC, MAX_FRAME_LEN, MAX_SIDE, Txl1Frame};
 use texel_daemon::config::{SerialConfig, SessionConfig};
 use texel_daemon::pipeline::Session;
 use texel_daemon::source::{SourceMetrics, SourceState};
@@ -256,4 +258,122 @@ async fn a_missing_device_is_reported_by_name_and_retried() {
         .await
         .unwrap()
         .unwrap();
+}
+
+/// The hostile stream from the decoder's issue: a header claiming the largest legal
+/// frame whose span (CRC field included) is the magic repeated, so its CRC fails and
+/// each of the million false magics inside is a bad header. Returns the bytes and the
+/// number of false magics.
+fn false_magic_flood() -> (Vec<u8>, u64) {
+    let mut stream = texel::fuzzing::header(MAX_SIDE, MAX_SIDE, true);
+    let magics = (MAX_FRAME_LEN - HEADER_LEN) / MAGIC.len();
+    stream.extend(MAGIC.repeat(magics));
+    (stream, magics as u64)
+}
+
+/// As `wait_until`, with a longer guard for a phase that moves megabytes.
+fn wait_long(what: &str, mut f: impl FnMut() -> bool) {
+    let start = Instant::now();
+    while !f() {
+        assert!(
+            start.elapsed() < Duration::from_secs(60),
+            "timed out: {what}"
+        );
+        std::thread::sleep(Duration::from_millis(5));
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_false_magic_flood_after_a_bogus_large_header_keeps_frames_stalls_and_shutdown_working() {
+    let dir = tempfile::tempdir().unwrap();
+    let record = dir.path().join("serial.mcap");
+    let glob = format!("{}/ttyTEXEL*", dir.path().display());
+    let shutdown = CancellationToken::new();
+    let session = Session::start(
+        session_config(dir.path(), glob, record.clone()),
+        shutdown.clone(),
+    )
+    .await
+    .unwrap();
+    let metrics = session.metrics.sources.lock().unwrap()[0].clone();
+    let (flood, magics) = false_magic_flood();
+    let flood_len = flood.len() as u64;
+    let dir_path = dir.path().to_path_buf();
+    let m = metrics.clone();
+    let first_flood = flood.clone();
+    let (master, slave) = tokio::task::spawn_blocking(move || {
+        let (mut master, slave) = device(&dir_path.join("ttyTEXEL0"));
+        // The writer waits as long as the reader needs; the guards are below.
+        master.set_timeout(Duration::from_secs(60)).unwrap();
+        wait_until("the device opens", || m.state() == SourceState::Running);
+        for seq in 0..3 {
+            write_all(&mut master, &frame(seq).encode());
+        }
+        write_all(&mut master, &first_flood);
+        for seq in 3..8 {
+            write_all(&mut master, &frame(seq).encode());
+        }
+        wait_long("every frame after the flood", || received(&m) == 8);
+        assert_eq!(m.counter("crc_errors"), 1);
+        assert_eq!(m.counter("bad_headers"), magics);
+        assert_eq!(m.counter("bytes_in_bad_frames"), HEADER_LEN as u64);
+        assert_eq!(m.counter("bytes_skipped"), flood_len - HEADER_LEN as u64);
+        assert_eq!(m.counter("lost_frames"), 0);
+        // The line goes silent: the stall is still reported and the device reopened.
+        wait_until("the stall is reported", || m.counter("stalls") >= 1);
+        wait_until("the device is reopened", || {
+            m.counter("reopens") >= 1 && m.state() == SourceState::Running
+        });
+        for seq in 8..10 {
+            write_all(&mut master, &frame(seq).encode());
+        }
+        wait_until("frames after the stall", || received(&m) == 10);
+        (master, slave)
+    })
+    .await
+    .unwrap();
+
+    // A flood that never ends: shutdown still stops the source.
+    let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let writer = {
+        let stop = stop.clone();
+        let mut master = master;
+        std::thread::spawn(move || {
+            master.set_timeout(Duration::from_millis(100)).unwrap();
+            while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                for chunk in flood.chunks(64 * 1024) {
+                    match master.write(chunk) {
+                        Ok(_) => {}
+                        Err(e) if e.kind() == std::io::ErrorKind::TimedOut => break,
+                        Err(_) => return,
+                    }
+                }
+            }
+        })
+    };
+    let read_before = metrics.counter("bytes_read");
+    wait_until_async(|| metrics.counter("bytes_read") > read_before + 2 * flood_len).await;
+    shutdown.cancel();
+    let summary = tokio::time::timeout(Duration::from_secs(60), session.wait())
+        .await
+        .expect("the session stops during a flood")
+        .unwrap();
+    // Unblock the writer: read what it still writes until it sees the stop.
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    let mut slave = slave;
+    let mut drain = vec![0u8; 64 * 1024];
+    while !writer.is_finished() {
+        let _ = slave.read(&mut drain);
+    }
+    writer.join().unwrap();
+
+    assert_eq!(metrics.counter("frames_decoded"), 10);
+    assert_eq!(summary.recording.unwrap().errors, 0);
+    let mut recorded = Vec::new();
+    for event in CaptureReader::open(&record).unwrap() {
+        if let CaptureEvent::Range(f) = event.unwrap() {
+            recorded.push(((f.timestamp_ns - 5_000_000_000) / PERIOD_NS) as u32);
+        }
+    }
+    assert_eq!(recorded, (0..10).collect::<Vec<_>>());
 }

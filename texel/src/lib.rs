@@ -8,6 +8,8 @@ pub mod export;
 pub mod frames;
 pub mod fuse;
 pub mod fusion_tables;
+#[doc(hidden)]
+pub mod fuzzing;
 pub mod model;
 pub mod pose;
 pub mod rays;

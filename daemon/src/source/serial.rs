@@ -1,6 +1,8 @@
-//! The serial lidar source: TXL1 range frames (the serial lidar protocol, decoded by `texel::txl1`; docs/daemon.md) from a
-//! serial device. Resynchronises, counts every skipped byte, CRC error and lost
-//! sequence number, and survives the device going silent or away: it is reported and
+//! The serial lidar source: TXL1 range frames (the serial lidar protocol, decoded by
+//! `texel::txl1`; docs/daemon.md) from a serial device. Resynchronises, counts every
+//! skipped byte, CRC error and lost sequence number, decodes in slices of bounded work
+//! with yields between them (so hostile bytes cannot starve shutdown or stall
+//! detection), and survives the device going silent or away: it is reported and
 //! reopened with backoff, possibly under another name when the path is a glob
 //! (`/dev/ttyACM*`), keeping every frame already received.
 
@@ -8,7 +10,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
 
-use texel::txl1::{Txl1Counters, Txl1Decoder};
+use texel::txl1::{Txl1Counters, Txl1Decoder, Txl1Step};
 use tokio::io::AsyncReadExt;
 use tokio_serial::SerialStream;
 use tokio_util::sync::CancellationToken;
@@ -30,6 +32,10 @@ pub struct SerialSource {
     pub backoff_min: Duration,
     pub backoff_max: Duration,
 }
+
+/// Decoding work (`Txl1Decoder::work_units`, about a byte hashed or searched each)
+/// between yields to the runtime: well under a millisecond of CPU.
+const DECODE_SLICE_WORK: u64 = 256 * 1024;
 
 /// How one open device stopped delivering.
 enum LineEnd {
@@ -78,6 +84,7 @@ impl SerialSource {
         let mut buf = vec![0u8; 64 * 1024];
         loop {
             let read = tokio::select! {
+                biased;
                 () = shutdown.cancelled() => return LineEnd::Shutdown,
                 r = tokio::time::timeout(self.stall_timeout, stream.read(&mut buf)) => r,
             };
@@ -91,16 +98,33 @@ impl SerialSource {
             };
             sink.metrics().add_counter("bytes_read", n as u64);
             decoder.push(&buf[..n]);
-            while let Some(frame) = decoder.next_frame() {
-                if sink
-                    .send(SourceEvent::Range(Arc::new(frame.to_range_frame())))
-                    .await
-                    .is_err()
-                {
-                    return LineEnd::PipelineClosed;
+            // Decode this read in slices of bounded work, yielding between them and
+            // after the read: hostile bytes (a frame claimed and failed whose span is
+            // full of false magics) can hold megabytes of decoding, and the runtime
+            // must still see shutdown, run the other sources and time out a stall.
+            loop {
+                match decoder.decode(DECODE_SLICE_WORK) {
+                    Txl1Step::Frame(frame) => {
+                        if sink
+                            .send(SourceEvent::Range(Arc::new(frame.to_range_frame())))
+                            .await
+                            .is_err()
+                        {
+                            return LineEnd::PipelineClosed;
+                        }
+                    }
+                    Txl1Step::NeedBytes => break,
+                    Txl1Step::Paused => {
+                        publish_counters(sink.metrics(), &decoder.counters());
+                        tokio::task::yield_now().await;
+                        if shutdown.is_cancelled() {
+                            return LineEnd::Shutdown;
+                        }
+                    }
                 }
             }
             publish_counters(sink.metrics(), &decoder.counters());
+            tokio::task::yield_now().await;
         }
     }
 }
