@@ -32,14 +32,20 @@ pub fn pose_from_parts(translation: [f64; 3], q_xyzw: [f64; 4]) -> Result<Pose, 
         return Err(PoseError::NonFinite);
     }
     let [x, y, z, w] = q_xyzw;
-    let q = Quaternion::new(w, x, y, z);
-    let norm = q.norm();
-    if norm < MIN_QUATERNION_NORM {
+    // Scaled by its largest component first, so the norm neither overflows (components
+    // above about 1e154) nor underflows; the scaled norm lies in [1, 2].
+    let largest = q_xyzw.iter().fold(0.0_f64, |m, c| m.max(c.abs()));
+    if largest == 0.0 {
+        return Err(PoseError::ZeroQuaternion { x, y, z, w });
+    }
+    let q = Quaternion::new(w / largest, x / largest, y / largest, z / largest);
+    let scaled_norm = q.norm();
+    if largest * scaled_norm < MIN_QUATERNION_NORM {
         return Err(PoseError::ZeroQuaternion { x, y, z, w });
     }
     Ok(Isometry3::from_parts(
         Translation3::new(translation[0], translation[1], translation[2]),
-        UnitQuaternion::new_unchecked(q / norm),
+        UnitQuaternion::new_unchecked(q / scaled_norm),
     ))
 }
 
@@ -125,6 +131,36 @@ mod tests {
         assert_eq!(t, [1.0, 2.0, 3.0]);
         let s = std::f64::consts::FRAC_1_SQRT_2;
         assert!((q[2] - s).abs() < 1e-15 && (q[3] - s).abs() < 1e-15);
+    }
+
+    proptest::proptest! {
+        /// The rotation does not depend on the quaternion's scale, however large or
+        /// small, as long as its norm is above the refusal threshold.
+        #[test]
+        fn rotation_is_independent_of_the_quaternion_scale(
+            q in proptest::array::uniform4(-1.0f64..1.0),
+            exponent in -100i32..300,
+        ) {
+            let Ok(unit) = pose_from_parts([0.0; 3], q) else {
+                return Ok(());
+            };
+            let scale = 10f64.powi(exponent);
+            let scaled = q.map(|c| c * scale);
+            match pose_from_parts([0.0; 3], scaled) {
+                Ok(p) => {
+                    let (_, a) = pose_to_parts(&unit);
+                    let (_, b) = pose_to_parts(&p);
+                    for (x, y) in a.iter().zip(b) {
+                        proptest::prop_assert!((x - y).abs() < 1e-12, "{a:?} {b:?}");
+                    }
+                }
+                Err(PoseError::ZeroQuaternion { .. }) => {
+                    let norm = scaled.iter().map(|c| c * c).sum::<f64>().sqrt();
+                    proptest::prop_assert!(norm < 1e-9, "{scaled:?} refused");
+                }
+                Err(e) => proptest::prop_assert!(false, "{e}"),
+            }
+        }
     }
 
     #[test]
