@@ -120,7 +120,21 @@ fn a_replay_that_cannot_read_its_capture_exits_1_saying_why() {
     std::fs::write(&not_mcap, "not a capture at all\n").unwrap();
     let empty = dir.path().join("empty.mcap");
     std::fs::write(&empty, "").unwrap();
-    for (capture, why) in [(&not_mcap, "not an MCAP file"), (&empty, "truncated")] {
+    // Every chunk damaged: read around, but nothing is left to replay.
+    let ruined = dir.path().join("ruined.mcap");
+    captures::write_chunked(&ruined, 12, PERIOD_NS, None, 8 << 10);
+    let mut bytes = std::fs::read(&ruined).unwrap();
+    let summary = mcap::Summary::read(&bytes).unwrap().unwrap();
+    for c in &summary.chunk_indexes {
+        let at = (c.chunk_start_offset + c.chunk_length / 2) as usize;
+        bytes[at] ^= 0x5A;
+    }
+    std::fs::write(&ruined, bytes).unwrap();
+    for (capture, why) in [
+        (&not_mcap, "not an MCAP file"),
+        (&empty, "truncated"),
+        (&ruined, "no range frame could be read"),
+    ] {
         let out = texeld(
             &["replay", path_str(capture), "--fast", "--no-serve"],
             Duration::from_secs(60),

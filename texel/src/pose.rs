@@ -32,20 +32,24 @@ pub fn pose_from_parts(translation: [f64; 3], q_xyzw: [f64; 4]) -> Result<Pose, 
         return Err(PoseError::NonFinite);
     }
     let [x, y, z, w] = q_xyzw;
-    // Scaled by its largest component first, so the norm neither overflows (components
-    // above about 1e154) nor underflows; the scaled norm lies in [1, 2].
-    let largest = q_xyzw.iter().fold(0.0_f64, |m, c| m.max(c.abs()));
-    if largest == 0.0 {
-        return Err(PoseError::ZeroQuaternion { x, y, z, w });
-    }
-    let q = Quaternion::new(w / largest, x / largest, y / largest, z / largest);
-    let scaled_norm = q.norm();
-    if largest * scaled_norm < MIN_QUATERNION_NORM {
+    let q = Quaternion::new(w, x, y, z);
+    let norm = q.norm();
+    // Components above about 1e154 overflow the norm: such a quaternion is scaled by
+    // its largest component first (the scaled norm lies in [1, 2]). Others keep the
+    // direct division, so a unit quaternion read back is bit-for-bit what was written.
+    let (q, norm) = if norm.is_finite() {
+        (q, norm)
+    } else {
+        let largest = q_xyzw.iter().fold(0.0_f64, |m, c| m.max(c.abs()));
+        let scaled = q / largest;
+        (scaled, scaled.norm())
+    };
+    if norm < MIN_QUATERNION_NORM {
         return Err(PoseError::ZeroQuaternion { x, y, z, w });
     }
     Ok(Isometry3::from_parts(
         Translation3::new(translation[0], translation[1], translation[2]),
-        UnitQuaternion::new_unchecked(q / scaled_norm),
+        UnitQuaternion::new_unchecked(q / norm),
     ))
 }
 

@@ -179,6 +179,7 @@ impl ReplaySource {
             if pacer.wait_for(frame.timestamp_ns, shutdown) {
                 return Some(false);
             }
+            metrics.add_counter("range_frames_replayed", 1);
             Some(send(SourceEvent::Range(Arc::new(frame))))
         };
         for next in reader.by_ref() {
@@ -278,6 +279,18 @@ impl ReplaySource {
             }
         }
         flush_held(&mut held, &mut pacer);
+        let damage = metrics.counter("damaged_stretches") + metrics.counter("capture_errors");
+        if metrics.counter("range_frames_replayed") == 0 && damage > 0 && !shutdown.is_cancelled() {
+            // Nothing readable: the replay could not do what it was asked.
+            let message = format!(
+                "{}: no range frame could be read ({damage} damaged stretches or broken \
+                 messages; `texeld info` lists them)",
+                self.capture.display()
+            );
+            metrics.report_error(message.clone());
+            metrics.set_state(SourceState::Failed);
+            return Err(self.fatal(message));
+        }
         metrics.set_state(SourceState::Ended);
         tracing::info!(source = %self.name, "replay finished");
         Ok(())
