@@ -42,8 +42,8 @@ pub fn read_capture(bytes: &[u8]) -> (usize, usize) {
     (messages, damaged)
 }
 
-/// A small valid capture: 6 frames of 8x6 range and 16x12 EO in chunks of about one
-/// frame, zstd-compressed, with its summary.
+/// A small valid capture: 6 frames of 8x6 range and 16x12 EO in chunks of a
+/// few frames, zstd-compressed, with its summary.
 pub fn sample_capture() -> &'static [u8] {
     static SAMPLE: OnceLock<Vec<u8>> = OnceLock::new();
     SAMPLE.get_or_init(|| build_sample().unwrap_or_default())
@@ -68,7 +68,7 @@ fn build_sample() -> Result<Vec<u8>, CaptureError> {
         max_range_m: 30.0,
     };
     let options = WriterOptions {
-        chunk_size_bytes: 512,
+        chunk_size_bytes: 4096,
         ..WriterOptions::default()
     };
     let mut w = CaptureWriter::new(Cursor::new(Vec::new()), options, NAME.into())?;
