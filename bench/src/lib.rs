@@ -12,4 +12,5 @@ pub mod capture_read;
 pub mod daemon_capture;
 pub mod daemon_sim;
 pub mod tradeoffs;
+pub mod txl1_decode;
 pub mod viewer_bench;

@@ -42,6 +42,8 @@ enum Command {
         #[arg(long, default_value = "target/bench-sim")]
         work_dir: PathBuf,
     },
+    /// Measure the TXL1 decoder on a hostile stream against a clean one.
+    Txl1(texel_bench::txl1_decode::Args),
     /// Measure the capture reader against the mcap crate's own reader.
     CaptureRead(texel_bench::capture_read::Args),
     /// Measure the viewer: frame time and GPU memory (k-buffer against naive layers).
@@ -101,6 +103,7 @@ fn main() -> ExitCode {
             ("daemon", result)
         }
         Command::Viewer(args) => ("viewer", texel_bench::viewer_bench::run(&args)),
+        Command::Txl1(args) => ("txl1", texel_bench::txl1_decode::run(&args)),
         Command::CaptureRead(args) => ("capture-read", texel_bench::capture_read::run(&args)),
         Command::Tradeoffs(TradeoffsCommand::Registration {
             quick,
