@@ -18,7 +18,8 @@ pub fn run(
         Ok(c) => c.unwrap_or_default(),
         Err(e) => {
             eprintln!("texeld register: {e}");
-            return std::process::ExitCode::FAILURE;
+            // A bad configuration, as for every command (docs/daemon.md).
+            return std::process::ExitCode::from(2);
         }
     };
     let bar = if std::io::IsTerminal::is_terminal(&std::io::stderr()) {

@@ -150,6 +150,16 @@ fn bad_configs_and_inputs_are_named() {
         stderr.contains("pyramid_levles") && stderr.contains("reg.toml"),
         "{stderr}"
     );
+    // A bad configuration exits 2, as for every command.
+    let status = std::process::Command::new(env!("CARGO_BIN_EXE_texeld"))
+        .args(["register", "missing.mcap", "--out"])
+        .arg(&out)
+        .arg("--config")
+        .arg(&config)
+        .output()
+        .unwrap()
+        .status;
+    assert_eq!(status.code(), Some(2));
     std::fs::write(&config, "[align]\npyramid_levels = 2\n").unwrap();
     let (ok, _, stderr) = texeld(&[
         "register",
