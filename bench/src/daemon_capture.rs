@@ -74,7 +74,7 @@ async fn run_once(capture: &Path, pace: Option<f64>) -> Result<Run, String> {
         arrivals,
         clock_origin,
         memory: hub.memory_bytes(),
-        first_scan: hub.model().scans().first().map(|s| s.scan.clone()),
+        first_scan: hub.model().scans().first().and_then(|s| s.scan.clone()),
         stages,
     })
 }

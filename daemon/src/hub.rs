@@ -225,7 +225,7 @@ impl Hub {
             .model
             .scans()
             .iter()
-            .map(|s| s.scan.heap_bytes())
+            .filter_map(|s| s.scan.as_ref().map(|scan| scan.heap_bytes()))
             .sum();
         let frames = inner.scan_frames.iter().map(Bytes::len).sum::<usize>()
             + inner

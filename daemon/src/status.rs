@@ -363,6 +363,7 @@ impl Metrics {
             counters,
             recording,
             clients: self.clients.load(Ordering::Relaxed),
+            model: None,
         }
     }
 }

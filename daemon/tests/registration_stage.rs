@@ -147,7 +147,7 @@ async fn failures_recoveries_and_revisions_reach_viewers_and_the_recording() {
         .model
         .scans()
         .iter()
-        .map(|s| s.scan.timestamp_ns)
+        .map(|s| s.listing.timestamp_ns)
         .collect();
     assert_eq!(order, vec![ts(0), ts(2), ts(3), ts(4), ts(1), ts(5)]);
     assert_eq!(replica.model.scans()[0].world_from_scan, revised_pose());

@@ -122,7 +122,7 @@ async fn sim_scans_reach_a_client_registered_near_the_truth_and_replay_bit_ident
         .filter(|s| s.revisions > 0)
         .count();
     for (i, s) in replica.model.scans().iter().enumerate() {
-        assert_eq!(s.scan.timestamp_ns, sim.timestamp_ns(i));
+        assert_eq!(s.listing.timestamp_ns, sim.timestamp_ns(i));
         let (angle, dist) = pose_difference(&s.world_from_scan, &sim.true_pose(i));
         eprintln!(
             "scan {i}: {:.4} deg {:.2} mm",
@@ -168,7 +168,7 @@ async fn sim_scans_reach_a_client_registered_near_the_truth_and_replay_bit_ident
         let last = recorded
             .iter()
             .rev()
-            .find(|(t, _)| *t == s.scan.timestamp_ns)
+            .find(|(t, _)| *t == s.listing.timestamp_ns)
             .unwrap();
         let (angle, dist) = pose_difference(&last.1, &s.world_from_scan);
         assert!(angle < 1e-12 && dist < 1e-12, "{angle} rad, {dist} m");
@@ -219,9 +219,8 @@ async fn sim_scans_reach_a_client_registered_near_the_truth_and_replay_bit_ident
     assert_eq!(t["meshes"].as_u64().unwrap() as usize, FRAMES);
     let vertices: usize = replica
         .model
-        .scans()
-        .iter()
-        .map(|s| s.scan.vertex_count())
+        .resident()
+        .map(|(_, scan)| scan.vertex_count())
         .sum();
     assert_eq!(t["vertices"].as_u64().unwrap() as usize, vertices);
     assert!(t["textured"].as_bool().unwrap());

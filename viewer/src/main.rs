@@ -136,9 +136,9 @@ impl SourceArgs {
                 )?;
                 eprintln!("{addr}: {} scans", model.len());
                 let default_fov_deg = model
-                    .scans()
-                    .first()
-                    .and_then(|s| texel_viewer::live::fov_y_deg_of_scan(&s.scan))
+                    .resident()
+                    .next()
+                    .and_then(|(_, scan)| texel_viewer::live::fov_y_deg_of_scan(scan))
                     .unwrap_or(50.0);
                 Ok(SourceModel {
                     model,

@@ -131,7 +131,7 @@ fn culling_counts_frustum_and_facing_away() {
     let (visible, _) = rc.cull(&cam, &s);
     let mut only = Renderer::new(gpu());
     for scan in corridor.scans().iter().filter(|m| visible.contains(&m.id)) {
-        only.add_scan(scan.id, &scan.scan, scan.world_from_scan)
+        only.add_scan(scan.id, scan.scan.as_ref().unwrap(), scan.world_from_scan)
             .unwrap();
     }
     let mut wide = VirtualCamera::new(cam.world_from_eo, 50.0, 64, 48).unwrap();

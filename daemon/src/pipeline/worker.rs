@@ -129,6 +129,8 @@ impl Worker {
                     id,
                     world_from_scan,
                 } => self.revised(id, world_from_scan, timestamps),
+                // Registration only adds and moves scans.
+                _ => None,
             };
             let Some(item) = item else {
                 continue;

@@ -146,6 +146,7 @@ impl Replica {
                 let applied = match &event {
                     ModelEvent::ScanAdded { id, .. } => Applied::ScanAdded(*id),
                     ModelEvent::PoseRevised { id, .. } => Applied::PoseRevised(*id),
+                    _ => Applied::Ignored,
                 };
                 self.model.apply(event)?;
                 applied

@@ -16,7 +16,7 @@ pub use scan::{
     MAX_GRID_SIDE, MAX_TEXTURE_BYTES, Texture, TextureFormat, TextureRef, WireScan, WireScanRef,
     check_sendable,
 };
-pub use status::{QueueStatus, RecordingStatus, SourceStatus, StageLatency, Status};
+pub use status::{ModelStatus, QueueStatus, RecordingStatus, SourceStatus, StageLatency, Status};
 
 use thiserror::Error;
 

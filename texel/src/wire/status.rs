@@ -53,6 +53,32 @@ pub struct RecordingStatus {
     pub errors: u64,
 }
 
+/// The served model: how many scans it has, where they live, what they cost.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct ModelStatus {
+    /// Every scan registered this session (ids `0..scans`).
+    pub scans: u64,
+    /// Scans in the served model (not retired).
+    pub served: u64,
+    /// Scans retired as redundant (kept in the recording and the store).
+    pub retired: u64,
+    /// Served scans whose encoded frames are in memory.
+    pub in_memory: u64,
+    /// Scans whose encoded frames live only in the on-disk store.
+    pub on_disk: u64,
+    /// Bytes the model holds in memory (encoded frames, coverage signatures, index).
+    pub memory_bytes: u64,
+    /// `model.memory_budget_mb` in bytes.
+    pub memory_budget_bytes: u64,
+    /// Bytes written to the on-disk store.
+    pub store_bytes: u64,
+    /// Scans read back from the store (viewer requests, late joiners).
+    pub store_reads: u64,
+    /// Store reads that failed (a damaged entry); the first is logged.
+    pub store_errors: u64,
+}
+
 /// Everything the periodic status reports.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
@@ -67,4 +93,6 @@ pub struct Status {
     pub counters: BTreeMap<String, u64>,
     pub recording: Option<RecordingStatus>,
     pub clients: u64,
+    /// The served model (absent from daemons that predate it).
+    pub model: Option<ModelStatus>,
 }

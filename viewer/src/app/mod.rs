@@ -145,13 +145,17 @@ impl ViewerState {
                     // camera with it.
                     if self.follow_newest
                         && self.model.scans().last().is_some_and(|s| s.id == id)
-                        && let Some(s) = self.model.get(id)
+                        && let Some(scan) = self.model.get(id).and_then(|s| s.scan.clone())
                     {
-                        let scan = Arc::clone(&s.scan);
                         self.jump(world_from_scan, &scan);
                     }
                     Ok(())
                 }
+                // Listings, withdrawals and evictions change what is known, not
+                // what is drawn from resident data.
+                ModelEvent::ScanListed { .. }
+                | ModelEvent::ScanWithdrawn { .. }
+                | ModelEvent::ScanEvicted { .. } => Ok(()),
             };
             if let Err(e) = result {
                 eprintln!("warning: {e}");
@@ -159,8 +163,9 @@ impl ViewerState {
         }
         if let Some(id) = self.jump_to.take()
             && let Some(s) = self.model.get(id)
+            && let Some(scan) = s.scan.clone()
         {
-            let (pose, scan) = (s.world_from_scan, Arc::clone(&s.scan));
+            let pose = s.world_from_scan;
             self.jump(pose, &scan);
         }
     }

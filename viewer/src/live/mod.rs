@@ -236,7 +236,7 @@ mod tests {
             &crate::scenes::box_scene_poses(),
             &texel::Pose::identity(),
         );
-        let scan = &model.scans()[0].scan;
+        let scan = model.scans()[0].scan.as_ref().unwrap();
         let truth = crate::camera::VirtualCamera::fov_y_deg_of(&sensor.model.eo);
         let got = fov_y_deg_of_scan(scan).unwrap();
         assert!((got - truth).abs() < 0.5, "{got} vs {truth}");

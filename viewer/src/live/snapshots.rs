@@ -129,7 +129,7 @@ fn shoot(
     };
     let fov = options
         .fov_deg
-        .or_else(|| fov_y_deg_of_scan(&newest.scan))
+        .or_else(|| newest.scan.as_deref().and_then(fov_y_deg_of_scan))
         .unwrap_or(50.0);
     let pose = match options.view {
         SnapshotView::Newest => newest.world_from_scan,
@@ -154,7 +154,7 @@ pub fn orbit_pose(model: &Model, index: usize) -> Option<Pose> {
     let mut lo = Vector3::repeat(f64::INFINITY);
     let mut hi = Vector3::repeat(f64::NEG_INFINITY);
     for s in model.scans() {
-        let Some((a, b)) = s.scan.bounds() else {
+        let Some((a, b)) = s.scan.as_deref().and_then(texel::TexelScan::bounds) else {
             continue;
         };
         for corner in 0..8 {

@@ -291,11 +291,11 @@ fn ate_mm(registered: &Model, truth: &Model) -> f64 {
     let truth_by_time: std::collections::HashMap<u64, texel::Pose> = truth
         .scans()
         .iter()
-        .map(|s| (s.scan.timestamp_ns, s.world_from_scan))
+        .map(|s| (s.listing.timestamp_ns, s.world_from_scan))
         .collect();
     let (mut sq, mut n) = (0.0, 0usize);
     for s in registered.scans() {
-        if let Some(t) = truth_by_time.get(&s.scan.timestamp_ns) {
+        if let Some(t) = truth_by_time.get(&s.listing.timestamp_ns) {
             sq += (s.world_from_scan.translation.vector - t.translation.vector).norm_squared();
             n += 1;
         }

@@ -239,8 +239,8 @@ impl Renderer {
     /// Brings the GPU copy up to date with a model: uploads scans not seen yet and
     /// takes every current pose.
     pub fn sync_model(&mut self, model: &Model) -> Result<(), GpuError> {
-        for s in model.scans() {
-            self.add_scan(s.id, &s.scan, s.world_from_scan)?;
+        for (s, scan) in model.resident() {
+            self.add_scan(s.id, scan, s.world_from_scan)?;
         }
         Ok(())
     }
