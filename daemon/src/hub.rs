@@ -1,29 +1,39 @@
-//! The model hub: the daemon's model (`texel::model`), the encoded frames a newcomer
-//! needs to rebuild it, and a bounded queue per connected client.
+//! The model hub: the served model (every scan's listing and current pose, which
+//! scans are retired, which encoded frames are in memory and which only in the
+//! on-disk store), its memory budget, and a bounded queue per connected client.
 //!
 //! Publishing never waits: a frame is encoded once, then offered to every client
 //! queue with `try_send`. A client whose queue is full is cut off from live updates
-//! and told to resynchronise: its connection task drops what is queued and sends a
-//! fresh snapshot (or, by policy or after too many resyncs, disconnects it). So a
-//! slow viewer never stalls ingest or the other viewers, and no queue grows without
-//! bound. Queued frames are shared (`Bytes`), so a queue costs references, not copies.
+//! and told to resynchronise (see `server`). So a slow viewer never stalls ingest or
+//! the other viewers, and no queue grows without bound. Queued frames are shared
+//! (`Bytes`), so a queue costs references, not copies.
+//!
+//! Memory: the hub holds no scans, only their encoded `ScanAdded` frames, and only
+//! within `memory_budget_bytes`: every frame is in the store (written by the encode
+//! stage before it reaches the hub), so going over the budget drops the frames
+//! requested least recently; a request reads them back. Retired scans (redundant,
+//! `texel::coverage`) leave the served model and memory at once, and come back as a
+//! listing when a pose revision makes them useful again.
 
+use std::collections::{BTreeMap, HashMap};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 
 use bytes::Bytes;
 use texel::Pose;
-use texel::model::{Model, ModelError, ModelEvent, ScanId};
-use texel::wire::{Message, WireError};
+use texel::coverage::{Changes, CoverageConfig, Retirement, ScanCoverage};
+use texel::model::{ScanId, ScanListing};
+use texel::wire::{Message, ModelStatus, WireError};
 use tokio::sync::mpsc;
 
-use texel::TexelScan;
+use crate::serve_order::{REGION_M, Served, coarse_first};
+use crate::store::{Store, StoreError};
 
 /// One client's live feed.
 pub struct Subscription {
     pub client_id: u64,
-    /// The frames that rebuild the model as it was when subscribing: `ModelReset`,
-    /// every scan, the revised poses, `SnapshotComplete`.
+    /// What a newcomer learns first: `ModelReset`, one `ScanListed` per served scan
+    /// in coarse-first order, `SnapshotComplete`. It then asks for the scans' data.
     pub snapshot: Vec<Bytes>,
     /// Live frames after the snapshot.
     pub live: mpsc::Receiver<Bytes>,
@@ -37,12 +47,43 @@ struct ClientSlot {
     lagged: Arc<AtomicBool>,
 }
 
+/// What the hub knows of one scan.
+struct Entry {
+    listing: ScanListing,
+    world_from_scan: Pose,
+    /// Moved since its `ScanAdded` frame was made.
+    revised: bool,
+    retired: bool,
+    /// The encoded `ScanAdded` frame, when in memory.
+    frame: Option<Bytes>,
+    /// Whether the store holds the frame (so it may be dropped from memory).
+    stored: bool,
+    /// When it was last added or requested (an LRU tick).
+    used: u64,
+}
+
+/// How the hub keeps its model.
+#[derive(Clone, Default)]
+pub struct ModelOptions {
+    /// Frames held in memory beyond this are dropped, least recently requested first
+    /// (only those the store holds). `u64::MAX`: no budget.
+    pub memory_budget_bytes: u64,
+    /// Where frames beyond the budget (and retired ones) live.
+    pub store: Option<Arc<Store>>,
+    /// Retirement of redundant scans; `None` (or disabled) keeps every scan served.
+    pub coverage: Option<CoverageConfig>,
+}
+
 struct Inner {
-    model: Model,
-    /// The `ScanAdded` frame of each scan as first published.
-    scan_frames: Vec<Bytes>,
-    /// The `PoseRevised` frame of the latest revision of each scan, if any.
-    revision_frames: Vec<Option<Bytes>>,
+    entries: BTreeMap<ScanId, Entry>,
+    retirement: Option<Retirement>,
+    /// In-memory frames by last use: the eviction order.
+    lru: BTreeMap<u64, ScanId>,
+    tick: u64,
+    frame_bytes: u64,
+    served: u64,
+    store_reads: u64,
+    store_errors: u64,
     clients: Vec<ClientSlot>,
     next_client_id: u64,
     /// Set once the hub is closed: the reason clients are told.
@@ -53,32 +94,83 @@ struct Inner {
 #[derive(Debug, thiserror::Error)]
 pub enum HubError {
     #[error(transparent)]
-    Model(#[from] ModelError),
-    #[error(transparent)]
     Wire(#[from] WireError),
+    #[error("scan {0} was added twice")]
+    Duplicate(ScanId),
+    #[error("pose revision for unknown scan {0}")]
+    UnknownScan(ScanId),
     #[error("the hub is closed")]
     Closed,
+}
+
+/// Why a request for a scan cannot be answered; the text is what the client is told.
+#[derive(Debug, thiserror::Error)]
+pub enum FetchError {
+    #[error("no scan {0} in this session")]
+    Unknown(ScanId),
+    #[error("scan {0} is retired (redundant): it left the served model")]
+    Withdrawn(ScanId),
+    #[error("scan {id} cannot be read back: {source}")]
+    Store { id: ScanId, source: StoreError },
+    #[error("scan {0} is neither in memory nor in a store")]
+    Lost(ScanId),
+    #[error("cannot encode scan {id}'s pose: {source}")]
+    Wire { id: ScanId, source: WireError },
 }
 
 /// The shared model and its subscribers.
 pub struct Hub {
     inner: Mutex<Inner>,
     client_queue: usize,
+    options: ModelOptions,
 }
 
 impl Hub {
+    /// A hub that keeps every frame in memory and retires nothing.
     pub fn new(client_queue: usize) -> Arc<Self> {
+        Self::with_model(
+            client_queue,
+            ModelOptions {
+                memory_budget_bytes: u64::MAX,
+                ..ModelOptions::default()
+            },
+        )
+    }
+
+    pub fn with_model(client_queue: usize, options: ModelOptions) -> Arc<Self> {
+        let retirement = options
+            .coverage
+            .clone()
+            .filter(|c| c.enabled)
+            .map(Retirement::new);
         Arc::new(Self {
             inner: Mutex::new(Inner {
-                model: Model::new(),
-                scan_frames: Vec::new(),
-                revision_frames: Vec::new(),
+                entries: BTreeMap::new(),
+                retirement,
+                lru: BTreeMap::new(),
+                tick: 0,
+                frame_bytes: 0,
+                served: 0,
+                store_reads: 0,
+                store_errors: 0,
                 clients: Vec::new(),
                 next_client_id: 0,
                 closed: None,
             }),
             client_queue: client_queue.max(1),
+            options,
         })
+    }
+
+    /// The store frames are written to, if any (the encode stage writes there first).
+    pub fn store(&self) -> Option<&Arc<Store>> {
+        self.options.store.as_ref()
+    }
+
+    /// Whether new scans are tested for redundancy (so the encode stage computes
+    /// their coverage).
+    pub fn retires(&self) -> bool {
+        self.lock().retirement.is_some()
     }
 
     fn lock(&self) -> MutexGuard<'_, Inner> {
@@ -101,30 +193,64 @@ impl Hub {
             });
     }
 
-    /// Adds a scan, already encoded as a `ScanAdded` frame with id `id`.
+    /// Adds a scan, encoded as a `ScanAdded` frame with id `id` (already in the store
+    /// when `stored`). A scan retirement finds redundant is kept out of the served
+    /// model at once; scans it makes redundant are withdrawn.
     pub fn add_scan(
         &self,
         id: ScanId,
-        scan: Arc<TexelScan>,
+        listing: ScanListing,
         world_from_scan: Pose,
         frame: Bytes,
+        stored: bool,
+        coverage: Option<ScanCoverage>,
     ) -> Result<(), HubError> {
         let mut inner = self.lock();
         if inner.closed.is_some() {
             return Err(HubError::Closed);
         }
-        inner.model.apply(ModelEvent::ScanAdded {
+        if inner.entries.contains_key(&id) {
+            return Err(HubError::Duplicate(id));
+        }
+        inner.tick += 1;
+        let used = inner.tick;
+        inner.entries.insert(
             id,
-            scan,
-            world_from_scan,
-        })?;
-        inner.scan_frames.push(frame.clone());
-        inner.revision_frames.push(None);
-        Self::broadcast(&mut inner, &frame);
+            Entry {
+                listing,
+                world_from_scan,
+                revised: false,
+                retired: false,
+                frame: None,
+                stored,
+                used,
+            },
+        );
+        inner.served += 1;
+        let changes = match (inner.retirement.as_mut(), coverage) {
+            (Some(r), Some(c)) => r.add(id, c, world_from_scan),
+            _ => Changes::default(),
+        };
+        let retired_now = changes.retired.contains(&id);
+        if retired_now {
+            inner.served -= 1;
+            if let Some(e) = inner.entries.get_mut(&id) {
+                e.retired = true;
+            }
+            if !stored {
+                // Without a store a retired frame could never come back: keep it.
+                Self::hold_frame(&mut inner, id, frame);
+            }
+        } else {
+            Self::hold_frame(&mut inner, id, frame.clone());
+            Self::broadcast(&mut inner, &frame);
+        }
+        self.apply_changes(&mut inner, &changes, Some(id))?;
+        self.enforce_budget(&mut inner);
         Ok(())
     }
 
-    /// Revises a scan's pose.
+    /// Revises a scan's pose (retired scans too: they keep their place in the graph).
     pub fn revise_pose(&self, id: ScanId, world_from_scan: Pose) -> Result<(), HubError> {
         let frame = Bytes::from(
             Message::PoseRevised {
@@ -137,18 +263,170 @@ impl Hub {
         if inner.closed.is_some() {
             return Err(HubError::Closed);
         }
-        inner.model.apply(ModelEvent::PoseRevised {
-            id,
-            world_from_scan,
-        })?;
-        if let Some(slot) = usize::try_from(id)
-            .ok()
-            .and_then(|i| inner.revision_frames.get_mut(i))
-        {
-            *slot = Some(frame.clone());
+        let entry = inner
+            .entries
+            .get_mut(&id)
+            .ok_or(HubError::UnknownScan(id))?;
+        entry.world_from_scan = world_from_scan;
+        entry.revised = true;
+        if !entry.retired {
+            Self::broadcast(&mut inner, &frame);
         }
-        Self::broadcast(&mut inner, &frame);
+        let changes = match inner.retirement.as_mut() {
+            Some(r) => r.revise(id, world_from_scan),
+            None => Changes::default(),
+        };
+        self.apply_changes(&mut inner, &changes, None)?;
         Ok(())
+    }
+
+    /// Withdraws the scans retirement retired (but `skip`, handled by the caller)
+    /// and lists the ones it restored.
+    fn apply_changes(
+        &self,
+        inner: &mut Inner,
+        changes: &Changes,
+        skip: Option<ScanId>,
+    ) -> Result<(), HubError> {
+        for &id in changes.retired.iter().filter(|&&id| Some(id) != skip) {
+            let Some(e) = inner.entries.get_mut(&id) else {
+                continue;
+            };
+            if e.retired {
+                continue;
+            }
+            e.retired = true;
+            if e.stored {
+                if let Some(f) = e.frame.take() {
+                    let used = e.used;
+                    inner.frame_bytes -= f.len() as u64;
+                    inner.lru.remove(&used);
+                }
+            }
+            inner.served -= 1;
+            let frame = Bytes::from(Message::ScanWithdrawn { id }.encode()?);
+            Self::broadcast(inner, &frame);
+        }
+        for &id in &changes.restored {
+            let Some(e) = inner.entries.get_mut(&id) else {
+                continue;
+            };
+            if !e.retired {
+                continue;
+            }
+            e.retired = false;
+            inner.served += 1;
+            let frame = Bytes::from(
+                Message::ScanListed {
+                    id,
+                    listing: e.listing,
+                    world_from_scan: e.world_from_scan,
+                }
+                .encode()?,
+            );
+            Self::broadcast(inner, &frame);
+        }
+        Ok(())
+    }
+
+    /// Keeps a frame in memory as the most recently used.
+    fn hold_frame(inner: &mut Inner, id: ScanId, frame: Bytes) {
+        inner.tick += 1;
+        let tick = inner.tick;
+        let Some(e) = inner.entries.get_mut(&id) else {
+            return;
+        };
+        let old_used = e.used;
+        e.used = tick;
+        let added = frame.len() as u64;
+        if let Some(old) = e.frame.replace(frame) {
+            inner.frame_bytes -= old.len() as u64;
+            inner.lru.remove(&old_used);
+        }
+        inner.frame_bytes += added;
+        inner.lru.insert(tick, id);
+    }
+
+    /// Drops the least recently used stored frames until memory is within budget.
+    fn enforce_budget(&self, inner: &mut Inner) {
+        let budget = self.options.memory_budget_bytes;
+        let mut kept = Vec::new();
+        while inner.frame_bytes > budget {
+            let Some((tick, id)) = inner.lru.pop_first() else {
+                break;
+            };
+            let Some(e) = inner.entries.get_mut(&id) else {
+                continue;
+            };
+            if !e.stored {
+                // Not in the store: it cannot leave memory.
+                kept.push((tick, id));
+                continue;
+            }
+            if let Some(f) = e.frame.take() {
+                inner.frame_bytes -= f.len() as u64;
+            }
+        }
+        inner.lru.extend(kept);
+    }
+
+    /// The encoded `ScanAdded` frame of a served scan, from memory or read back from
+    /// the store (which blocks: call from a blocking thread). A frame read back is
+    /// held in memory again as the most recently requested.
+    pub fn fetch_scan(&self, id: ScanId) -> Result<Bytes, FetchError> {
+        {
+            let mut inner = self.lock();
+            let e = inner.entries.get(&id).ok_or(FetchError::Unknown(id))?;
+            if e.retired {
+                return Err(FetchError::Withdrawn(id));
+            }
+            if let Some(frame) = e.frame.clone() {
+                Self::hold_frame(&mut inner, id, frame.clone());
+                return Ok(frame);
+            }
+        }
+        let store = self.options.store.as_ref().ok_or(FetchError::Lost(id))?;
+        let read = store.read(id);
+        let mut inner = self.lock();
+        match read {
+            Ok(frame) => {
+                inner.store_reads += 1;
+                if inner.entries.get(&id).is_some_and(|e| !e.retired) {
+                    Self::hold_frame(&mut inner, id, frame.clone());
+                    self.enforce_budget(&mut inner);
+                }
+                Ok(frame)
+            }
+            Err(source) => {
+                inner.store_errors += 1;
+                if inner.store_errors == 1 {
+                    tracing::error!("model store: {source}");
+                }
+                Err(FetchError::Store { id, source })
+            }
+        }
+    }
+
+    /// What to send for a fetched frame, decided at the moment of sending (in the task
+    /// that also sends live frames): nothing if the scan left the served model in the
+    /// meantime, else the frame and, if it moved since it was encoded, its current pose.
+    pub fn finish_fetch(&self, id: ScanId, frame: Bytes) -> Result<Vec<Bytes>, FetchError> {
+        let inner = self.lock();
+        let e = inner.entries.get(&id).ok_or(FetchError::Unknown(id))?;
+        if e.retired {
+            return Err(FetchError::Withdrawn(id));
+        }
+        let mut frames = vec![frame];
+        if e.revised {
+            let pose = Message::PoseRevised {
+                id,
+                world_from_scan: e.world_from_scan,
+            }
+            .encode()
+            .map_err(|source| FetchError::Wire { id, source })?;
+            frames.push(Bytes::from(pose));
+        }
+        Ok(frames)
     }
 
     /// Offers a status frame; a client with a full queue simply misses it (statuses
@@ -167,11 +445,32 @@ impl Hub {
         if inner.closed.is_some() {
             return Err(HubError::Closed);
         }
-        let scan_count = inner.model.len() as u64;
-        let mut snapshot = Vec::with_capacity(2 + 2 * inner.scan_frames.len());
+        let served: Vec<Served<'_>> = inner
+            .entries
+            .iter()
+            .filter(|(_, e)| !e.retired)
+            .map(|(&id, e)| Served {
+                id,
+                listing: &e.listing,
+                world_from_scan: &e.world_from_scan,
+            })
+            .collect();
+        let scan_count = served.len() as u64;
+        let order = coarse_first(&served, REGION_M);
+        let mut snapshot = Vec::with_capacity(order.len() + 2);
         snapshot.push(Bytes::from(Message::ModelReset { scan_count }.encode()?));
-        snapshot.extend(inner.scan_frames.iter().cloned());
-        snapshot.extend(inner.revision_frames.iter().flatten().cloned());
+        for id in order {
+            if let Some(e) = inner.entries.get(&id) {
+                snapshot.push(Bytes::from(
+                    Message::ScanListed {
+                        id,
+                        listing: e.listing,
+                        world_from_scan: e.world_from_scan,
+                    }
+                    .encode()?,
+                ));
+            }
+        }
         snapshot.push(Bytes::from(
             Message::SnapshotComplete { scan_count }.encode()?,
         ));
@@ -209,31 +508,69 @@ impl Hub {
         self.lock().closed.clone()
     }
 
-    /// A copy of the model (scans are shared, not copied).
-    pub fn model(&self) -> Model {
-        self.lock().model.clone()
-    }
-
+    /// Every scan added this session (served or retired).
     pub fn scan_count(&self) -> usize {
-        self.lock().model.len()
+        self.lock().entries.len()
     }
 
-    /// Bytes held by the model's scans and their encoded frames.
+    /// Scans in the served model.
+    pub fn served_count(&self) -> usize {
+        self.lock().served as usize
+    }
+
+    /// Whether scan `id` is in the served model.
+    pub fn is_served(&self, id: ScanId) -> bool {
+        self.lock().entries.get(&id).is_some_and(|e| !e.retired)
+    }
+
+    /// Every scan's current pose and whether it is served, by id.
+    pub fn poses(&self) -> Vec<(ScanId, Pose, bool)> {
+        self.lock()
+            .entries
+            .iter()
+            .map(|(&id, e)| (id, e.world_from_scan, !e.retired))
+            .collect()
+    }
+
+    /// Bytes the model holds in memory: encoded frames, and the index (entries,
+    /// coverage signatures).
     pub fn memory_bytes(&self) -> (usize, usize) {
         let inner = self.lock();
-        let scans = inner
-            .model
-            .scans()
+        let index = inner.entries.len() * (std::mem::size_of::<Entry>() + 48)
+            + inner.retirement.as_ref().map_or(0, Retirement::heap_bytes);
+        (index, inner.frame_bytes as usize)
+    }
+
+    /// The model's part of the status.
+    pub fn status(&self) -> ModelStatus {
+        let (index, frames) = self.memory_bytes();
+        let inner = self.lock();
+        let in_memory = inner
+            .entries
+            .values()
+            .filter(|e| !e.retired && e.frame.is_some())
+            .count() as u64;
+        ModelStatus {
+            scans: inner.entries.len() as u64,
+            served: inner.served,
+            retired: inner.entries.len() as u64 - inner.served,
+            in_memory,
+            on_disk: inner.entries.values().filter(|e| e.frame.is_none()).count() as u64,
+            memory_bytes: (index + frames) as u64,
+            memory_budget_bytes: self.options.memory_budget_bytes,
+            store_bytes: self.options.store.as_ref().map_or(0, |s| s.len_bytes()),
+            store_reads: inner.store_reads,
+            store_errors: inner.store_errors,
+        }
+    }
+
+    /// Listings of the served scans, for in-process readers (benchmarks, exports).
+    pub fn listings(&self) -> HashMap<ScanId, ScanListing> {
+        self.lock()
+            .entries
             .iter()
-            .filter_map(|s| s.scan.as_ref().map(|scan| scan.heap_bytes()))
-            .sum();
-        let frames = inner.scan_frames.iter().map(Bytes::len).sum::<usize>()
-            + inner
-                .revision_frames
-                .iter()
-                .flatten()
-                .map(Bytes::len)
-                .sum::<usize>();
-        (scans, frames)
+            .filter(|(_, e)| !e.retired)
+            .map(|(&id, e)| (id, e.listing))
+            .collect()
     }
 }

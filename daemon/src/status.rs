@@ -32,6 +32,8 @@ pub enum Counter {
     EncodeFallbacks,
     /// Scans that could not be encoded at all (not streamed; should never happen).
     EncodeFailures,
+    /// Scans the on-disk model store could not take (kept in memory instead).
+    StoreErrors,
     /// Pairs not registered because registration was behind (recorded all the same).
     SkippedByOverload,
     Scans,
@@ -52,7 +54,7 @@ pub enum Counter {
 }
 
 impl Counter {
-    pub const ALL: [Counter; 23] = [
+    pub const ALL: [Counter; 24] = [
         Self::Paired,
         Self::UnpairedRange,
         Self::UnpairedEo,
@@ -66,6 +68,7 @@ impl Counter {
         Self::RegistrationRecovered,
         Self::EncodeFallbacks,
         Self::EncodeFailures,
+        Self::StoreErrors,
         Self::SkippedByOverload,
         Self::Scans,
         Self::PoseRevisions,
@@ -93,6 +96,7 @@ impl Counter {
             Self::RegistrationRecovered => "registration_recovered",
             Self::EncodeFallbacks => "encode_fallbacks",
             Self::EncodeFailures => "encode_failures",
+            Self::StoreErrors => "store_errors",
             Self::SkippedByOverload => "skipped_by_overload",
             Self::Scans => "scans",
             Self::PoseRevisions => "pose_revisions",
@@ -410,6 +414,18 @@ pub fn status_line(s: &Status) -> String {
         if r.errors > 0 {
             line.push_str(&format!(", {} write errors", r.errors));
         }
+    }
+    if let Some(m) = &s.model {
+        line.push_str(&format!(
+            "; model {} served of {} ({} retired), {} in memory, {} on disk only, {:.1}/{:.0} MiB",
+            m.served,
+            m.scans,
+            m.retired,
+            m.in_memory,
+            m.on_disk,
+            m.memory_bytes as f64 / 1048576.0,
+            m.memory_budget_bytes as f64 / 1048576.0
+        ));
     }
     line.push_str(&format!("; clients {}", s.clients));
     line

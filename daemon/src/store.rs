@@ -139,6 +139,21 @@ impl Store {
         Ok(Self::with(path, file, 0, HashMap::new()))
     }
 
+    /// Creates a store in the system's temporary folder whose file is unlinked at
+    /// once: it lives as long as the store, even if the process is killed.
+    pub fn create_anonymous() -> Result<Self, StoreError> {
+        let nanos = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos());
+        let path = std::env::temp_dir().join(format!(
+            "texel-model-{}-{nanos}.scans",
+            std::process::id()
+        ));
+        let store = Self::create(&path)?;
+        std::fs::remove_file(&path).map_err(|source| io_error(&path, source))?;
+        Ok(store)
+    }
+
     /// Opens a store a previous run wrote, keeping every whole entry; a damaged tail
     /// (a run killed mid-write) is reported and cut off so appends continue cleanly.
     pub fn open_existing(path: &Path) -> Result<(Self, StoreScan), StoreError> {

@@ -12,8 +12,10 @@ use texel::wire::TextureFormat;
 use texel_register::RegistrationConfig;
 use thiserror::Error;
 
+mod model;
 #[cfg(feature = "sim")]
 mod sim;
+pub use model::ModelSection;
 #[cfg(feature = "sim")]
 pub use sim::{LatePolicy, SimConfig, SimSerialConfig, SimSetup};
 
@@ -48,6 +50,8 @@ pub struct SessionConfig {
     pub record: RecordSection,
     pub serve: ServeSection,
     pub status: StatusSection,
+    /// The model over a long session: memory budget, on-disk store, retirement.
+    pub model: ModelSection,
 }
 
 #[derive(Debug, Clone, Deserialize)]
@@ -614,6 +618,7 @@ impl SessionConfig {
             return Err(invalid("status.interval_ms", "must be positive".into()));
         }
         validate_serve_limits(&self.serve).map_err(|(k, m)| invalid(k, m))?;
+        self.model.validate().map_err(|(k, m)| invalid(k, m))?;
         if !(1..=100).contains(&self.serve.jpeg_quality) {
             return Err(invalid(
                 "serve.jpeg_quality",

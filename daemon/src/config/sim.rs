@@ -58,6 +58,9 @@ pub struct SimConfig {
     pub late: LatePolicy,
     /// Send each frame's `/truth/pose` (recorded, and the world anchor).
     pub truth: bool,
+    /// Times the trajectory is walked; later walks resend the first walk's renders
+    /// with later timestamps (long sessions at the cost of one walk's rendering).
+    pub loops: u32,
 }
 
 impl Default for SimConfig {
@@ -76,6 +79,7 @@ impl Default for SimConfig {
             render_threads: 0,
             late: LatePolicy::Skip,
             truth: true,
+            loops: 1,
         }
     }
 }
@@ -189,6 +193,12 @@ pub(super) fn validate_sources(
             return Err(invalid(
                 &format!("{key}.render_threads"),
                 format!("must be at most 64, got {}", c.render_threads),
+            ));
+        }
+        if !(1..=1_000_000).contains(&c.loops) {
+            return Err(invalid(
+                &format!("{key}.loops"),
+                format!("must be in 1..=1000000, got {}", c.loops),
             ));
         }
     }

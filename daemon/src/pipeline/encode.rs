@@ -14,7 +14,8 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use bytes::Bytes;
-use texel::model::ScanId;
+use texel::coverage::{CoverageConfig, ScanCoverage};
+use texel::model::{ScanId, ScanListing};
 use texel::wire::{TextureFormat, TextureRef, WireScanRef};
 use texel::{Pose, TexelScan};
 use tokio::sync::mpsc;
@@ -45,6 +46,8 @@ pub struct Encoder {
     pub metrics: Arc<Metrics>,
     pub texture: TextureFormat,
     pub jpeg_quality: u8,
+    /// How a scan's coverage is measured (its priority, and retirement's input).
+    pub coverage: CoverageConfig,
 }
 
 impl Encoder {
@@ -94,9 +97,30 @@ impl Encoder {
                 }
             }
         };
+        // What the scan shows, reliability-weighted: its priority for newcomers, and
+        // what retirement tests it by.
+        let coverage = ScanCoverage::of(&scan, &self.coverage);
+        let listing = ScanListing::of_scan(&scan, frame.len() as u64, coverage.score() as f32);
+        drop(scan);
+        // Into the store first, so the hub may drop it from memory at any time.
+        let stored = match self.hub.store() {
+            Some(store) => match store.append(id, &frame) {
+                Ok(()) => true,
+                Err(e) => {
+                    self.metrics.add(Counter::StoreErrors, 1);
+                    tracing::error!("scan {id} kept in memory only: {e}");
+                    false
+                }
+            },
+            None => false,
+        };
         self.metrics
             .record_latency(Stage::Encode, started.elapsed());
-        if let Err(e) = self.hub.add_scan(id, scan, world_from_scan, frame) {
+        let coverage = self.hub.retires().then_some(coverage);
+        if let Err(e) = self
+            .hub
+            .add_scan(id, listing, world_from_scan, frame, stored, coverage)
+        {
             tracing::debug!("scan {id} not added: {e}");
             return;
         }

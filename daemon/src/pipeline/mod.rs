@@ -35,7 +35,8 @@ use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 
 use crate::config::{RegistrationMode, SessionConfig};
-use crate::hub::Hub;
+use crate::hub::{Hub, ModelOptions};
+use crate::store::Store;
 use crate::record::{RecordItem, RecordSummary, Recorder};
 use crate::server::{self, ServeOptions};
 use crate::source::replay::{Pace, ReplaySource};
@@ -69,6 +70,8 @@ pub enum SessionError {
     },
     #[error("config: {0}")]
     Config(String),
+    #[error("{0}")]
+    Store(String),
     #[error("a pipeline thread failed: {0}")]
     Thread(String),
 }
@@ -135,7 +138,7 @@ impl Session {
             Some(path) => Some(Recorder::start(path, &config.record)?),
             None => None,
         };
-        let hub = Hub::new(config.serve.client_queue);
+        let hub = Hub::with_model(config.serve.client_queue, model_options(&config)?);
         let metrics = Metrics::new();
         // Sources are known to the status from the start.
         let sources: Vec<_> = build_sources(&config)
@@ -174,6 +177,21 @@ impl Session {
             .await
             .map_err(|e| SessionError::Thread(e.to_string()))?
     }
+}
+
+/// How the hub keeps the model: the budget, the store (beside the recording, where
+/// `model.store_path` says, or an anonymous temporary file), retirement.
+fn model_options(config: &SessionConfig) -> Result<ModelOptions, SessionError> {
+    let store = match config.model.store_path_for(config.record.path.as_deref()) {
+        Some(path) => Store::create(&path),
+        None => Store::create_anonymous(),
+    }
+    .map_err(|e| SessionError::Store(e.to_string()))?;
+    Ok(ModelOptions {
+        memory_budget_bytes: config.model.memory_budget_bytes(),
+        store: Some(Arc::new(store)),
+        coverage: Some(config.model.retirement.clone()),
+    })
 }
 
 /// The sources a session's config names.
@@ -226,6 +244,8 @@ pub fn build_sources(config: &SessionConfig) -> Vec<Box<dyn Source>> {
             render_threads: c.render_threads,
             late: c.late,
             truth: c.truth,
+            loops: c.loops,
+            resume_after_ns: None,
         }));
     }
     #[cfg(feature = "sim")]
@@ -384,6 +404,7 @@ async fn run(
         metrics: Arc::clone(&metrics),
         texture: config.serve.texture,
         jpeg_quality: config.serve.jpeg_quality,
+        coverage: config.model.retirement.clone(),
     };
     let encode_thread = std::thread::Builder::new()
         .name("texel-encode".into())
@@ -425,7 +446,8 @@ async fn run(
                     _ = interval.tick() => {}
                     () = stop.cancelled() => break,
                 }
-                let status = metrics.snapshot();
+                let mut status = metrics.snapshot();
+                status.model = Some(hub.status());
                 if log {
                     tracing::info!("status: {}", status_line(&status));
                 }
@@ -505,7 +527,8 @@ async fn run(
         );
     }
     status_stop.cancel();
-    let status = metrics.snapshot();
+    let mut status = metrics.snapshot();
+    status.model = Some(hub.status());
     tracing::info!("final status: {}", status_line(&status));
     hub.close("the daemon is shutting down");
     server_stop.cancel();

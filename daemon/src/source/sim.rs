@@ -65,6 +65,13 @@ pub struct SimSource {
     pub late: LatePolicy,
     /// Send each frame's `/truth/pose`.
     pub truth: bool,
+    /// Times the trajectory is walked (at least 1). Later walks send the first walk's
+    /// renders again (kept in memory), timestamps continuing: a session of any
+    /// length at the cost of one walk's rendering.
+    pub loops: u32,
+    /// Frames at or before this timestamp are not sent (nor rendered): a resumed
+    /// session goes on after its recording ends.
+    pub resume_after_ns: Option<u64>,
 }
 
 impl Source for SimSource {
@@ -138,7 +145,9 @@ impl SimSource {
         let m = sim.sensor_model();
         let frame_bytes = (m.eo.width as usize * m.eo.height as usize * 3)
             + (m.lidar.width as usize * m.lidar.height as usize * 8);
-        if self.prerender && frames.saturating_mul(frame_bytes) > MAX_PRERENDER_BYTES {
+        // Several walks keep the first walk's renders, as prerendering does.
+        let keep_all = self.prerender || self.loops > 1;
+        if keep_all && frames.saturating_mul(frame_bytes) > MAX_PRERENDER_BYTES {
             return Err(self.fatal(
                 &metrics,
                 format!(
@@ -158,7 +167,7 @@ impl SimSource {
             0 => std::thread::available_parallelism().map_or(2, |n| n.get()),
             n => n,
         };
-        let lookahead = if self.prerender { frames } else { threads + 2 };
+        let lookahead = if keep_all { frames } else { threads + 2 };
         let board = Board {
             state: Mutex::new(Shared {
                 next_to_render: 0,
@@ -209,6 +218,9 @@ impl SimSource {
         metrics: &SourceMetrics,
     ) -> Result<(), String> {
         let frames = sim.frame_count();
+        let walks = self.loops.max(1) as usize;
+        // Later walks repeat the first walk's renders: keep them.
+        let keep = walks > 1;
         if self.prerender {
             let mut s = board.lock();
             while s.rendered.len() < frames && s.failed.is_none() {
@@ -223,21 +235,43 @@ impl SimSource {
             Pace::Speed(s) => Some(s),
             Pace::Fast => None,
         };
-        let t0 = sim.timestamp_ns(0);
+        let walk_ns = walk_duration_ns(sim);
+        // Frame `g` of the whole session is frame `g % frames` of walk `g / frames`.
+        let timestamp = |g: usize| -> u64 {
+            let walk = (g / frames.max(1)) as u64;
+            sim.timestamp_ns(g % frames.max(1))
+                .saturating_add(walk.saturating_mul(walk_ns))
+        };
+        let total = frames.saturating_mul(walks);
+        // A resumed session starts after what its recording holds.
+        let first = match self.resume_after_ns {
+            Some(after) => (0..total).find(|&g| timestamp(g) > after).unwrap_or(total),
+            None => 0,
+        };
+        if first > 0 && first < frames && !keep {
+            let mut s = board.lock();
+            s.skip_below = first;
+            s.sending = first;
+            drop(s);
+            board.changed.notify_all();
+        }
+        let t0 = timestamp(first.min(total.saturating_sub(1)));
         let wall0 = Instant::now();
         metrics.set_clock_origin(t0, wall0);
-        let due = |i: usize| -> Option<Instant> {
+        let due = |g: usize| -> Option<Instant> {
             let speed = speed?;
-            let offset_s = sim.timestamp_ns(i).saturating_sub(t0) as f64 * 1e-9 / speed;
+            let offset_s = timestamp(g).saturating_sub(t0) as f64 * 1e-9 / speed;
             Some(wall0 + Duration::from_secs_f64(offset_s.clamp(0.0, 1e9)))
         };
-        let mut i = 0;
-        while i < frames {
+        let mut g = first;
+        while g < total {
             if shutdown.is_cancelled() {
                 return Ok(());
             }
-            // Wait until frame i is due.
-            if let Some(at) = due(i) {
+            let i = g % frames;
+            let walk = g / frames;
+            // Wait until frame g is due.
+            if let Some(at) = due(g) {
                 while Instant::now() < at {
                     if shutdown.is_cancelled() {
                         return Ok(());
@@ -246,9 +280,10 @@ impl SimSource {
                 }
             }
             // Wait for it to be rendered: under `skip`, no longer than until the next
-            // frame is due.
+            // frame is due. A later walk has every render it will get.
             let give_up = match self.late {
-                LatePolicy::Skip if i + 1 < frames => due(i + 1),
+                _ if walk > 0 => Some(Instant::now()),
+                LatePolicy::Skip if g + 1 < total => due(g + 1),
                 _ => None,
             };
             let frame = {
@@ -257,7 +292,12 @@ impl SimSource {
                     if let Some(message) = s.failed.take() {
                         return Err(message);
                     }
-                    if let Some(f) = s.rendered.remove(&i) {
+                    let found = if keep {
+                        s.rendered.get(&i).cloned()
+                    } else {
+                        s.rendered.remove(&i)
+                    };
+                    if let Some(f) = found {
                         break Some(f);
                     }
                     if shutdown.is_cancelled() {
@@ -269,38 +309,50 @@ impl SimSource {
                     s = board.wait(s);
                 }
             };
-            let Some(frame) = frame else {
+            let Some(mut frame) = frame else {
+                if walk > 0 {
+                    metrics.add_counter("late_skipped", 1);
+                    g += 1;
+                    continue;
+                }
                 // Skip to the frame due now; renderers follow.
                 let now = Instant::now();
-                let mut next = i + 1;
+                let mut next = g + 1;
                 while next + 1 < frames && due(next + 1).is_some_and(|d| d <= now) {
                     next += 1;
                 }
-                metrics.add_counter("late_skipped", (next - i) as u64);
+                metrics.add_counter("late_skipped", (next - g) as u64);
                 let mut s = board.lock();
                 s.skip_below = next;
                 s.sending = next;
-                s.rendered.retain(|&k, _| k >= next);
+                if !keep {
+                    s.rendered.retain(|&k, _| k >= next);
+                }
                 drop(s);
                 board.changed.notify_all();
-                i = next;
+                g = next;
                 continue;
             };
-            if let (Some(at), Some(period)) = (due(i), period(sim, speed))
+            if let (Some(at), Some(period)) = (due(g), period(sim, speed))
                 && Instant::now().saturating_duration_since(at) > period
             {
                 metrics.add_counter("late_frames", 1);
             }
-            {
+            if walk == 0 {
                 let mut s = board.lock();
                 s.sending = i + 1;
+                drop(s);
+                board.changed.notify_all();
             }
-            board.changed.notify_all();
+            let shift = timestamp(g) - sim.timestamp_ns(i);
+            frame.timestamp_ns += shift;
+            frame.pair.range.timestamp_ns += shift;
+            frame.pair.eo.timestamp_ns += shift;
             if !self.send_frame(frame, sink) {
                 return Ok(());
             }
             metrics.add_counter("frames_sent", 1);
-            i += 1;
+            g += 1;
         }
         Ok(())
     }
@@ -325,6 +377,22 @@ impl SimSource {
                 .blocking_send(SourceEvent::Eo(Arc::new(frame.pair.eo)))
                 .is_ok()
     }
+}
+
+/// The time one walk of the trajectory takes, first frame to first frame of the
+/// next walk: its span plus one frame period.
+fn walk_duration_ns(sim: &Simulator) -> u64 {
+    let frames = sim.frame_count();
+    let span = sim
+        .timestamp_ns(frames.saturating_sub(1))
+        .saturating_sub(sim.timestamp_ns(0));
+    let rate = sim.frame_rate_hz();
+    let period_ns = if rate.is_finite() && rate > 0.0 {
+        (1e9 / rate) as u64
+    } else {
+        0
+    };
+    span.saturating_add(period_ns.max(1))
 }
 
 /// One frame period on the wall clock at `speed`.
