@@ -3,6 +3,7 @@
 
 pub mod camera;
 pub mod capture;
+pub mod coverage;
 pub mod distortion;
 pub mod export;
 pub mod frames;

@@ -1,0 +1,279 @@
+//! Scan coverage signatures and scan retirement: what surface a scan shows and how
+//! reliably (a few hundred samples in the scan's own frame), and the incremental
+//! index that retires scans whose every surface cell is offered at least as reliably
+//! by scans the model keeps. `docs/model.md` ("Retirement") states the criterion.
+
+mod retirement;
+
+use nalgebra::Vector3;
+use serde::{Deserialize, Serialize};
+
+use crate::scan::{NO_VERTEX, TexelScan};
+
+pub use retirement::{Changes, Retirement};
+
+/// The most samples one signature holds, whatever the lidar grid: the stride grows
+/// for grids so large that the configured one would exceed it.
+pub const MAX_SAMPLES: usize = 1024;
+
+/// Ranges below this (metres) are a centre of projection on the surface: such a
+/// sample has no acquisition direction and is dropped.
+pub const MIN_RANGE_M: f64 = 1.0e-6;
+
+/// Parameters of the coverage signature and of the redundancy test.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CoverageConfig {
+    /// Retire redundant scans at all; when false every scan is served.
+    pub enabled: bool,
+    /// Edge of the world surface cells, metres (clamped into [0.01, 100]).
+    pub cell_m: f64,
+    /// One sample per `sample_stride_px` x `sample_stride_px` block of lidar pixels
+    /// (clamped into [1, 64]); 8 gives 256 samples (4 KiB) on a 128x128 grid.
+    pub sample_stride_px: u32,
+    /// Largest angle between two acquisition directions at a cell for one scan's
+    /// offer to stand in for the other's, degrees (clamped into [0, 90]).
+    pub angle_tolerance_deg: f64,
+    /// Reliability a dominating offer may lack (normal accuracy x range factor
+    /// against the dominated one), in [0, 1].
+    pub reliability_margin: f64,
+    /// The range confidence exponent the viewer renders with (`range_gamma`).
+    pub range_gamma: f64,
+    /// Served scans examined per cell when looking for a dominating offer.
+    pub max_candidates_per_cell: usize,
+    /// Redundancy tests per `add` / `revise` call; past it, the safe outcome is
+    /// taken (a scan whose witness moved is served again, unexamined neighbours
+    /// stay served).
+    pub max_checks_per_call: usize,
+}
+
+impl Default for CoverageConfig {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            cell_m: 0.2,
+            sample_stride_px: 8,
+            angle_tolerance_deg: 10.0,
+            reliability_margin: 0.05,
+            range_gamma: 1.0,
+            max_candidates_per_cell: 32,
+            max_checks_per_call: 64,
+        }
+    }
+}
+
+impl CoverageConfig {
+    /// `cell_m` made usable: finite, within [0.01, 100] m.
+    pub fn cell_size_m(&self) -> f64 {
+        if self.cell_m.is_finite() {
+            self.cell_m.clamp(0.01, 100.0)
+        } else {
+            0.2
+        }
+    }
+
+    /// `sample_stride_px` within [1, 64].
+    pub fn stride_px(&self) -> u32 {
+        self.sample_stride_px.clamp(1, 64)
+    }
+
+    /// Cosine of the angular tolerance (the tolerance clamped into [0, 90] degrees;
+    /// not finite counts as 0).
+    pub fn cos_tolerance(&self) -> f64 {
+        let deg = if self.angle_tolerance_deg.is_finite() {
+            self.angle_tolerance_deg.clamp(0.0, 90.0)
+        } else {
+            0.0
+        };
+        deg.to_radians().cos()
+    }
+
+    /// The reliability margin within [0, 1] (not finite counts as 0).
+    pub fn margin(&self) -> f64 {
+        if self.reliability_margin.is_finite() {
+            self.reliability_margin.clamp(0.0, 1.0)
+        } else {
+            0.0
+        }
+    }
+
+    /// The range exponent, > 0 and finite (else 1, as the viewer does).
+    pub fn gamma(&self) -> f64 {
+        if self.range_gamma.is_finite() && self.range_gamma > 0.0 {
+            self.range_gamma
+        } else {
+            1.0
+        }
+    }
+}
+
+/// One sample of a scan's surface: a vertex in the scan frame and the normal
+/// accuracy of the triangles around it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CoverageSample {
+    pub point_m: [f32; 3],
+    /// Mean normal accuracy of the usable triangles around the vertex, in (0, 1].
+    pub normal_accuracy: f32,
+}
+
+/// What a scan shows: samples of its usable surface in the scan's own frame, and the
+/// acquisition centre of projection they were seen from. A pose revision moves it
+/// as a whole; nothing in it depends on where the scan is in the world.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct ScanCoverage {
+    pub cop_m: [f64; 3],
+    pub samples: Vec<CoverageSample>,
+}
+
+impl ScanCoverage {
+    /// The signature of `scan`: per block of lidar pixels, the vertex nearest the
+    /// block's centre among those touched by a usable triangle (neither stretched
+    /// nor degenerate) of positive normal accuracy. A scan without such triangles
+    /// has no samples: it covers nothing.
+    pub fn of(scan: &TexelScan, config: &CoverageConfig) -> Self {
+        let accuracy = usable_vertex_accuracy(scan);
+        let cop = Vector3::from(scan.cop_m);
+        let cop_finite = scan.cop_m.iter().all(|c| c.is_finite());
+        let width = scan.grid_width as usize;
+        let height = scan.grid_height as usize;
+        if !cop_finite || width == 0 || height == 0 {
+            return Self {
+                cop_m: if cop_finite { scan.cop_m } else { [0.0; 3] },
+                samples: Vec::new(),
+            };
+        }
+        let stride = stride_for(width, height, config.stride_px() as usize);
+        let blocks_x = width.div_ceil(stride);
+        let blocks_y = height.div_ceil(stride);
+        let mut samples = Vec::with_capacity((blocks_x * blocks_y).min(MAX_SAMPLES));
+        for by in 0..blocks_y {
+            for bx in 0..blocks_x {
+                let block = Block {
+                    x0: bx * stride,
+                    y0: by * stride,
+                    x1: ((bx + 1) * stride).min(width),
+                    y1: ((by + 1) * stride).min(height),
+                };
+                if let Some(s) = block_sample(scan, &accuracy, &cop, width, &block)
+                    && samples.len() < MAX_SAMPLES
+                {
+                    samples.push(s);
+                }
+            }
+        }
+        Self {
+            cop_m: scan.cop_m,
+            samples,
+        }
+    }
+
+    /// Bytes held on the heap.
+    pub fn heap_bytes(&self) -> usize {
+        self.samples.capacity() * std::mem::size_of::<CoverageSample>()
+    }
+
+    /// How much the scan shows, reliability-weighted: the sum of its samples' normal
+    /// accuracies (each sample stands for the same share of the lidar grid). Orders
+    /// scans "most reliable first"; 0 for a scan that covers nothing.
+    pub fn score(&self) -> f64 {
+        self.samples
+            .iter()
+            .map(|s| f64::from(s.normal_accuracy))
+            .filter(|a| a.is_finite())
+            .sum()
+    }
+
+    /// Whether the scan covers nothing (and so is always redundant).
+    pub fn is_empty(&self) -> bool {
+        self.samples.is_empty()
+    }
+}
+
+/// A rectangle of lidar pixels, `[x0, x1) x [y0, y1)`.
+struct Block {
+    x0: usize,
+    y0: usize,
+    x1: usize,
+    y1: usize,
+}
+
+/// The stride that keeps the sample count within [`MAX_SAMPLES`].
+fn stride_for(width: usize, height: usize, configured: usize) -> usize {
+    let mut stride = configured.max(1);
+    while width.div_ceil(stride) * height.div_ceil(stride) > MAX_SAMPLES {
+        stride += 1;
+    }
+    stride
+}
+
+/// The sample of one block: the usable vertex nearest the block centre.
+fn block_sample(
+    scan: &TexelScan,
+    accuracy: &[f32],
+    cop: &Vector3<f64>,
+    width: usize,
+    block: &Block,
+) -> Option<CoverageSample> {
+    // Twice the centre, so odd and even blocks stay in integers.
+    let cx2 = block.x0 + block.x1 - 1;
+    let cy2 = block.y0 + block.y1 - 1;
+    let mut best: Option<(usize, CoverageSample)> = None;
+    for y in block.y0..block.y1 {
+        for x in block.x0..block.x1 {
+            let Some(&v) = scan.pixel_vertex.get(y * width + x) else {
+                continue;
+            };
+            if v == NO_VERTEX {
+                continue;
+            }
+            let v = v as usize;
+            let (Some(&a), Some(&p)) = (accuracy.get(v), scan.vertices.get(v)) else {
+                continue;
+            };
+            let point = Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
+            let usable = a > 0.0 && p.iter().all(|c| c.is_finite());
+            if !usable || (cop - point).norm() < MIN_RANGE_M {
+                continue;
+            }
+            let d = (2 * x).abs_diff(cx2).pow(2) + (2 * y).abs_diff(cy2).pow(2);
+            if best.as_ref().is_none_or(|(bd, _)| d < *bd) {
+                best = Some((
+                    d,
+                    CoverageSample {
+                        point_m: p,
+                        normal_accuracy: a,
+                    },
+                ));
+            }
+        }
+    }
+    best.map(|(_, s)| s)
+}
+
+/// Mean normal accuracy of the usable triangles around each vertex; 0 for a vertex
+/// of none (or whose triangles all have accuracy 0 or not finite).
+fn usable_vertex_accuracy(scan: &TexelScan) -> Vec<f32> {
+    let mut sums = vec![(0.0f64, 0u32); scan.vertices.len()];
+    for (t, tri) in scan.triangles.iter().enumerate() {
+        let usable = scan.triangle_flags.get(t).is_some_and(|f| f.is_usable());
+        let acc = f64::from(scan.triangle_accuracy.get(t).copied().unwrap_or(0.0));
+        if !usable || !acc.is_finite() || acc <= 0.0 {
+            continue;
+        }
+        for &v in tri {
+            if let Some(s) = sums.get_mut(v as usize) {
+                s.0 += acc.min(1.0);
+                s.1 += 1;
+            }
+        }
+    }
+    sums.iter()
+        .map(|&(sum, n)| {
+            if n > 0 {
+                (sum / f64::from(n)) as f32
+            } else {
+                0.0
+            }
+        })
+        .collect()
+}

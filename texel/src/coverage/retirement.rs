@@ -1,0 +1,533 @@
+//! The retirement index: world surface cells and the served scans that offer each,
+//! updated one `add` or `revise` at a time with a bounded number of redundancy
+//! tests. Invariant: every retired scan has, for each cell it covers, a served
+//! witness whose offer dominates its own there (`docs/model.md`, "Retirement").
+
+use std::collections::{HashMap, HashSet};
+
+use nalgebra::{Point3, Vector3};
+
+use super::{CoverageConfig, MIN_RANGE_M, ScanCoverage};
+use crate::model::ScanId;
+use crate::pose::Pose;
+
+/// A world surface cell: the integer coordinates of a cube of edge `cell_m`.
+type CellKey = [i64; 3];
+
+/// Cell coordinates beyond this are clamped (a point 1e15 cells away is not a
+/// surface anyone renders; the clamp keeps the cast defined).
+const MAX_CELL_INDEX: f64 = 1.0e15;
+
+/// What a scan offers one cell: the mean acquisition direction of its samples there
+/// (unit, from the surface towards the centre of projection), their mean normal
+/// accuracy and mean acquisition range.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Offer {
+    direction: [f32; 3],
+    normal_accuracy: f32,
+    range_m: f32,
+}
+
+/// Which scans an `add` or `revise` call retired and which it served again.
+/// A scan added and retired in the same call is in `retired`; a scan added and
+/// served is in neither (serving is what an added scan does by default).
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct Changes {
+    pub retired: Vec<ScanId>,
+    pub restored: Vec<ScanId>,
+}
+
+#[derive(Debug, Clone)]
+struct Entry {
+    coverage: ScanCoverage,
+    /// The scan's offers at its current pose, sorted by cell.
+    offers: Vec<(CellKey, Offer)>,
+    score: f64,
+    served: bool,
+    /// Retired: the served scans whose offers dominate this one's.
+    witnesses: Vec<ScanId>,
+    /// Served: the retired scans that name this one as a witness.
+    dependents: HashSet<ScanId>,
+}
+
+/// The incremental retirement index. Holds only ids, poses' effects (offers) and
+/// coverage signatures; never a scan.
+#[derive(Debug, Clone, Default)]
+pub struct Retirement {
+    config: CoverageConfig,
+    scans: HashMap<ScanId, Entry>,
+    /// Served scans offering each cell.
+    cells: HashMap<CellKey, Vec<ScanId>>,
+    served: usize,
+}
+
+/// The redundancy tests left in one call.
+struct Budget(usize);
+
+impl Budget {
+    fn take(&mut self) -> bool {
+        if self.0 == 0 {
+            return false;
+        }
+        self.0 -= 1;
+        true
+    }
+}
+
+impl Retirement {
+    pub fn new(config: CoverageConfig) -> Self {
+        Self {
+            config,
+            ..Self::default()
+        }
+    }
+
+    pub fn config(&self) -> &CoverageConfig {
+        &self.config
+    }
+
+    /// Adds scan `id` at `world_from_scan`: it is retired if the served scans make it
+    /// redundant (a scan that covers nothing always is); otherwise it is served and
+    /// the served scans sharing its cells that it makes redundant are retired,
+    /// least reliable first. An id already present is treated as a pose revision.
+    pub fn add(&mut self, id: ScanId, coverage: ScanCoverage, world_from_scan: &Pose) -> Changes {
+        if self.scans.contains_key(&id) {
+            return self.revise(id, world_from_scan);
+        }
+        let mut budget = Budget(self.config.max_checks_per_call.max(1));
+        let offers = self.offers(&coverage, world_from_scan);
+        let score = coverage.score();
+        self.scans.insert(
+            id,
+            Entry {
+                coverage,
+                offers,
+                score,
+                served: false,
+                witnesses: Vec::new(),
+                dependents: HashSet::new(),
+            },
+        );
+        let mut log = Log::default();
+        log.note(id, true);
+        let witnesses = if self.config.enabled {
+            self.witnesses_of(id, &mut budget)
+        } else {
+            None
+        };
+        match witnesses {
+            Some(witnesses) => self.link(id, witnesses),
+            None => {
+                self.serve(id);
+                self.retire_neighbours(id, &mut budget, &mut log);
+            }
+        }
+        log.finish(self)
+    }
+
+    /// Moves scan `id` to `world_from_scan`: the scans that named it as a witness
+    /// are tested again (served again when no longer redundant, or when the budget
+    /// runs out), then the scan itself (retired when redundant at its new place,
+    /// served again when it no longer is), then the served scans around it. An
+    /// unknown id changes nothing.
+    pub fn revise(&mut self, id: ScanId, world_from_scan: &Pose) -> Changes {
+        let mut budget = Budget(self.config.max_checks_per_call.max(1));
+        let mut log = Log::default();
+        let Some(entry) = self.scans.get(&id) else {
+            return Changes::default();
+        };
+        let offers = self.offers(&entry.coverage, world_from_scan);
+        let served = entry.served;
+        log.note(id, served);
+        if served {
+            self.unindex(id);
+        }
+        if let Some(e) = self.scans.get_mut(&id) {
+            e.offers = offers;
+        }
+        if served {
+            self.index(id);
+            let dependents = self.take_dependents(id);
+            self.recheck_all(&dependents, &mut budget, &mut log);
+            if let Some(witnesses) = self.redundant_served(id, &mut budget) {
+                self.retire(id, witnesses, &mut budget, &mut log);
+            } else {
+                self.retire_neighbours(id, &mut budget, &mut log);
+            }
+        } else {
+            self.unlink(id);
+            if self.recheck(id, &mut budget, &mut log) {
+                self.retire_neighbours(id, &mut budget, &mut log);
+            }
+        }
+        log.finish(self)
+    }
+
+    /// Whether scan `id` is retired (false for an unknown id).
+    pub fn is_retired(&self, id: ScanId) -> bool {
+        self.scans.get(&id).is_some_and(|e| !e.served)
+    }
+
+    /// The number of served scans.
+    pub fn served(&self) -> usize {
+        self.served
+    }
+
+    /// The number of retired scans.
+    pub fn retired(&self) -> usize {
+        self.scans.len() - self.served
+    }
+
+    /// The cells scan `id` covers at its current pose (empty for an unknown id).
+    pub fn cells_of(&self, id: ScanId) -> Vec<[i64; 3]> {
+        self.scans
+            .get(&id)
+            .map(|e| e.offers.iter().map(|(k, _)| *k).collect())
+            .unwrap_or_default()
+    }
+
+    /// The served witnesses of retired scan `id` (empty when served or unknown).
+    pub fn witnesses_of_retired(&self, id: ScanId) -> Vec<ScanId> {
+        self.scans
+            .get(&id)
+            .map(|e| e.witnesses.clone())
+            .unwrap_or_default()
+    }
+
+    /// Bytes the index holds on the heap (approximate: tables at their capacity).
+    pub fn heap_bytes(&self) -> usize {
+        let entries: usize = self
+            .scans
+            .values()
+            .map(|e| {
+                e.coverage.heap_bytes()
+                    + e.offers.capacity() * std::mem::size_of::<(CellKey, Offer)>()
+                    + e.witnesses.capacity() * std::mem::size_of::<ScanId>()
+                    + e.dependents.capacity() * std::mem::size_of::<ScanId>() * 2
+            })
+            .sum();
+        let cells: usize = self
+            .cells
+            .values()
+            .map(|v| v.capacity() * std::mem::size_of::<ScanId>())
+            .sum();
+        entries
+            + self.scans.capacity() * (std::mem::size_of::<(ScanId, Entry)>() + 8)
+            + cells
+            + self.cells.capacity() * (std::mem::size_of::<(CellKey, Vec<ScanId>)>() + 8)
+    }
+
+    /// The offers of a signature placed at `world_from_scan`, one per cell it
+    /// reaches, sorted by cell.
+    fn offers(&self, coverage: &ScanCoverage, world_from_scan: &Pose) -> Vec<(CellKey, Offer)> {
+        let cell_m = self.config.cell_size_m();
+        let cop = world_from_scan * Point3::from(coverage.cop_m);
+        // Per cell: direction sum, accuracy sum, range sum, count.
+        let mut sums: HashMap<CellKey, (Vector3<f64>, f64, f64, u32)> = HashMap::new();
+        for s in &coverage.samples {
+            let local = Point3::new(
+                f64::from(s.point_m[0]),
+                f64::from(s.point_m[1]),
+                f64::from(s.point_m[2]),
+            );
+            let p = world_from_scan * local;
+            let to_cop = cop - p;
+            let range_m = to_cop.norm();
+            let accuracy = f64::from(s.normal_accuracy);
+            if !range_m.is_finite() || range_m < MIN_RANGE_M || !accuracy.is_finite() {
+                continue;
+            }
+            let Some(key) = cell_of(&p, cell_m) else {
+                continue;
+            };
+            let e = sums.entry(key).or_insert((Vector3::zeros(), 0.0, 0.0, 0));
+            e.0 += to_cop / range_m;
+            e.1 += accuracy.clamp(0.0, 1.0);
+            e.2 += range_m;
+            e.3 += 1;
+        }
+        let mut offers: Vec<(CellKey, Offer)> = sums
+            .into_iter()
+            .filter_map(|(key, (dir, acc, range, n))| {
+                let len = dir.norm();
+                // Opposite directions in one cell (both faces of a thin wall) cancel:
+                // no single direction stands for them, so the cell is left out.
+                if n == 0 || len < 1.0e-6 {
+                    return None;
+                }
+                let n = f64::from(n);
+                let d = dir / len;
+                Some((
+                    key,
+                    Offer {
+                        direction: [d.x as f32, d.y as f32, d.z as f32],
+                        normal_accuracy: (acc / n) as f32,
+                        range_m: (range / n) as f32,
+                    },
+                ))
+            })
+            .collect();
+        offers.sort_by_key(|(k, _)| *k);
+        offers
+    }
+
+    /// Whether offer `t` stands in for offer `s`: acquisition directions within the
+    /// angular tolerance, and `t`'s normal accuracy times its worst range factor
+    /// against `s` (`min(1, r_s / r_t)^gamma`) within the margin of `s`'s accuracy.
+    fn dominates(&self, t: &Offer, s: &Offer) -> bool {
+        let cos = t
+            .direction
+            .iter()
+            .zip(&s.direction)
+            .map(|(a, b)| f64::from(*a) * f64::from(*b))
+            .sum::<f64>();
+        if cos < self.config.cos_tolerance() {
+            return false;
+        }
+        let ratio = f64::from(s.range_m) / f64::from(t.range_m).max(MIN_RANGE_M);
+        let range_factor = ratio.clamp(0.0, 1.0).powf(self.config.gamma());
+        f64::from(t.normal_accuracy) * range_factor
+            >= f64::from(s.normal_accuracy) - self.config.margin()
+    }
+
+    /// The served scans (other than `id`) whose offers dominate every offer of
+    /// `id`, one per cell, or `None` when some cell has none (or the budget is
+    /// spent). Witnesses already chosen are tried first, so few are named.
+    fn witnesses_of(&self, id: ScanId, budget: &mut Budget) -> Option<Vec<ScanId>> {
+        let entry = self.scans.get(&id)?;
+        if !budget.take() {
+            return None;
+        }
+        let mut witnesses: Vec<ScanId> = Vec::new();
+        for (key, offer) in &entry.offers {
+            let known = witnesses.iter().copied();
+            let others = self
+                .cells
+                .get(key)
+                .into_iter()
+                .flatten()
+                .copied()
+                .filter(|&t| t != id)
+                .take(self.config.max_candidates_per_cell.max(1));
+            let found = known.chain(others).find(|&t| {
+                self.offer_of(t, key)
+                    .is_some_and(|o| self.dominates(&o, offer))
+            });
+            match found {
+                Some(t) if !witnesses.contains(&t) => witnesses.push(t),
+                Some(_) => {}
+                None => return None,
+            }
+        }
+        Some(witnesses)
+    }
+
+    /// Witnesses of served scan `id` if it is redundant and retiring it would not
+    /// send back more unexamined dependents than the budget can test.
+    fn redundant_served(&self, id: ScanId, budget: &mut Budget) -> Option<Vec<ScanId>> {
+        if !self.config.enabled {
+            return None;
+        }
+        let dependents = self.scans.get(&id).map_or(0, |e| e.dependents.len());
+        if dependents >= budget.0 {
+            return None;
+        }
+        self.witnesses_of(id, budget)
+    }
+
+    /// The offer of served scan `t` at `key`.
+    fn offer_of(&self, t: ScanId, key: &CellKey) -> Option<Offer> {
+        let e = self.scans.get(&t).filter(|e| e.served)?;
+        let i = e.offers.binary_search_by_key(key, |(k, _)| *k).ok()?;
+        e.offers.get(i).map(|(_, o)| *o)
+    }
+
+    /// Retires the served scans sharing `id`'s cells that are now redundant, least
+    /// reliable first, within the budget.
+    fn retire_neighbours(&mut self, id: ScanId, budget: &mut Budget, log: &mut Log) {
+        if !self.config.enabled {
+            return;
+        }
+        let mut neighbours: Vec<ScanId> = self
+            .cells_of(id)
+            .iter()
+            .filter_map(|k| self.cells.get(k))
+            .flatten()
+            .copied()
+            .filter(|&n| n != id)
+            .collect::<HashSet<_>>()
+            .into_iter()
+            .collect();
+        let score = |n: &ScanId| self.scans.get(n).map_or(0.0, |e| e.score);
+        neighbours.sort_by(|a, b| score(a).total_cmp(&score(b)).then(a.cmp(b)));
+        for n in neighbours {
+            if budget.0 == 0 {
+                break;
+            }
+            if !self.scans.get(&n).is_some_and(|e| e.served) {
+                continue;
+            }
+            if let Some(witnesses) = self.redundant_served(n, budget) {
+                log.note(n, true);
+                self.retire(n, witnesses, budget, log);
+            }
+        }
+    }
+
+    /// Retires served scan `id` with its witnesses; the scans that named it as a
+    /// witness are tested again.
+    fn retire(&mut self, id: ScanId, witnesses: Vec<ScanId>, budget: &mut Budget, log: &mut Log) {
+        self.unindex(id);
+        if let Some(e) = self.scans.get_mut(&id)
+            && e.served
+        {
+            e.served = false;
+            self.served = self.served.saturating_sub(1);
+        }
+        let dependents = self.take_dependents(id);
+        self.link(id, witnesses);
+        self.recheck_all(&dependents, budget, log);
+    }
+
+    /// Tests each retired scan of `ids` again (see [`Self::recheck`]).
+    fn recheck_all(&mut self, ids: &[ScanId], budget: &mut Budget, log: &mut Log) {
+        for &r in ids {
+            log.note(r, false);
+            self.unlink(r);
+            self.recheck(r, budget, log);
+        }
+    }
+
+    /// Tests retired, unlinked scan `id`: linked to new witnesses when still
+    /// redundant, else (or when the budget is spent) served again. True when it was
+    /// served again.
+    fn recheck(&mut self, id: ScanId, budget: &mut Budget, log: &mut Log) -> bool {
+        let witnesses = if self.config.enabled {
+            self.witnesses_of(id, budget)
+        } else {
+            None
+        };
+        match witnesses {
+            Some(w) => {
+                self.link(id, w);
+                false
+            }
+            None => {
+                log.note(id, false);
+                self.serve(id);
+                true
+            }
+        }
+    }
+
+    /// Marks `id` served and puts it in its cells.
+    fn serve(&mut self, id: ScanId) {
+        if let Some(e) = self.scans.get_mut(&id) {
+            if !e.served {
+                e.served = true;
+                self.served += 1;
+            }
+            e.witnesses.clear();
+        }
+        self.index(id);
+    }
+
+    /// Records `witnesses` as those of retired scan `id`, both ways.
+    fn link(&mut self, id: ScanId, witnesses: Vec<ScanId>) {
+        for w in &witnesses {
+            if let Some(e) = self.scans.get_mut(w) {
+                e.dependents.insert(id);
+            }
+        }
+        if let Some(e) = self.scans.get_mut(&id) {
+            e.witnesses = witnesses;
+        }
+    }
+
+    /// Forgets the witnesses of `id`, both ways.
+    fn unlink(&mut self, id: ScanId) {
+        let witnesses = self
+            .scans
+            .get_mut(&id)
+            .map(|e| std::mem::take(&mut e.witnesses))
+            .unwrap_or_default();
+        for w in witnesses {
+            if let Some(e) = self.scans.get_mut(&w) {
+                e.dependents.remove(&id);
+            }
+        }
+    }
+
+    /// The retired scans naming `id` as a witness, unlinked from it, in id order.
+    fn take_dependents(&mut self, id: ScanId) -> Vec<ScanId> {
+        let mut d: Vec<ScanId> = self
+            .scans
+            .get_mut(&id)
+            .map(|e| std::mem::take(&mut e.dependents).into_iter().collect())
+            .unwrap_or_default();
+        d.sort_unstable();
+        d
+    }
+
+    /// Puts `id` in the cells of its offers.
+    fn index(&mut self, id: ScanId) {
+        let keys = self.cells_of(id);
+        for k in keys {
+            let list = self.cells.entry(k).or_default();
+            if !list.contains(&id) {
+                list.push(id);
+            }
+        }
+    }
+
+    /// Takes `id` out of the cells of its offers.
+    fn unindex(&mut self, id: ScanId) {
+        for k in self.cells_of(id) {
+            if let Some(list) = self.cells.get_mut(&k) {
+                list.retain(|&s| s != id);
+                if list.is_empty() {
+                    self.cells.remove(&k);
+                }
+            }
+        }
+    }
+}
+
+/// The cell of world point `p`, `None` when a coordinate is not finite.
+fn cell_of(p: &Point3<f64>, cell_m: f64) -> Option<CellKey> {
+    let mut key = [0i64; 3];
+    for (k, c) in key.iter_mut().zip(p.iter()) {
+        let i = (c / cell_m).floor();
+        if !i.is_finite() {
+            return None;
+        }
+        *k = i.clamp(-MAX_CELL_INDEX, MAX_CELL_INDEX) as i64;
+    }
+    Some(key)
+}
+
+/// The served state of every scan a call touched, before the call (`true`: served;
+/// a scan added in the call counts as served before it).
+#[derive(Default)]
+struct Log(HashMap<ScanId, bool>);
+
+impl Log {
+    fn note(&mut self, id: ScanId, served_before: bool) {
+        self.0.entry(id).or_insert(served_before);
+    }
+
+    /// The net changes of the call, in id order.
+    fn finish(self, index: &Retirement) -> Changes {
+        let mut changes = Changes::default();
+        let mut touched: Vec<(ScanId, bool)> = self.0.into_iter().collect();
+        touched.sort_unstable();
+        for (id, before) in touched {
+            match (before, index.is_retired(id)) {
+                (true, true) => changes.retired.push(id),
+                (false, false) => changes.restored.push(id),
+                _ => {}
+            }
+        }
+        changes
+    }
+}

@@ -1,0 +1,325 @@
+//! Scan retirement on synthetic scans of a few planes: retirement never removes the
+//! only scan covering a surface cell, follows pose revisions, and keeps one of
+//! identical duplicates.
+#![allow(clippy::unwrap_used, clippy::expect_used)] // tests panic on failure by design
+
+use std::collections::BTreeSet;
+use std::sync::Arc;
+
+use nalgebra::{Point3, Vector3};
+use proptest::prelude::*;
+use texel::coverage::{CoverageConfig, Retirement, ScanCoverage};
+use texel::model::ScanId;
+use texel::pose::look_at;
+use texel::scan::{NO_VERTEX, TexelScan, TriangleFlags};
+use texel::{EoFrame, Pose, RangeNoise};
+
+/// World planes `n . x = c`: the floor and two walls.
+const PLANES: [([f64; 3], f64); 3] = [
+    ([0.0, 0.0, 1.0], 0.0),
+    ([0.0, 1.0, 0.0], 3.0),
+    ([1.0, 0.0, 0.0], 3.0),
+];
+
+/// A `size` x `size` lidar scan (60 degree field of view) of the planes from
+/// `world_from_scan`, in the scan frame; the nearest plane along each ray is hit.
+fn synthetic_scan(world_from_scan: &Pose, size: u32) -> TexelScan {
+    let n = size as usize;
+    let focal = (size as f64 / 2.0) / 30f64.to_radians().tan();
+    let origin = world_from_scan.translation.vector;
+    let mut vertices = Vec::new();
+    let mut pixel_vertex = vec![NO_VERTEX; n * n];
+    let mut vertex_pixel = Vec::new();
+    let mut vertex_plane = Vec::new();
+    for y in 0..n {
+        for x in 0..n {
+            let d = Vector3::new(
+                (x as f64 + 0.5 - n as f64 / 2.0) / focal,
+                (y as f64 + 0.5 - n as f64 / 2.0) / focal,
+                1.0,
+            );
+            let dw = world_from_scan.rotation * d;
+            let hit = PLANES
+                .iter()
+                .enumerate()
+                .filter_map(|(i, (pn, c))| {
+                    let pn = Vector3::from(*pn);
+                    let t = (c - pn.dot(&origin)) / pn.dot(&dw);
+                    (t.is_finite() && t > 0.05 && t < 20.0).then_some((t, i))
+                })
+                .min_by(|a, b| a.0.total_cmp(&b.0));
+            if let Some((t, plane)) = hit {
+                let p = d * t;
+                pixel_vertex[y * n + x] = vertices.len() as u32;
+                vertex_pixel.push((y * n + x) as u32);
+                vertices.push([p.x as f32, p.y as f32, p.z as f32]);
+                vertex_plane.push(plane);
+            }
+        }
+    }
+    let (mut triangles, mut accuracy, mut flags) = (Vec::new(), Vec::new(), Vec::new());
+    for y in 0..n.saturating_sub(1) {
+        for x in 0..n.saturating_sub(1) {
+            let q = [
+                pixel_vertex[y * n + x],
+                pixel_vertex[y * n + x + 1],
+                pixel_vertex[(y + 1) * n + x],
+                pixel_vertex[(y + 1) * n + x + 1],
+            ];
+            if q.contains(&NO_VERTEX) {
+                continue;
+            }
+            let planes: BTreeSet<usize> = q.iter().map(|&v| vertex_plane[v as usize]).collect();
+            let stretched = planes.len() > 1;
+            for tri in [[q[0], q[2], q[1]], [q[1], q[2], q[3]]] {
+                let v = |i: u32| Vector3::from(vertices[i as usize].map(f64::from));
+                let (a, b, c) = (v(tri[0]), v(tri[1]), v(tri[2]));
+                let normal = (b - a).cross(&(c - a));
+                let centre = (a + b + c) / 3.0;
+                let acc = if normal.norm() > 1e-12 && centre.norm() > 1e-12 {
+                    normal.normalize().dot(&(-centre.normalize())).abs()
+                } else {
+                    0.0
+                };
+                triangles.push(tri);
+                accuracy.push(acc as f32);
+                flags.push(TriangleFlags(if stretched {
+                    TriangleFlags::STRETCHED
+                } else {
+                    0
+                }));
+            }
+        }
+    }
+    let count = vertices.len();
+    TexelScan {
+        timestamp_ns: 0,
+        seq: 0,
+        grid_width: size,
+        grid_height: size,
+        vertices,
+        tex_coords: vec![[0.0, 0.0]; count],
+        vertex_textured: vec![false; count],
+        vertex_pixel,
+        pixel_vertex,
+        triangles,
+        triangle_accuracy: accuracy,
+        triangle_flags: flags,
+        texture: Arc::new(EoFrame {
+            width: 1,
+            height: 1,
+            rgb: vec![0; 3],
+            timestamp_ns: 0,
+        }),
+        cop_m: [0.0; 3],
+        scan_from_lidar: Pose::identity(),
+        range_noise: RangeNoise::default(),
+    }
+}
+
+fn config() -> CoverageConfig {
+    CoverageConfig {
+        cell_m: 0.5,
+        sample_stride_px: 2,
+        angle_tolerance_deg: 20.0,
+        ..CoverageConfig::default()
+    }
+}
+
+fn pose(eye: [f64; 3], target: [f64; 3]) -> Pose {
+    look_at(Point3::from(eye), Point3::from(target), Vector3::z())
+}
+
+/// The cells of every scan of `ids`, at their current poses.
+fn cells(index: &Retirement, ids: impl Iterator<Item = ScanId>) -> BTreeSet<[i64; 3]> {
+    ids.flat_map(|id| index.cells_of(id)).collect()
+}
+
+/// Every retired scan's cells are covered by served scans, and its witnesses are
+/// served; the union of served cells is the union of all cells.
+fn check_invariants(index: &Retirement, n: u64) {
+    let all = cells(index, 0..n);
+    let served = cells(index, (0..n).filter(|&i| !index.is_retired(i)));
+    assert_eq!(all, served, "a cell lost its only served scan");
+    for id in (0..n).filter(|&i| index.is_retired(i)) {
+        let witnesses = index.witnesses_of_retired(id);
+        assert!(witnesses.iter().all(|&w| !index.is_retired(w)));
+        let witness_cells = cells(index, witnesses.into_iter());
+        for c in index.cells_of(id) {
+            assert!(
+                witness_cells.contains(&c),
+                "scan {id}: cell {c:?} unwitnessed"
+            );
+        }
+    }
+    assert_eq!(
+        index.served() + index.retired(),
+        n as usize,
+        "served and retired counts"
+    );
+}
+
+fn arb_pose() -> impl Strategy<Value = Pose> {
+    (
+        (-1.0..2.0f64, -1.0..2.0f64, 0.6..2.0f64),
+        (0.5..3.0f64, 0.5..3.0f64, 0.0..1.5f64),
+    )
+        .prop_map(|((x, y, z), (tx, ty, tz))| pose([x, y, z], [tx, ty, tz]))
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(48))]
+
+    #[test]
+    fn retirement_never_removes_the_only_scan_of_a_cell(
+        poses in prop::collection::vec(arb_pose(), 2..12),
+        duplicates in prop::collection::vec(0usize..12, 0..4),
+        revisions in prop::collection::vec((0usize..16, arb_pose()), 0..6),
+        angle_deg in 0.0..40.0f64,
+        margin in 0.0..0.3f64,
+        budget in 1usize..40,
+    ) {
+        let config = CoverageConfig {
+            angle_tolerance_deg: angle_deg,
+            reliability_margin: margin,
+            max_checks_per_call: budget,
+            ..config()
+        };
+        let mut all_poses = poses.clone();
+        all_poses.extend(duplicates.iter().map(|&i| poses[i % poses.len()]));
+        let scans: Vec<TexelScan> = all_poses.iter().map(|p| synthetic_scan(p, 12)).collect();
+        let mut index = Retirement::new(config);
+        for (i, (scan, p)) in scans.iter().zip(&all_poses).enumerate() {
+            index.add(i as ScanId, ScanCoverage::of(scan, &config), p);
+            check_invariants(&index, i as u64 + 1);
+        }
+        let n = scans.len() as u64;
+        for (i, p) in &revisions {
+            index.revise(*i as u64 % n, p);
+            check_invariants(&index, n);
+        }
+    }
+}
+
+#[test]
+fn identical_duplicates_keep_exactly_one() {
+    let config = config();
+    let p = pose([0.0, 0.0, 1.5], [2.0, 2.0, 0.5]);
+    let scan = synthetic_scan(&p, 16);
+    let coverage = ScanCoverage::of(&scan, &config);
+    assert!(!coverage.is_empty());
+    let mut index = Retirement::new(config);
+    for id in 0..5 {
+        index.add(id, coverage.clone(), &p);
+    }
+    assert_eq!(index.served(), 1);
+    assert_eq!(index.retired(), 4);
+    assert!(
+        !index.is_retired(0),
+        "the first of the duplicates stays served"
+    );
+}
+
+#[test]
+fn a_retired_scan_returns_when_its_witness_moves_away() {
+    let config = config();
+    let p = pose([0.0, 0.0, 1.5], [2.0, 2.0, 0.5]);
+    let coverage = ScanCoverage::of(&synthetic_scan(&p, 16), &config);
+    let mut index = Retirement::new(config);
+    assert_eq!(
+        index.add(0, coverage.clone(), &p).retired,
+        Vec::<ScanId>::new()
+    );
+    assert_eq!(index.add(1, coverage.clone(), &p).retired, vec![1]);
+    assert_eq!(index.witnesses_of_retired(1), vec![0]);
+    // Scan 0 is moved 50 m away: scan 1 is the only one left over its cells.
+    let away = Pose::translation(50.0, 0.0, 0.0) * p;
+    let changes = index.revise(0, &away);
+    assert_eq!(changes.restored, vec![1]);
+    assert!(changes.retired.is_empty());
+    assert!(!index.is_retired(0) && !index.is_retired(1));
+    // Moved back, scan 0 duplicates scan 1 again: the one moved is retired.
+    let changes = index.revise(0, &p);
+    assert_eq!(changes.retired, vec![0]);
+    assert_eq!(index.served(), 1);
+}
+
+#[test]
+fn range_confidence_and_accuracy_decide_who_stands_in() {
+    // The same floor seen from 4 m and from 2 m along one line of sight: the far
+    // scan's offer has half the near one's range confidence from close viewpoints,
+    // so it stands in for the near scan only when the margin absorbs that.
+    let target = [1.0, 1.0, 0.0];
+    let near = pose([1.0, 1.0, 2.0], target);
+    let far = pose([1.0, 1.0, 4.0], target);
+    let near_scan = synthetic_scan(&near, 32);
+    let far_scan = synthetic_scan(&far, 32);
+    for (margin, near_retired) in [(0.05, false), (0.6, true)] {
+        let config = CoverageConfig {
+            reliability_margin: margin,
+            ..config()
+        };
+        let mut index = Retirement::new(config);
+        index.add(0, ScanCoverage::of(&far_scan, &config), &far);
+        let changes = index.add(1, ScanCoverage::of(&near_scan, &config), &near);
+        assert_eq!(index.is_retired(1), near_retired, "margin {margin}");
+        assert!(
+            !index.is_retired(0),
+            "the far scan shows floor the near one does not"
+        );
+        assert_eq!(changes.retired.is_empty(), !near_retired);
+    }
+    // A scan with worse normals at the same pose is retired by a better one added
+    // after it.
+    let config = config();
+    let mut worse = far_scan.clone();
+    worse.triangle_accuracy.iter_mut().for_each(|a| *a *= 0.5);
+    let mut index = Retirement::new(config);
+    index.add(0, ScanCoverage::of(&worse, &config), &far);
+    let changes = index.add(1, ScanCoverage::of(&far_scan, &config), &far);
+    assert_eq!(changes.retired, vec![0]);
+    assert_eq!(index.witnesses_of_retired(0), vec![1]);
+    assert!(!index.is_retired(1));
+}
+
+#[test]
+fn degenerate_scans_cover_nothing_and_are_retired() {
+    let config = config();
+    let p = pose([0.0, 0.0, 1.5], [2.0, 2.0, 0.5]);
+    let mut empty = synthetic_scan(&p, 0);
+    assert!(ScanCoverage::of(&empty, &config).is_empty());
+    // Zero-length normals: every triangle degenerate with accuracy 0.
+    let mut flat = synthetic_scan(&p, 16);
+    for (f, a) in flat
+        .triangle_flags
+        .iter_mut()
+        .zip(flat.triangle_accuracy.iter_mut())
+    {
+        *f = TriangleFlags(TriangleFlags::DEGENERATE);
+        *a = 0.0;
+    }
+    assert!(ScanCoverage::of(&flat, &config).is_empty());
+    // Non-finite vertices and centre of projection.
+    empty.cop_m = [f64::NAN; 3];
+    assert!(ScanCoverage::of(&empty, &config).is_empty());
+    let mut index = Retirement::new(config);
+    let changes = index.add(0, ScanCoverage::of(&flat, &config), &p);
+    assert_eq!(changes.retired, vec![0]);
+    assert_eq!(index.retired(), 1);
+}
+
+#[test]
+fn the_default_signature_fits_in_four_kilobytes() {
+    let config = CoverageConfig::default();
+    let p = pose([0.0, 0.0, 1.5], [2.0, 2.0, 0.5]);
+    let coverage = ScanCoverage::of(&synthetic_scan(&p, 128), &config);
+    assert!(coverage.samples.len() <= 256, "{}", coverage.samples.len());
+    assert!(coverage.samples.len() > 200, "{}", coverage.samples.len());
+    assert!(coverage.heap_bytes() <= 4096, "{}", coverage.heap_bytes());
+    assert!(coverage.score() > 0.0 && coverage.score().is_finite());
+    let toml_text = "cell_m = 0.3\nangle_tolerance_deg = 5.0\n";
+    let parsed: CoverageConfig = toml::from_str(toml_text).unwrap();
+    assert_eq!(parsed.cell_m, 0.3);
+    assert_eq!(parsed.sample_stride_px, config.sample_stride_px);
+    assert!(toml::from_str::<CoverageConfig>("cell_size = 1.0").is_err());
+}
