@@ -74,9 +74,20 @@ async fn run_once(capture: &Path, pace: Option<f64>) -> Result<Run, String> {
         arrivals,
         clock_origin,
         memory: hub.memory_bytes(),
-        first_scan: hub.model().scans().first().and_then(|s| s.scan.clone()),
+        first_scan: first_scan(&hub),
         stages,
     })
+}
+
+/// Scan 0 as the daemon serves it, decoded.
+fn first_scan(hub: &texel_daemon::hub::Hub) -> Option<std::sync::Arc<texel::TexelScan>> {
+    let frame = hub.fetch_scan(0).ok()?;
+    match texel::wire::decode_frame(&frame, &texel::wire::Limits::FROM_SERVER) {
+        Ok(Some((texel::wire::Message::ScanAdded(wire), _))) => {
+            wire.into_scan().ok().map(|(_, scan, _)| std::sync::Arc::new(scan))
+        }
+        _ => None,
+    }
 }
 
 /// Runs the measurements and returns the report.
@@ -123,13 +134,13 @@ pub async fn run(capture: &Path, speed: f64) -> Result<String, String> {
             ),
         );
     }
-    let (scan_bytes, frame_bytes) = fast.memory;
+    let (index_bytes, frame_bytes) = fast.memory;
     w(
         &mut out,
         format!(
-            "memory per scan held: {:.0} KiB (scan arrays and texture {:.0} KiB + encoded frame {:.0} KiB)",
-            (scan_bytes + frame_bytes) as f64 / scans as f64 / 1024.0,
-            scan_bytes as f64 / scans as f64 / 1024.0,
+            "memory per scan held: {:.0} KiB (model index {:.0} KiB + encoded frame {:.0} KiB; the daemon holds no scan arrays)",
+            (index_bytes + frame_bytes) as f64 / scans as f64 / 1024.0,
+            index_bytes as f64 / scans as f64 / 1024.0,
             frame_bytes as f64 / scans as f64 / 1024.0
         ),
     );

@@ -348,13 +348,13 @@ pub async fn run(bench: &SimBench) -> Result<String, String> {
     }
 
     // 4. Memory per scan held.
-    let (scan_bytes, frame_bytes) = fast.memory;
+    let (index_bytes, frame_bytes) = fast.memory;
     let n = fast.scans.max(1) as f64;
     w(format!(
-        "memory per scan held: {:.0} KiB (scan arrays and texture {:.0} KiB + encoded frame \
-         for newcomers {:.0} KiB)",
-        (scan_bytes + frame_bytes) as f64 / n / 1024.0,
-        scan_bytes as f64 / n / 1024.0,
+        "memory per scan held: {:.0} KiB (model index {:.0} KiB + encoded frame \
+         {:.0} KiB; the daemon holds no scan arrays)",
+        (index_bytes + frame_bytes) as f64 / n / 1024.0,
+        index_bytes as f64 / n / 1024.0,
         frame_bytes as f64 / n / 1024.0
     ));
     w(format!("recording kept: {}", recording.display()));

@@ -42,6 +42,10 @@ enum Command {
         #[arg(long, default_value = "target/bench-sim")]
         work_dir: PathBuf,
     },
+    /// Run the daemon over a long simulated session (the trajectory looped): resident
+    /// memory, the model's memory and budget, registration latency per 1,000 frames, a
+    /// late joiner's time to the whole model, `/texel/pose` messages per frame.
+    LongSession(texel_bench::long_session::Args),
     /// Measure the TXL1 decoder on a hostile stream against a clean one.
     Txl1(texel_bench::txl1_decode::Args),
     /// Measure the capture reader against the mcap crate's own reader.
@@ -103,6 +107,7 @@ fn main() -> ExitCode {
             ("daemon", result)
         }
         Command::Viewer(args) => ("viewer", texel_bench::viewer_bench::run(&args)),
+        Command::LongSession(args) => ("long-session", texel_bench::long_session::run(&args)),
         Command::Txl1(args) => ("txl1", texel_bench::txl1_decode::run(&args)),
         Command::CaptureRead(args) => ("capture-read", texel_bench::capture_read::run(&args)),
         Command::Tradeoffs(TradeoffsCommand::Registration {

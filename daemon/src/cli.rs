@@ -30,6 +30,11 @@ pub struct RunOverrides {
     /// Status interval in milliseconds.
     #[arg(long)]
     pub status_interval_ms: Option<u64>,
+    /// Resume the session its recording holds (after a crash or a restart): rebuild
+    /// the model and the registration from the recording, then go on with live frames,
+    /// recording to the next segment (`NAME.resume-1.mcap`, ...).
+    #[arg(long)]
+    pub resume: bool,
 }
 
 /// What `texeld replay` adds to a session.
@@ -90,6 +95,9 @@ pub fn build_config(
     }
     if let Some(ms) = overrides.status_interval_ms {
         config.status.interval_ms = ms;
+    }
+    if overrides.resume {
+        config.record.resume = true;
     }
     let origin = file.map_or_else(|| "command line".to_string(), |p| p.display().to_string());
     config.validate(&origin).map_err(|e| e.to_string())?;

@@ -228,7 +228,7 @@ impl Hub {
         );
         inner.served += 1;
         let changes = match (inner.retirement.as_mut(), coverage) {
-            (Some(r), Some(c)) => r.add(id, c, world_from_scan),
+            (Some(r), Some(c)) => r.add(id, c, &world_from_scan),
             _ => Changes::default(),
         };
         let retired_now = changes.retired.contains(&id);
@@ -273,7 +273,7 @@ impl Hub {
             Self::broadcast(&mut inner, &frame);
         }
         let changes = match inner.retirement.as_mut() {
-            Some(r) => r.revise(id, world_from_scan),
+            Some(r) => r.revise(id, &world_from_scan),
             None => Changes::default(),
         };
         self.apply_changes(&mut inner, &changes, None)?;

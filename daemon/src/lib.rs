@@ -11,6 +11,7 @@ pub mod model_export;
 pub mod pipeline;
 pub mod record;
 pub mod register_cli;
+pub mod resume;
 pub mod serve_order;
 pub mod server;
 pub mod source;

@@ -5,6 +5,9 @@
 //! `scripts/setup.sh`). Every crate that draws text with plotters calls
 //! [`ensure_font`] first: plotters keeps one font registry per process.
 
+mod lines;
+pub use lines::{Line, write_lines};
+
 use std::path::Path;
 use std::sync::OnceLock;
 

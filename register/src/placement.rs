@@ -68,6 +68,20 @@ pub trait Registration: Send {
 
     /// Places one scan.
     fn register(&mut self, scan: &Arc<TexelScan>, input: ScanInput<'_>) -> StageOutput;
+
+    /// Takes a scan an earlier run placed as scan `id` at `world_from_scan` (a resumed
+    /// session), without placing it again: later scans get later ids and register
+    /// against it as if this run had placed it. Emits no events. The default keeps
+    /// nothing: right only for stages that give no ids of their own.
+    fn restore(
+        &mut self,
+        scan: &Arc<TexelScan>,
+        input: ScanInput<'_>,
+        id: ScanId,
+        world_from_scan: Pose,
+    ) {
+        let _ = (scan, input, id, world_from_scan);
+    }
 }
 
 /// Registration proper: a [`Registrar`] behind the stage interface. The world frame
@@ -256,6 +270,10 @@ impl CapturePoses {
 impl Registration for CapturePoses {
     fn name(&self) -> &str {
         "capture-poses"
+    }
+
+    fn restore(&mut self, _: &Arc<TexelScan>, _: ScanInput<'_>, id: ScanId, _: Pose) {
+        self.next_id = self.next_id.max(id.saturating_add(1));
     }
 
     fn register(&mut self, scan: &Arc<TexelScan>, input: ScanInput<'_>) -> StageOutput {

@@ -270,6 +270,9 @@ pub struct RecordSection {
     pub sync_to_disk: bool,
     /// Records waiting for the disk.
     pub queue: usize,
+    /// Resume the session this recording holds (`texeld run --resume`): rebuild the
+    /// model from it and record what follows to its next segment.
+    pub resume: bool,
 }
 
 impl Default for RecordSection {
@@ -280,6 +283,7 @@ impl Default for RecordSection {
             flush_interval_ms: 800,
             sync_to_disk: true,
             queue: 256,
+            resume: false,
         }
     }
 }
@@ -448,6 +452,20 @@ impl SessionConfig {
                     format!("the folder {} does not exist", folder.display()),
                 ));
             }
+            if self.record.resume && !record.is_file() {
+                return Err(invalid(
+                    "record.resume".into(),
+                    format!(
+                        "nothing to resume: the recording {} does not exist",
+                        record.display()
+                    ),
+                ));
+            }
+        } else if self.record.resume {
+            return Err(invalid(
+                "record.resume".into(),
+                "resuming needs the recording to resume from (record.path, or --record)".into(),
+            ));
         }
         Ok(())
     }

@@ -16,6 +16,7 @@
 
 pub mod encode;
 pub mod ingest;
+mod restore;
 /// The registration stage lives with registration; the pipeline drives it.
 pub use texel_register::placement;
 pub mod worker;
@@ -36,6 +37,7 @@ use tokio_util::sync::CancellationToken;
 
 use crate::config::{RegistrationMode, SessionConfig};
 use crate::hub::{Hub, ModelOptions};
+use crate::resume::{self, ResumeError};
 use crate::store::Store;
 use crate::record::{RecordItem, RecordSummary, Recorder};
 use crate::server::{self, ServeOptions};
@@ -50,6 +52,7 @@ use crate::source::v4l_convert::PixelFormat;
 use crate::source::{FrameSink, Source, SourceMetrics};
 use crate::status::{Metrics, QueueProbe, status_line};
 use encode::Encoder;
+use restore::{Restored, restore_session};
 use ingest::Ingest;
 use placement::{CapturePoses, RegistrarStage, Registration};
 use worker::Worker;
@@ -72,6 +75,8 @@ pub enum SessionError {
     Config(String),
     #[error("{0}")]
     Store(String),
+    #[error(transparent)]
+    Resume(#[from] ResumeError),
     #[error("a pipeline thread failed: {0}")]
     Thread(String),
 }
@@ -134,14 +139,45 @@ impl Session {
             }
             _ => None,
         };
+        let mut config = config;
+        let mut registration = registration;
+        // A resumed session reads its recording's segments and records to the next.
+        let segments = if config.record.resume {
+            let base = config.record.path.clone().ok_or(ResumeError::NotRecording)?;
+            let segments = resume::segments(&base)?;
+            config.record.path = Some(segments.next.clone());
+            Some((base, segments))
+        } else {
+            None
+        };
+        let store_base = segments
+            .as_ref()
+            .map(|(base, _)| base.clone())
+            .or_else(|| config.record.path.clone());
+        let hub = Hub::with_model(
+            config.serve.client_queue,
+            model_options(&config, store_base.as_deref())?,
+        );
+        let metrics = Metrics::new();
+        let mut restored = Restored::default();
+        if let Some((_, segments)) = segments {
+            let (stage, r) = restore_session(
+                segments.existing,
+                &config,
+                registration,
+                Arc::clone(&hub),
+                Arc::clone(&metrics),
+            )
+            .await?;
+            registration = stage;
+            restored = r;
+        }
         let recorder = match &config.record.path {
             Some(path) => Some(Recorder::start(path, &config.record)?),
             None => None,
         };
-        let hub = Hub::with_model(config.serve.client_queue, model_options(&config)?);
-        let metrics = Metrics::new();
         // Sources are known to the status from the start.
-        let sources: Vec<_> = build_sources(&config)
+        let sources: Vec<_> = build_sources_after(&config, restored.last_timestamp_ns)
             .into_iter()
             .map(|source| {
                 let m = SourceMetrics::new(source.name(), source.kind());
@@ -161,6 +197,7 @@ impl Session {
             Arc::clone(&metrics),
             shutdown,
             sources_done.clone(),
+            restored.timestamps,
         ));
         Ok(Self {
             hub,
@@ -181,8 +218,11 @@ impl Session {
 
 /// How the hub keeps the model: the budget, the store (beside the recording, where
 /// `model.store_path` says, or an anonymous temporary file), retirement.
-fn model_options(config: &SessionConfig) -> Result<ModelOptions, SessionError> {
-    let store = match config.model.store_path_for(config.record.path.as_deref()) {
+fn model_options(
+    config: &SessionConfig,
+    recording: Option<&std::path::Path>,
+) -> Result<ModelOptions, SessionError> {
+    let store = match config.model.store_path_for(recording) {
         Some(path) => Store::create(&path),
         None => Store::create_anonymous(),
     }
@@ -196,6 +236,15 @@ fn model_options(config: &SessionConfig) -> Result<ModelOptions, SessionError> {
 
 /// The sources a session's config names.
 pub fn build_sources(config: &SessionConfig) -> Vec<Box<dyn Source>> {
+    build_sources_after(config, None)
+}
+
+/// The sources of a session that goes on after `resume_after_ns` (a resumed one:
+/// simulators skip what the recording holds).
+pub fn build_sources_after(
+    config: &SessionConfig,
+    resume_after_ns: Option<u64>,
+) -> Vec<Box<dyn Source>> {
     let mut sources: Vec<Box<dyn Source>> = Vec::new();
     for c in &config.source.serial {
         sources.push(Box::new(SerialSource {
@@ -245,7 +294,7 @@ pub fn build_sources(config: &SessionConfig) -> Vec<Box<dyn Source>> {
             late: c.late,
             truth: c.truth,
             loops: c.loops,
-            resume_after_ns: None,
+            resume_after_ns,
         }));
     }
     #[cfg(feature = "sim")]
@@ -343,6 +392,7 @@ async fn run(
     metrics: Arc<Metrics>,
     shutdown: CancellationToken,
     sources_done: CancellationToken,
+    restored_timestamps: Vec<u64>,
 ) -> Result<SessionSummary, SessionError> {
     let record_tx = recorder.as_ref().map(|r| r.tx.clone());
     if let Some(r) = &recorder {
@@ -397,6 +447,7 @@ async fn run(
         publish: publish_tx,
         metrics: Arc::clone(&metrics),
         fuse: config.pipeline.fuse,
+        timestamps: restored_timestamps,
     };
     let encoder = Encoder {
         rx: publish_rx,

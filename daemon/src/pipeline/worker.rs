@@ -30,6 +30,8 @@ pub struct Worker {
     pub publish: mpsc::Sender<Publish>,
     pub metrics: Arc<Metrics>,
     pub fuse: FuseConfig,
+    /// Timestamps of the scans already in the model by id (a resumed session's).
+    pub timestamps: Vec<u64>,
 }
 
 impl Worker {
@@ -38,7 +40,7 @@ impl Worker {
         // The ray table is built once per sensor model, not per frame.
         let mut sensor: Option<(Arc<SensorModel>, Sensor)> = None;
         // Timestamps of the scans in the model by id, to record pose revisions.
-        let mut timestamps: Vec<u64> = Vec::new();
+        let mut timestamps: Vec<u64> = std::mem::take(&mut self.timestamps);
         while let Some(job) = self.jobs.blocking_recv() {
             if sensor.as_ref().is_none_or(|(m, _)| **m != *job.sensor) {
                 sensor = Some((Arc::clone(&job.sensor), Sensor::new((*job.sensor).clone())));
