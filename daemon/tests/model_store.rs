@@ -58,12 +58,20 @@ fn memory_stays_within_the_budget_and_evicted_frames_read_back_byte_for_byte() {
     let status = hub.status();
     assert_eq!((status.scans, status.served, status.in_memory), (10, 10, 3));
     assert_eq!(status.on_disk, 7);
-    // The oldest frames left memory; asking reads them back, exactly as served.
-    for id in 0..10u64 {
+    // The newest three are in memory: asking for them reads nothing.
+    for id in 7..10u64 {
+        assert_eq!(hub.fetch_scan(id).unwrap(), frames[id as usize], "scan {id}");
+    }
+    assert_eq!(hub.status().store_reads, 0);
+    // The oldest left memory; asking reads them back, exactly as served.
+    for id in 0..7u64 {
         assert_eq!(hub.fetch_scan(id).unwrap(), frames[id as usize], "scan {id}");
         assert!(hub.status().in_memory <= 3);
     }
     assert_eq!(hub.status().store_reads, 7);
+    // The least recently requested went to make room: 7, 8 and 9 now read back too.
+    hub.fetch_scan(7).unwrap();
+    assert_eq!(hub.status().store_reads, 8);
     assert!(matches!(hub.fetch_scan(99), Err(FetchError::Unknown(99))));
 }
 

@@ -12,7 +12,7 @@ use super::placement::{Registration, ScanInput};
 use super::SessionError;
 use crate::config::SessionConfig;
 use crate::hub::Hub;
-use crate::resume::{self, RestoreSummary};
+use crate::resume;
 use crate::status::Metrics;
 
 /// What a restore leaves for the live session.
@@ -23,7 +23,6 @@ pub struct Restored {
     pub timestamps: Vec<u64>,
     /// The latest frame in the recording: simulators go on after it.
     pub last_timestamp_ns: Option<u64>,
-    pub summary: RestoreSummary,
 }
 
 /// Rebuilds the model from `segments` into `hub` and seeds `registration`; returns
@@ -101,7 +100,6 @@ pub async fn restore_session(
         Restored {
             timestamps,
             last_timestamp_ns: summary.last_timestamp_ns,
-            summary,
         },
     ))
 }
