@@ -126,7 +126,7 @@ fn a_redundant_scan_is_not_served_until_a_revision_makes_it_useful() {
 }
 
 #[test]
-fn a_fetched_scan_carries_its_current_pose_and_a_withdrawn_one_is_not_sent() {
+fn a_fetched_scan_carries_its_current_pose() {
     let hub = Hub::new(16);
     let s = scan(1);
     let f = frame(0, &s, Pose::identity());
