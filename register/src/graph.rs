@@ -349,4 +349,57 @@ mod tests {
         assert!(err_after < err_before, "{err_after} vs {err_before}");
         assert!(g.poses().iter().all(se3::is_finite));
     }
+
+    #[test]
+    fn a_range_optimisation_moves_only_its_nodes_and_repeats_fuse() {
+        // A chain of 6 poses 1 m apart with odometry 5 % long, and a loop edge 0-5
+        // saying 5 m: optimising 3..6 leaves 0..3 where they were.
+        let long = Pose::translation(1.05, 0.0, 0.0);
+        let mut g = PoseGraph::new();
+        let mut p = Pose::identity();
+        g.add_node(p);
+        for _ in 1..6 {
+            p *= long;
+            g.add_node(p);
+        }
+        let info = Matrix6::identity() * 100.0;
+        for k in 0..5 {
+            g.add_edge(Edge {
+                i: k,
+                j: k + 1,
+                measured: long,
+                information: info,
+                loop_closure: false,
+            });
+        }
+        let loop_edge = Edge {
+            i: 0,
+            j: 5,
+            measured: Pose::translation(5.0, 0.0, 0.0),
+            information: info,
+            loop_closure: true,
+        };
+        assert!(g.upsert_edge(loop_edge.clone(), 8.0));
+        let before: Vec<Pose> = g.poses().to_vec();
+        let report = g.optimise_range(3..6, 10);
+        assert!(report.final_cost < report.initial_cost);
+        assert_eq!(&g.poses()[..3], &before[..3]);
+        assert!(g.poses()[5].translation.x < before[5].translation.x - 0.05);
+        // The same loop measured again fuses into the one edge (more information,
+        // the same measurement); one the other way round replaces it.
+        assert!(g.upsert_edge(loop_edge.clone(), 8.0));
+        assert_eq!(g.edges().len(), 6);
+        let fused = &g.edges()[5];
+        assert!((fused.information[(0, 0)] - 200.0).abs() < 1e-9);
+        assert!(texel::pose::pose_difference(&fused.measured, &loop_edge.measured).1 < 1e-12);
+        let reversed = Edge {
+            i: 5,
+            j: 0,
+            measured: loop_edge.measured.inverse(),
+            ..loop_edge
+        };
+        assert!(g.upsert_edge(reversed, 8.0));
+        assert_eq!(g.edges().len(), 6);
+        assert_eq!(g.edges()[5].i, 5);
+    }
 }

@@ -129,10 +129,11 @@ fn a_looping_walk_stops_adding_keyframes_and_keeps_its_accuracy() {
     // Odometry alone keeps adding keyframes lap after lap.
     assert!(open.nodes_after_lap[LAPS - 1] > 2 * open.nodes_after_lap[0]);
 
-    // Accuracy: better than odometry alone on the same frames, and within 4 cm RMS
-    // (measured: 3.1 cm; odometry alone 5.4 cm).
+    // Accuracy: better than odometry alone on the same frames, and within 3 cm RMS
+    // (measured: 2.4 cm; odometry alone 5.4 cm; the registrar that kept every scan
+    // in the graph: 1.9 cm).
     assert!(ate_closed < ate_open, "{ate_closed} vs {ate_open}");
-    assert!(ate_closed < 0.04, "{ate_closed}");
+    assert!(ate_closed < 0.03, "{ate_closed}");
 
     // The pose stream grows with the frames, not with their square (every pose of
     // every optimisation): a few revisions a scan at most.
