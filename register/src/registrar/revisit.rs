@@ -17,11 +17,11 @@ use crate::result::Alignment;
 use crate::scan_table::CompactPose;
 use crate::se3;
 
-/// Re-localisation considers keyframes up to this many keyframe thresholds away: the
-/// keyframes of an earlier pass lie up to one threshold apart, so a scan of a later
-/// pass that just crossed a threshold from the last one can be a little more than one
-/// threshold from the nearest of them; registration then decides (the overlap must
-/// reach `keyframes.min_overlap`, as for staying off a new keyframe).
+/// Re-localisation considers keyframes up to this many keyframe thresholds away (the
+/// larger of the translation and rotation ratios). A later pass a little off the
+/// first sometimes finds none within one threshold and makes a keyframe, but
+/// reaching further (1.2 and 1.5 tried) attached scans to keyframes registration
+/// placed them against poorly: 15 cm ATE on `register_long_walk` instead of 3.
 const RELOCALISATION_REACH: f64 = 1.0;
 
 /// Repeated loop measurements between the same two keyframes add up to at most this
