@@ -32,7 +32,8 @@ struct Keyframe {
     pyramid: Option<Arc<ScanPyramid>>,
     /// The registration tick at which the window or loop closure last used it.
     last_used: u64,
-    /// Ids of the scans that hang from it (their poses move with it).
+    /// Ids of the scans that hang from it (their poses move with it); u32 to keep a
+    /// scan's cost small (4.5 years of scans at 30 Hz).
     members: Vec<u32>,
 }
 
