@@ -149,6 +149,10 @@ pub struct KeyframeConfig {
     pub rotation_deg: f64,
     /// ... or when less than this fraction of it overlaps the window.
     pub min_overlap: f64,
+    /// Keyframe pyramids held in memory at most; beyond it the pyramids of the
+    /// keyframes least recently used by the window or loop closure are dropped (their
+    /// graph node and pose stay; they are no longer loop-closure candidates).
+    pub max_resident: u32,
 }
 
 impl Default for KeyframeConfig {
@@ -158,6 +162,7 @@ impl Default for KeyframeConfig {
             translation_m: 0.2,
             rotation_deg: 10.0,
             min_overlap: 0.6,
+            max_resident: 512,
         }
     }
 }
@@ -187,8 +192,14 @@ pub struct GlobalConfig {
     pub loop_min_inlier_ratio: f64,
     /// Gauss-Newton iterations of the pose graph per optimisation.
     pub max_iterations: u32,
-    /// Poses that move less than this (metres or radians) are not reported revised.
-    pub revision_epsilon: f64,
+    /// Keyframes one optimisation moves at most: those of the loop being closed, the
+    /// newest of them when the loop is longer; older ones are held fixed.
+    pub max_optimised_keyframes: u32,
+    /// A scan's pose is sent again (`PoseRevised`) only when it moved more than this
+    /// from the pose last sent for it...
+    pub revision_translation_m: f64,
+    /// ... or turned more than this.
+    pub revision_rotation_deg: f64,
 }
 
 impl Default for GlobalConfig {
@@ -202,7 +213,9 @@ impl Default for GlobalConfig {
             loop_interval_keyframes: 1,
             loop_min_inlier_ratio: 0.7,
             max_iterations: 10,
-            revision_epsilon: 1.0e-6,
+            max_optimised_keyframes: 100,
+            revision_translation_m: 0.002,
+            revision_rotation_deg: 0.05,
         }
     }
 }
@@ -280,7 +293,7 @@ impl RegistrationConfig {
         let g = &self.global;
         let positive = "must be finite and > 0";
         let fraction = "must be in [0, 1]";
-        let checks: [(&'static str, f64, bool, &'static str); 22] = [
+        let checks: [(&'static str, f64, bool, &'static str); 26] = [
             (
                 "align.pyramid_levels",
                 f64::from(a.pyramid_levels),
@@ -400,6 +413,30 @@ impl RegistrationConfig {
                 k.min_overlap,
                 (0.0..=1.0).contains(&k.min_overlap),
                 fraction,
+            ),
+            (
+                "keyframes.max_resident",
+                f64::from(k.max_resident),
+                (k.window.saturating_add(1)..=1_000_000).contains(&k.max_resident),
+                "must be above keyframes.window and at most 1000000",
+            ),
+            (
+                "global.max_optimised_keyframes",
+                f64::from(g.max_optimised_keyframes),
+                (2..=100_000).contains(&g.max_optimised_keyframes),
+                "must be 2..=100000",
+            ),
+            (
+                "global.revision_translation_m",
+                g.revision_translation_m,
+                g.revision_translation_m.is_finite() && g.revision_translation_m >= 0.0,
+                "must be finite and >= 0",
+            ),
+            (
+                "global.revision_rotation_deg",
+                g.revision_rotation_deg,
+                g.revision_rotation_deg.is_finite() && g.revision_rotation_deg >= 0.0,
+                "must be finite and >= 0",
             ),
             (
                 "global.loop_radius_m",

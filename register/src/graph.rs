@@ -1,16 +1,19 @@
-//! The pose graph of global refinement: one node per registered scan, one edge per
-//! pair of overlapping scans registered to each other (a relative pose and its
-//! information matrix), optimised by Gauss-Newton with Levenberg-Marquardt damping
-//! on SE(3) (Grisetti et al. 2010, "A tutorial on graph-based SLAM", Sec. IV).
+//! The pose graph of global refinement: one node per keyframe (the registrar derives
+//! every other scan's pose from its keyframe's), one edge per pair of overlapping
+//! keyframes registered to each other (a relative pose and its information matrix),
+//! optimised by Gauss-Newton with Levenberg-Marquardt damping on SE(3) (Grisetti et
+//! al. 2010, "A tutorial on graph-based SLAM", Sec. IV), over all nodes or over a
+//! contiguous range of them with the rest held fixed.
 //!
-//! Cost: each iteration assembles the `6N x 6N` normal matrix in O(E) into its
-//! envelope in the scans' time order and factors it there (`envelope.rs`): row `r`
-//! costs its width times its overlap with the rows it meets. Odometry edges reach
-//! only the keyframe window back, so without loops the factor is banded and an
-//! iteration is O(N). A loop edge from scan `j` back to scan `i` widens the rows of
-//! `j` to `j - i` blocks: a walk that closes one loop at its end adds O(N) per row
-//! after the revisit; a walk that keeps revisiting ground `k` scans back costs
-//! O(N · k²) an iteration.
+//! Cost: each iteration assembles the `6F x 6F` normal matrix of the `F` free nodes
+//! in O(E) into its envelope in the nodes' time order and factors it there
+//! (`envelope.rs`): row `r` costs its width times its overlap with the rows it meets.
+//! Odometry edges reach only the keyframe window back, so without loops the factor is
+//! banded and an iteration is O(F). A loop edge from node `j` back to node `i` widens
+//! the rows of `j` to `j - i` blocks: a walk that keeps revisiting ground `k` nodes
+//! back costs O(F · k²) an iteration.
+
+use std::ops::Range;
 
 use nalgebra::{Matrix6, Vector6};
 use texel::Pose;
@@ -62,13 +65,65 @@ impl PoseGraph {
     /// Adds an edge between existing nodes (ignored otherwise, or when the
     /// information is not finite).
     pub fn add_edge(&mut self, edge: Edge) {
-        if edge.i < self.poses.len()
+        if self.is_valid(&edge) {
+            self.edges.push(edge);
+        }
+    }
+
+    /// Adds an edge, or fuses it into the edge of the same kind already joining the
+    /// same two nodes, so that revisiting the same ground again and again does not
+    /// grow the graph while every visit still counts. Fusion (same direction): the
+    /// measurements are averaged on SE(3) weighted by their information's traces and
+    /// the information is summed, up to `max_gain` times the new edge's (repeated
+    /// views of one place are not fully independent); an edge the other way round is
+    /// replaced. Returns whether the edge was taken.
+    pub fn upsert_edge(&mut self, edge: Edge, max_gain: f64) -> bool {
+        if !self.is_valid(&edge) {
+            return false;
+        }
+        let pair = (edge.i.min(edge.j), edge.i.max(edge.j));
+        let Some(existing) = self
+            .edges
+            .iter_mut()
+            .find(|e| e.loop_closure == edge.loop_closure && (e.i.min(e.j), e.i.max(e.j)) == pair)
+        else {
+            self.edges.push(edge);
+            return true;
+        };
+        let (old_trace, new_trace) = (existing.information.trace(), edge.information.trace());
+        if existing.i != edge.i || !(old_trace > 0.0) || !(new_trace > 0.0) {
+            *existing = edge;
+            return true;
+        }
+        let w = new_trace / (old_trace + new_trace);
+        let step = se3::log(&(existing.measured.inverse() * edge.measured)) * w;
+        let measured = existing.measured * se3::exp(&step);
+        let mut information = existing.information + edge.information;
+        let cap = max_gain.max(1.0) * new_trace;
+        let trace = information.trace();
+        if trace > cap {
+            information *= cap / trace;
+        }
+        if se3::is_finite(&measured) && information.iter().all(|c| c.is_finite()) {
+            existing.measured = measured;
+            existing.information = information;
+        }
+        true
+    }
+
+    fn is_valid(&self, edge: &Edge) -> bool {
+        edge.i < self.poses.len()
             && edge.j < self.poses.len()
             && edge.i != edge.j
             && edge.information.iter().all(|c| c.is_finite())
-        {
-            self.edges.push(edge);
-        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.poses.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.poses.is_empty()
     }
 
     pub fn poses(&self) -> &[Pose] {
@@ -92,23 +147,31 @@ impl PoseGraph {
 
     /// `Σ eᵀ Ω e` over the edges.
     pub fn cost(&self) -> f64 {
-        self.edges
-            .iter()
-            .map(|e| {
-                let r = self.residual(e);
-                (r.transpose() * e.information * r)[0]
-            })
-            .sum()
+        let all: Vec<usize> = (0..self.edges.len()).collect();
+        self.cost_of(&all)
     }
 
     /// Optimises every pose but node 0's (which fixes the gauge).
     pub fn optimise(&mut self, max_iterations: u32) -> GraphReport {
-        let initial_cost = self.cost();
+        self.optimise_range(0..self.poses.len(), max_iterations)
+    }
+
+    /// Optimises the nodes in `free` (node 0 always stays fixed, as the gauge) with
+    /// every other node held where it is; only the edges that touch a free node take
+    /// part, so one call costs what its range costs, however large the graph.
+    pub fn optimise_range(&mut self, free: Range<usize>, max_iterations: u32) -> GraphReport {
+        let free = free.start.max(1)..free.end.min(self.poses.len());
+        let active: Vec<usize> = (0..self.edges.len())
+            .filter(|&k| {
+                let e = &self.edges[k];
+                free.contains(&e.i) || free.contains(&e.j)
+            })
+            .collect();
+        let initial_cost = self.cost_of(&active);
         let mut cost = initial_cost;
         let mut damping = 1.0e-6;
         let mut iterations = 0;
-        let n = self.poses.len();
-        if n < 2 || self.edges.is_empty() {
+        if free.is_empty() || active.is_empty() {
             return GraphReport {
                 iterations: 0,
                 initial_cost,
@@ -117,19 +180,20 @@ impl PoseGraph {
         }
         while iterations < max_iterations {
             iterations += 1;
-            let Some(delta) = self.step(damping) else {
+            let Some(delta) = self.step(&free, &active, damping) else {
                 damping *= 10.0;
                 if damping > 1.0e6 {
                     break;
                 }
                 continue;
             };
-            let saved = self.poses.clone();
-            for k in 1..n {
-                let d = Vector6::from_fn(|r, _| delta[6 * (k - 1) + r]);
+            let saved: Vec<Pose> = self.poses[free.clone()].to_vec();
+            for k in free.clone() {
+                let base = 6 * (k - free.start);
+                let d = Vector6::from_fn(|r, _| delta[base + r]);
                 self.poses[k] *= se3::exp(&d);
             }
-            let new_cost = self.cost();
+            let new_cost = self.cost_of(&active);
             if new_cost.is_finite() && new_cost <= cost {
                 let improvement = cost - new_cost;
                 cost = new_cost;
@@ -140,7 +204,7 @@ impl PoseGraph {
                     break;
                 }
             } else {
-                self.poses = saved;
+                self.poses[free.clone()].copy_from_slice(&saved);
                 damping *= 10.0;
                 if damping > 1.0e6 {
                     break;
@@ -154,59 +218,72 @@ impl PoseGraph {
         }
     }
 
-    /// One damped Gauss-Newton step for nodes 1..N (node 0 fixed), `None` if the
-    /// system could not be factored. The normal matrix is assembled straight into
-    /// its lower envelope in time order (each node's rows start at its oldest
-    /// neighbour) and factored there.
-    fn step(&self, damping: f64) -> Option<Vec<f64>> {
-        let n = self.poses.len();
-        let dim = 6 * (n - 1);
-        // Oldest neighbour of each node (itself when none is older).
-        let mut oldest: Vec<usize> = (0..n).collect();
-        for edge in &self.edges {
-            let (lo, hi) = (edge.i.min(edge.j), edge.i.max(edge.j));
-            if lo >= 1 {
+    fn cost_of(&self, active: &[usize]) -> f64 {
+        active
+            .iter()
+            .map(|&k| {
+                let e = &self.edges[k];
+                let r = self.residual(e);
+                (r.transpose() * e.information * r)[0]
+            })
+            .sum()
+    }
+
+    /// One damped Gauss-Newton step for the free nodes, `None` if the system could not
+    /// be factored. The normal matrix is assembled straight into its lower envelope
+    /// in time order (each node's rows start at its oldest free neighbour) and
+    /// factored there.
+    fn step(&self, free: &Range<usize>, active: &[usize], damping: f64) -> Option<Vec<f64>> {
+        let count = free.end - free.start;
+        let dim = 6 * count;
+        let block = |k: usize| free.contains(&k).then(|| k - free.start);
+        // Oldest free neighbour of each free node (itself when none is older).
+        let mut oldest: Vec<usize> = (0..count).collect();
+        for &k in active {
+            let edge = &self.edges[k];
+            if let (Some(a), Some(c)) = (block(edge.i), block(edge.j)) {
+                let (lo, hi) = (a.min(c), a.max(c));
                 oldest[hi] = oldest[hi].min(lo);
             }
         }
-        let start: Vec<usize> = (0..dim).map(|r| 6 * (oldest[r / 6 + 1] - 1)).collect();
+        let start: Vec<usize> = (0..dim).map(|r| 6 * oldest[r / 6]).collect();
         let mut h = Envelope::zeros(start);
         let mut b = vec![0.0; dim];
-        for edge in &self.edges {
+        for &k in active {
+            let edge = &self.edges[k];
             let e = self.residual(edge);
             let jr = inverse_right_jacobian(&e);
             let j_j = jr;
             let j_i = -jr * se3::adjoint(&(self.poses[edge.j].inverse() * self.poses[edge.i]));
             let omega = &edge.information;
-            let parts = [(edge.i, j_i), (edge.j, j_j)];
+            let parts = [(block(edge.i), j_i), (block(edge.j), j_j)];
             for &(a, ja) in &parts {
-                if a == 0 {
-                    continue;
-                }
+                let Some(a) = a else { continue };
                 let g = ja.transpose() * omega * e;
                 for r in 0..6 {
-                    b[6 * (a - 1) + r] -= g[r];
+                    b[6 * a + r] -= g[r];
                 }
                 for &(c, jc) in &parts {
                     // Lower triangle only: each block pair once.
-                    if c == 0 || c > a {
+                    let Some(c) = c else { continue };
+                    if c > a {
                         continue;
                     }
-                    let block = ja.transpose() * omega * jc;
+                    let blk = ja.transpose() * omega * jc;
                     for r in 0..6 {
                         for q in 0..6 {
-                            let (row, col) = (6 * (a - 1) + r, 6 * (c - 1) + q);
+                            let (row, col) = (6 * a + r, 6 * c + q);
                             if c < a || q <= r {
-                                h.add(row, col, block[(r, q)]);
+                                h.add(row, col, blk[(r, q)]);
                             }
                         }
                     }
                 }
             }
         }
-        for k in 1..n {
+        for k in 0..count {
             // Damping (and a floor, so nodes with no edges stay put).
-            let base = 6 * (k - 1);
+            let base = 6 * k;
             let scale = (0..6)
                 .map(|r| h.get(base + r, base + r))
                 .fold(0.0f64, f64::max);
@@ -271,5 +348,58 @@ mod tests {
         let (_, err_after) = texel::pose::pose_difference(&g.poses()[3], &truth[3]);
         assert!(err_after < err_before, "{err_after} vs {err_before}");
         assert!(g.poses().iter().all(se3::is_finite));
+    }
+
+    #[test]
+    fn a_range_optimisation_moves_only_its_nodes_and_repeats_fuse() {
+        // A chain of 6 poses 1 m apart with odometry 5 % long, and a loop edge 0-5
+        // saying 5 m: optimising 3..6 leaves 0..3 where they were.
+        let long = Pose::translation(1.05, 0.0, 0.0);
+        let mut g = PoseGraph::new();
+        let mut p = Pose::identity();
+        g.add_node(p);
+        for _ in 1..6 {
+            p *= long;
+            g.add_node(p);
+        }
+        let info = Matrix6::identity() * 100.0;
+        for k in 0..5 {
+            g.add_edge(Edge {
+                i: k,
+                j: k + 1,
+                measured: long,
+                information: info,
+                loop_closure: false,
+            });
+        }
+        let loop_edge = Edge {
+            i: 0,
+            j: 5,
+            measured: Pose::translation(5.0, 0.0, 0.0),
+            information: info,
+            loop_closure: true,
+        };
+        assert!(g.upsert_edge(loop_edge.clone(), 8.0));
+        let before: Vec<Pose> = g.poses().to_vec();
+        let report = g.optimise_range(3..6, 10);
+        assert!(report.final_cost < report.initial_cost);
+        assert_eq!(&g.poses()[..3], &before[..3]);
+        assert!(g.poses()[5].translation.x < before[5].translation.x - 0.05);
+        // The same loop measured again fuses into the one edge (more information,
+        // the same measurement); one the other way round replaces it.
+        assert!(g.upsert_edge(loop_edge.clone(), 8.0));
+        assert_eq!(g.edges().len(), 6);
+        let fused = &g.edges()[5];
+        assert!((fused.information[(0, 0)] - 200.0).abs() < 1e-9);
+        assert!(texel::pose::pose_difference(&fused.measured, &loop_edge.measured).1 < 1e-12);
+        let reversed = Edge {
+            i: 5,
+            j: 0,
+            measured: loop_edge.measured.inverse(),
+            ..loop_edge
+        };
+        assert!(g.upsert_edge(reversed, 8.0));
+        assert_eq!(g.edges().len(), 6);
+        assert_eq!(g.edges()[5].i, 5);
     }
 }

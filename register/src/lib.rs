@@ -25,6 +25,7 @@ pub mod placement;
 pub mod pyramid;
 pub mod registrar;
 pub mod result;
+pub mod scan_table;
 pub mod se3;
 
 pub use align::{AlignTarget, align, align_pair};
@@ -32,5 +33,5 @@ pub use capture::{RegisterCommandError, RegisterReport, default_anchor, register
 pub use config::{AlignConfig, ConfigError, RegistrationConfig, RobustKernel, Solver};
 pub use normal_eq::DegenerateDirection;
 pub use pyramid::{PyramidOptions, ScanPyramid};
-pub use registrar::{Registrar, RegistrarStats};
+pub use registrar::{Registrar, RegistrarMemory, RegistrarStats};
 pub use result::{Alignment, FailureReason, Fitness, RegistrationResult, RegistrationStatus};

@@ -42,6 +42,23 @@ impl MotionModel {
         }
     }
 
+    /// Moves the last recorded pose to `last` (global refinement or re-localisation
+    /// moved it) and the one before with it, so the velocity stays the measured one: a
+    /// correction of the map is not a motion of the camera.
+    pub fn rebase(&mut self, last: Pose) {
+        if let Some((t1, p1)) = self.last {
+            if let Some((t0, p0)) = self.previous {
+                self.previous = Some((t0, last * (p1.inverse() * p0)));
+            }
+            self.last = Some((t1, last));
+        }
+    }
+
+    /// The timestamp of the last recorded pose.
+    pub fn last_timestamp_ns(&self) -> Option<u64> {
+        self.last.map(|(t, _)| t)
+    }
+
     /// The predicted pose at `timestamp_ns`: identity before any scan, the last pose
     /// after one, constant velocity after two.
     pub fn predict(&self, timestamp_ns: u64) -> Pose {
@@ -80,6 +97,12 @@ mod tests {
         // Half the interval: half the motion.
         let half = se3::exp(&(se3::log(&step) * 0.5));
         let (a, d) = texel::pose::pose_difference(&m.predict(15), &(step * half));
+        assert!(a < 1e-12 && d < 1e-12);
+        // A correction of the last pose carries the one before along: same velocity.
+        let mut moved = m.clone();
+        let shift = Pose::translation(0.3, -0.1, 0.05);
+        moved.rebase(shift * step);
+        let (a, d) = texel::pose::pose_difference(&moved.predict(20), &(shift * step * step));
         assert!(a < 1e-12 && d < 1e-12);
         // Same timestamp again (identical frames): no extrapolation, no NaN.
         m.update(10, step);

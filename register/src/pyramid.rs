@@ -246,6 +246,33 @@ impl ScanPyramid {
     pub fn level_count(&self) -> usize {
         self.levels.len()
     }
+
+    /// Heap bytes this pyramid keeps alive: its levels and its scan (mesh and EO
+    /// texture, which the scan shares with the frame it came from and the model).
+    pub fn heap_bytes(&self) -> usize {
+        use std::mem::size_of;
+        let levels: usize = self
+            .levels
+            .iter()
+            .map(|l| {
+                l.flags.capacity()
+                    + l.surfels.capacity() * size_of::<Surfel>()
+                    + l.ranges_m.capacity() * size_of::<f32>()
+                    + l.gradient.capacity() * size_of::<[f32; 3]>()
+            })
+            .sum();
+        let s = &self.scan;
+        let scan = s.vertices.capacity() * size_of::<[f32; 3]>()
+            + s.tex_coords.capacity() * size_of::<[f32; 2]>()
+            + s.vertex_textured.capacity()
+            + s.vertex_pixel.capacity() * size_of::<u32>()
+            + s.pixel_vertex.capacity() * size_of::<u32>()
+            + s.triangles.capacity() * size_of::<[u32; 3]>()
+            + s.triangle_accuracy.capacity() * size_of::<f32>()
+            + s.triangle_flags.capacity() * size_of::<texel::scan::TriangleFlags>()
+            + s.texture.rgb.capacity();
+        levels + self.levels.capacity() * size_of::<Level>() + scan
+    }
 }
 
 /// Half-width of the normal-fit window at a level: 3 at full resolution (a 7x7

@@ -1,6 +1,9 @@
 //! The registrar: registers each new scan against the model-side keyframe window,
-//! keeps the motion model, the pose graph and the failed scans waiting for a retry,
-//! and reports what changes in the model as [`ModelEvent`]s.
+//! keeps the motion model, the pose graph over keyframes (every other scan hangs from
+//! a keyframe, its world pose derived from the keyframe's) and the failed scans
+//! waiting for a retry, and reports what changes in the model as [`ModelEvent`]s.
+
+mod revisit;
 
 use std::collections::VecDeque;
 use std::sync::Arc;
@@ -16,31 +19,27 @@ use super::graph::{Edge, PoseGraph};
 use super::motion::MotionModel;
 use super::pyramid::{PyramidOptions, ScanPyramid};
 use super::result::{Alignment, FailureReason, Fitness, RegistrationResult, RegistrationStatus};
+use super::scan_table::{CompactPose, RevisionThresholds, ScanRecord, ScanTable};
 
 /// Fewest correspondences with one keyframe for the pair to become a graph edge.
 const MIN_EDGE_CORRESPONDENCES: usize = 12;
 
-/// A registered scan.
-struct Node {
-    lidar: Arc<PinholeCamera>,
-    timestamp_ns: u64,
-    /// Its position in the keyframe sequence, if it is a keyframe.
-    keyframe: Option<usize>,
-    /// A keyframe's pyramid, built once when the scan arrived and kept for loop
-    /// closure (never rebuilt per registration).
+/// A keyframe: a graph node (its ordinal is the node's index).
+struct Keyframe {
+    /// Built once when the scan arrived and kept for the window, loop closure and
+    /// re-localisation; dropped when the keyframe has not been used for longest and
+    /// more than `keyframes.max_resident` are held.
     pyramid: Option<Arc<ScanPyramid>>,
-}
-
-/// A keyframe of the window, with its pyramid.
-struct WindowEntry {
-    node: usize,
-    pyramid: Arc<ScanPyramid>,
+    /// The registration tick at which the window or loop closure last used it.
+    last_used: u64,
+    /// Ids of the scans that hang from it (their poses move with it); u32 to keep a
+    /// scan's cost small (4.5 years of scans at 30 Hz).
+    members: Vec<u32>,
 }
 
 /// A scan that failed, waiting for a later keyframe to register against.
 struct Pending {
     pyramid: Arc<ScanPyramid>,
-    lidar: Arc<PinholeCamera>,
     retries: u32,
 }
 
@@ -55,16 +54,36 @@ pub struct RegistrarStats {
     pub loop_closures: u64,
     pub loop_candidates_rejected: u64,
     pub graph_optimisations: u64,
+    /// Scans that would have become keyframes and were attached to an existing
+    /// keyframe of mapped ground instead.
+    pub relocalisations: u64,
+    /// Keyframe pyramids dropped to stay within `keyframes.max_resident`.
+    pub pyramids_dropped: u64,
+}
+
+/// What the registrar holds, in heap bytes (capacity included).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct RegistrarMemory {
+    pub scans: usize,
+    /// The per-scan records and keyframe membership lists.
+    pub scan_bytes: usize,
+    pub keyframes: usize,
+    /// Keyframe records, graph nodes and edges (pyramids apart).
+    pub keyframe_bytes: usize,
+    pub resident_pyramids: usize,
+    /// The resident pyramids with their scans (mesh and EO texture).
+    pub pyramid_bytes: usize,
 }
 
 /// Scan-to-model registration with global refinement.
 pub struct Registrar {
     config: RegistrationConfig,
     anchor: Pose,
-    nodes: Vec<Node>,
-    /// Keyframe node of each keyframe ordinal.
-    keyframes: Vec<usize>,
-    window: VecDeque<WindowEntry>,
+    scans: ScanTable,
+    /// By ordinal, which is also the graph node index.
+    keyframes: Vec<Keyframe>,
+    /// Keyframe ordinals, oldest first; their pyramids are always resident.
+    window: VecDeque<usize>,
     graph: PoseGraph,
     motion: MotionModel,
     pending: VecDeque<Pending>,
@@ -73,6 +92,11 @@ pub struct Registrar {
     stats: RegistrarStats,
     /// Keyframe ordinal of the last accepted loop closure.
     last_loop_keyframe: Option<usize>,
+    /// The lidar model of the last scan, shared by the scans that use the same one.
+    lidar: Option<Arc<PinholeCamera>>,
+    /// Counts `register` calls: the clock of least-recently-used pyramid eviction.
+    tick: u64,
+    resident: usize,
 }
 
 impl Registrar {
@@ -86,7 +110,7 @@ impl Registrar {
         Self {
             config,
             anchor: world_from_first_scan,
-            nodes: Vec::new(),
+            scans: ScanTable::default(),
             keyframes: Vec::new(),
             window: VecDeque::new(),
             graph: PoseGraph::new(),
@@ -96,6 +120,9 @@ impl Registrar {
             recovered: Vec::new(),
             stats: RegistrarStats::default(),
             last_loop_keyframe: None,
+            lidar: None,
+            tick: 0,
+            resident: 0,
         }
     }
 
@@ -103,37 +130,81 @@ impl Registrar {
         &self.config
     }
 
-    /// The current pose of a registered scan.
+    /// The current pose of a registered scan: its keyframe's pose times its pose
+    /// relative to the keyframe.
     pub fn pose(&self, id: ScanId) -> Option<Pose> {
-        usize::try_from(id)
-            .ok()
-            .and_then(|i| self.graph.poses().get(i).copied())
+        let record = usize::try_from(id).ok().and_then(|i| self.scans.get(i))?;
+        self.derived_pose(record)
     }
 
     /// Current poses of all registered scans, by id.
-    pub fn poses(&self) -> &[Pose] {
-        self.graph.poses()
+    pub fn poses(&self) -> Vec<Pose> {
+        self.scans
+            .iter()
+            .map(|r| self.derived_pose(r).unwrap_or(r.keyframe_from_scan))
+            .collect()
+    }
+
+    /// The number of registered scans.
+    pub fn scan_count(&self) -> usize {
+        self.scans.len()
     }
 
     /// Timestamp of a registered scan.
     pub fn timestamp_ns(&self, id: ScanId) -> Option<u64> {
         usize::try_from(id)
             .ok()
-            .and_then(|i| self.nodes.get(i))
-            .map(|n| n.timestamp_ns)
+            .and_then(|i| self.scans.get(i))
+            .map(|r| r.timestamp_ns)
     }
 
     pub fn stats(&self) -> RegistrarStats {
         self.stats
     }
 
+    /// The pose graph: one node per keyframe, by keyframe ordinal.
     pub fn graph(&self) -> &PoseGraph {
         &self.graph
     }
 
+    /// The keyframe ordinal (graph node) a registered scan hangs from.
+    pub fn keyframe_of(&self, id: ScanId) -> Option<usize> {
+        usize::try_from(id)
+            .ok()
+            .and_then(|i| self.scans.get(i))
+            .map(|r| r.keyframe as usize)
+    }
+
+    /// What the registrar holds in memory.
+    pub fn heap_bytes(&self) -> RegistrarMemory {
+        use std::mem::size_of;
+        let members: usize = self
+            .keyframes
+            .iter()
+            .map(|k| k.members.capacity() * size_of::<u32>())
+            .sum();
+        let pyramid_bytes = self
+            .keyframes
+            .iter()
+            .filter_map(|k| k.pyramid.as_ref())
+            .map(|p| p.heap_bytes())
+            .sum();
+        RegistrarMemory {
+            scans: self.scans.len(),
+            scan_bytes: self.scans.heap_bytes() + members,
+            keyframes: self.keyframes.len(),
+            keyframe_bytes: self.keyframes.capacity() * size_of::<Keyframe>()
+                + std::mem::size_of_val(self.graph.poses())
+                + std::mem::size_of_val(self.graph.edges()),
+            resident_pyramids: self.resident,
+            pyramid_bytes,
+        }
+    }
+
     /// Model events since the last call, in order: `ScanAdded` for every scan that
-    /// entered the model (new ones and recovered ones), `PoseRevised` for every pose
-    /// global refinement moved.
+    /// entered the model (new ones and recovered ones), `PoseRevised` for every scan
+    /// whose derived pose global refinement moved beyond the revision thresholds from
+    /// the pose last sent for it.
     pub fn take_events(&mut self) -> Vec<ModelEvent> {
         std::mem::take(&mut self.events)
     }
@@ -150,10 +221,12 @@ impl Registrar {
     /// 3. Initial guess from the constant-velocity motion model.
     /// 4. Align against the keyframe window (`align`).
     /// 5. On failure: keep the scan for a retry; the model does not change.
-    /// 6. On success: a new graph node with one edge per keyframe it overlaps; maybe
-    ///    a new keyframe, which looks for loop closures and, on one, re-optimises the
-    ///    graph; then retry the failed scans against the updated window.
+    /// 6. On success: the scan hangs from the window keyframe it overlaps most; when
+    ///    it moved far enough to be a keyframe, either it re-localises on an existing
+    ///    keyframe of mapped ground or it becomes a new keyframe (a graph node), which
+    ///    looks for loop closures; then retry the failed scans against the window.
     pub fn register(&mut self, scan: Arc<TexelScan>, lidar: &PinholeCamera) -> RegistrationResult {
+        self.tick += 1;
         let lidar = self.shared_camera(lidar);
         let timestamp_ns = scan.timestamp_ns;
         let seq = scan.seq;
@@ -165,17 +238,18 @@ impl Registrar {
                 gradients: self.config.align.photometric_weight > 0.0,
             },
         ));
-        if self.nodes.is_empty() {
-            return self.anchor_first(pyramid, lidar);
+        if self.scans.is_empty() {
+            return self.anchor_first(pyramid);
         }
         let initial = self.motion.predict(timestamp_ns);
         let alignment = self.align_to_window(&pyramid, &initial);
+        self.touch_window();
         if let Err(reason) = &alignment.status {
             self.stats.failed += 1;
-            self.keep_for_retry(Arc::clone(&pyramid), lidar);
+            self.keep_for_retry(Arc::clone(&pyramid));
             return failed_result(timestamp_ns, seq, &alignment, reason.clone());
         }
-        let mut result = self.insert(pyramid, lidar, &alignment, true);
+        let mut result = self.insert(pyramid, &alignment, true);
         self.stats.registered += 1;
         self.retry_pending();
         result.world_from_scan = result
@@ -185,28 +259,53 @@ impl Registrar {
         result
     }
 
-    fn shared_camera(&self, lidar: &PinholeCamera) -> Arc<PinholeCamera> {
-        match self.nodes.last() {
-            Some(n) if *n.lidar == *lidar => Arc::clone(&n.lidar),
-            _ => Arc::new(lidar.clone()),
+    fn derived_pose(&self, record: &ScanRecord) -> Option<Pose> {
+        let world_from_keyframe = self.graph.poses().get(record.keyframe as usize)?;
+        Some(world_from_keyframe * record.keyframe_from_scan)
+    }
+
+    fn keyframe_pose(&self, ordinal: usize) -> Pose {
+        self.graph
+            .poses()
+            .get(ordinal)
+            .copied()
+            .unwrap_or(self.anchor)
+    }
+
+    fn thresholds(&self) -> RevisionThresholds {
+        RevisionThresholds {
+            translation_m: self.config.global.revision_translation_m,
+            rotation_rad: self.config.global.revision_rotation_deg.to_radians(),
         }
     }
 
-    fn anchor_first(
-        &mut self,
-        pyramid: Arc<ScanPyramid>,
-        lidar: Arc<PinholeCamera>,
-    ) -> RegistrationResult {
+    fn shared_camera(&mut self, lidar: &PinholeCamera) -> Arc<PinholeCamera> {
+        match &self.lidar {
+            Some(l) if **l == *lidar => Arc::clone(l),
+            _ => {
+                let l = Arc::new(lidar.clone());
+                self.lidar = Some(Arc::clone(&l));
+                l
+            }
+        }
+    }
+
+    fn anchor_first(&mut self, pyramid: Arc<ScanPyramid>) -> RegistrationResult {
         let scan = Arc::clone(&pyramid.scan);
-        let id = self.graph.add_node(self.anchor);
-        self.nodes.push(Node {
-            lidar,
+        let ordinal = self.graph.add_node(self.anchor);
+        let id = self.scans.push(ScanRecord {
+            keyframe_from_scan: Pose::identity(),
+            emitted: CompactPose::from_pose(&self.anchor),
             timestamp_ns: scan.timestamp_ns,
-            keyframe: Some(0),
-            pyramid: Some(Arc::clone(&pyramid)),
+            keyframe: 0,
         });
-        self.keyframes.push(id);
-        self.window.push_back(WindowEntry { node: id, pyramid });
+        self.keyframes.push(Keyframe {
+            pyramid: Some(pyramid),
+            last_used: self.tick,
+            members: vec![id as u32],
+        });
+        self.resident += 1;
+        self.window.push_back(ordinal);
         self.motion.update(scan.timestamp_ns, self.anchor);
         self.stats.keyframes += 1;
         self.stats.registered += 1;
@@ -231,58 +330,54 @@ impl Registrar {
     }
 
     fn align_to_window(&self, pyramid: &ScanPyramid, initial: &Pose) -> Alignment {
-        let poses = self.graph.poses();
-        let targets: Vec<AlignTarget<'_>> = self
-            .window
-            .iter()
-            .map(|w| AlignTarget {
-                pyramid: &w.pyramid,
-                world_from_target: poses[w.node],
-            })
-            .collect();
+        let targets = self.window_targets();
         align(pyramid, &targets, initial, &self.config.align)
     }
 
-    /// Adds a registered scan to the graph and the model; `live` scans (not
-    /// recovered ones) update the motion model and may become keyframes.
+    /// The window's keyframes as alignment targets, in window order (a window
+    /// keyframe's pyramid is always resident).
+    fn window_targets(&self) -> Vec<AlignTarget<'_>> {
+        self.window
+            .iter()
+            .filter_map(|&o| {
+                let pyramid = self.keyframes.get(o)?.pyramid.as_deref()?;
+                Some(AlignTarget {
+                    pyramid,
+                    world_from_target: self.keyframe_pose(o),
+                })
+            })
+            .collect()
+    }
+
+    fn touch_window(&mut self) {
+        for &o in &self.window {
+            if let Some(k) = self.keyframes.get_mut(o) {
+                k.last_used = self.tick;
+            }
+        }
+    }
+
+    /// Adds a registered scan to the model, hanging from the window keyframe it
+    /// overlaps most; `live` scans (not recovered ones) update the motion model and
+    /// may re-localise or become keyframes.
     fn insert(
         &mut self,
         pyramid: Arc<ScanPyramid>,
-        lidar: Arc<PinholeCamera>,
         alignment: &Alignment,
         live: bool,
     ) -> RegistrationResult {
         let scan = Arc::clone(&pyramid.scan);
         let pose = alignment.world_from_source;
-        let id = self.graph.add_node(pose);
-        // One edge per overlapping keyframe of the window.
-        let window_nodes: Vec<usize> = self.window.iter().map(|w| w.node).collect();
-        for (k, &node) in window_nodes.iter().enumerate() {
-            let count = alignment
-                .target_correspondences
-                .get(k)
-                .copied()
-                .unwrap_or(0);
-            let Some(information) = alignment.target_information.get(k) else {
-                continue;
-            };
-            if count >= MIN_EDGE_CORRESPONDENCES {
-                let measured = self.graph.poses()[node].inverse() * pose;
-                self.graph.add_edge(Edge {
-                    i: node,
-                    j: id,
-                    measured,
-                    information: *information,
-                    loop_closure: false,
-                });
-            }
-        }
-        self.nodes.push(Node {
-            lidar,
+        let reference = self.reference_keyframe(alignment);
+        let id = self.scans.push(ScanRecord {
+            keyframe_from_scan: self.keyframe_pose(reference).inverse() * pose,
+            emitted: CompactPose::from_pose(&pose),
             timestamp_ns: scan.timestamp_ns,
-            keyframe: None,
-            pyramid: None,
+            keyframe: reference as u32,
         });
+        if let Some(k) = self.keyframes.get_mut(reference) {
+            k.members.push(id as u32);
+        }
         self.events.push(ModelEvent::ScanAdded {
             id: id as ScanId,
             scan: Arc::clone(&scan),
@@ -293,10 +388,16 @@ impl Registrar {
         if live {
             self.motion.update(scan.timestamp_ns, pose);
             if self.is_new_keyframe(&pose, &alignment.fitness) {
-                keyframe = true;
-                self.add_keyframe(id, Arc::clone(&pyramid));
-                if self.config.global.enabled {
-                    loop_closures = self.close_loops(id, &pyramid);
+                match self.relocalise(id, reference, &pyramid, &pose) {
+                    Some(loops) => loop_closures = loops,
+                    None if self.keyframes.len() < u32::MAX as usize => {
+                        keyframe = true;
+                        let ordinal = self.add_keyframe(id, reference, pyramid, alignment);
+                        if self.config.global.enabled {
+                            loop_closures = self.close_loops(ordinal);
+                        }
+                    }
+                    None => {}
                 }
             }
         }
@@ -315,134 +416,120 @@ impl Registrar {
         }
     }
 
+    /// The window keyframe with the most correspondences (the newest on a tie).
+    fn reference_keyframe(&self, alignment: &Alignment) -> usize {
+        let newest = self.window.back().copied().unwrap_or(0);
+        self.window
+            .iter()
+            .enumerate()
+            .map(|(k, &o)| {
+                let count = alignment
+                    .target_correspondences
+                    .get(k)
+                    .copied()
+                    .unwrap_or(0);
+                (count, k, o)
+            })
+            .max_by_key(|&(count, k, _)| (count, k))
+            .filter(|&(count, _, _)| count > 0)
+            .map_or(newest, |(_, _, o)| o)
+    }
+
     fn is_new_keyframe(&self, pose: &Pose, fitness: &Fitness) -> bool {
         let k = &self.config.keyframes;
-        let Some(newest) = self.window.back() else {
+        let Some(&newest) = self.window.back() else {
             return true;
         };
-        let (angle, dist) = pose_difference(&self.graph.poses()[newest.node], pose);
+        let (angle, dist) = pose_difference(&self.keyframe_pose(newest), pose);
         dist > k.translation_m
             || angle.to_degrees() > k.rotation_deg
             || fitness.overlap < k.min_overlap
     }
 
-    fn add_keyframe(&mut self, node: usize, pyramid: Arc<ScanPyramid>) {
-        let ordinal = self.keyframes.len();
-        self.keyframes.push(node);
-        if let Some(n) = self.nodes.get_mut(node) {
-            n.keyframe = Some(ordinal);
-            n.pyramid = Some(Arc::clone(&pyramid));
+    /// Makes scan `id` (hanging from `reference`) a keyframe: a graph node with one
+    /// edge per window keyframe it overlaps. Returns its ordinal.
+    fn add_keyframe(
+        &mut self,
+        id: usize,
+        reference: usize,
+        pyramid: Arc<ScanPyramid>,
+        alignment: &Alignment,
+    ) -> usize {
+        let pose = alignment.world_from_source;
+        let ordinal = self.graph.add_node(pose);
+        let mut edges = 0;
+        for (k, &o) in self.window.iter().enumerate() {
+            let count = alignment
+                .target_correspondences
+                .get(k)
+                .copied()
+                .unwrap_or(0);
+            let Some(information) = alignment.target_information.get(k) else {
+                continue;
+            };
+            if count >= MIN_EDGE_CORRESPONDENCES {
+                let before = self.graph.edges().len();
+                self.graph.add_edge(Edge {
+                    i: o,
+                    j: ordinal,
+                    measured: self.keyframe_pose(o).inverse() * pose,
+                    information: *information,
+                    loop_closure: false,
+                });
+                edges += self.graph.edges().len() - before;
+            }
         }
-        self.window.push_back(WindowEntry { node, pyramid });
+        if edges == 0 {
+            // Keep the node tied to the map: the whole alignment against its reference.
+            self.graph.add_edge(Edge {
+                i: reference,
+                j: ordinal,
+                measured: self.keyframe_pose(reference).inverse() * pose,
+                information: alignment.information,
+                loop_closure: false,
+            });
+        }
+        // The scan now hangs from itself.
+        if let Some(k) = self.keyframes.get_mut(reference)
+            && k.members.last() == Some(&(id as u32))
+        {
+            k.members.pop();
+        }
+        if let Some(r) = self.scans.get_mut(id) {
+            r.keyframe = ordinal as u32;
+            r.keyframe_from_scan = Pose::identity();
+        }
+        self.keyframes.push(Keyframe {
+            pyramid: Some(pyramid),
+            last_used: self.tick,
+            members: vec![id as u32],
+        });
+        self.resident += 1;
+        self.enter_window(ordinal);
+        self.stats.keyframes += 1;
+        ordinal
+    }
+
+    /// Makes `ordinal` the newest keyframe of the window, then drops the pyramids the
+    /// residency bound no longer allows.
+    fn enter_window(&mut self, ordinal: usize) {
+        self.window.retain(|&o| o != ordinal);
+        self.window.push_back(ordinal);
         while self.window.len() > self.config.keyframes.window as usize {
             self.window.pop_front();
         }
-        self.stats.keyframes += 1;
+        if let Some(k) = self.keyframes.get_mut(ordinal) {
+            k.last_used = self.tick;
+        }
+        self.evict();
     }
 
-    /// Loop closure: older keyframes near the new one (by pose) are verified by
-    /// registration; each accepted one becomes a graph edge, and the graph is
-    /// re-optimised. Returns the loops accepted.
-    fn close_loops(&mut self, node: usize, pyramid: &ScanPyramid) -> u32 {
-        let g = self.config.global.clone();
-        let poses = self.graph.poses();
-        let current = poses[node];
-        let Some(ordinal) = self.nodes[node].keyframe else {
-            return 0;
-        };
-        // Rate limit: a closure was just made, the graph is consistent here.
-        if self
-            .last_loop_keyframe
-            .is_some_and(|last| ordinal < last + g.loop_interval_keyframes as usize)
-        {
-            return 0;
-        }
-        let in_window: Vec<usize> = self.window.iter().map(|w| w.node).collect();
-        let mut candidates: Vec<(f64, usize)> = self
-            .keyframes
-            .iter()
-            .enumerate()
-            .filter(|&(o, &n)| {
-                o + (g.loop_min_gap_keyframes as usize) <= ordinal && !in_window.contains(&n)
-            })
-            .filter_map(|(_, &n)| {
-                let (_, dist) = pose_difference(&poses[n], &current);
-                // Viewing directions: the angle between the optical axes.
-                let axis_angle = (poses[n].rotation * nalgebra::Vector3::z())
-                    .angle(&(current.rotation * nalgebra::Vector3::z()));
-                (dist <= g.loop_radius_m && axis_angle.to_degrees() <= g.loop_max_angle_deg)
-                    .then_some((dist, n))
-            })
-            .collect();
-        candidates.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-        candidates.truncate(g.loop_max_candidates as usize);
-        let mut accepted = 0;
-        for (_, old) in candidates {
-            let Some(old_pyramid) = self.nodes[old].pyramid.clone() else {
-                continue;
-            };
-            let world_from_old = self.graph.poses()[old];
-            let targets = [AlignTarget {
-                pyramid: &old_pyramid,
-                world_from_target: world_from_old,
-            }];
-            let alignment = align(pyramid, &targets, &current, &self.config.align);
-            let good = alignment.is_ok()
-                && alignment.fitness.inlier_ratio_of_overlap >= g.loop_min_inlier_ratio;
-            if !good {
-                self.stats.loop_candidates_rejected += 1;
-                continue;
-            }
-            let measured = world_from_old.inverse() * alignment.world_from_source;
-            self.graph.add_edge(Edge {
-                i: old,
-                j: node,
-                measured,
-                information: alignment.information,
-                loop_closure: true,
-            });
-            accepted += 1;
-        }
-        if accepted > 0 {
-            self.last_loop_keyframe = Some(ordinal);
-            self.stats.loop_closures += u64::from(accepted);
-            self.refine();
-        }
-        accepted
-    }
-
-    /// Global refinement: optimise the graph and report every pose that moved.
-    fn refine(&mut self) {
-        let before = self.graph.poses().to_vec();
-        self.graph.optimise(self.config.global.max_iterations);
-        self.stats.graph_optimisations += 1;
-        let eps = self.config.global.revision_epsilon;
-        let after = self.graph.poses().to_vec();
-        for (id, (a, b)) in before.iter().zip(after.iter()).enumerate() {
-            let (angle, dist) = pose_difference(a, b);
-            if angle > eps || dist > eps {
-                self.events.push(ModelEvent::PoseRevised {
-                    id: id as ScanId,
-                    world_from_scan: *b,
-                });
-            }
-        }
-        let nodes = &self.nodes;
-        self.motion.revise(|t| {
-            nodes
-                .iter()
-                .rposition(|n| n.timestamp_ns == t)
-                .map(|i| after[i])
-        });
-    }
-
-    fn keep_for_retry(&mut self, pyramid: Arc<ScanPyramid>, lidar: Arc<PinholeCamera>) {
+    fn keep_for_retry(&mut self, pyramid: Arc<ScanPyramid>) {
         if self.config.retry.max_pending == 0 || self.config.retry.max_retries == 0 {
             return;
         }
         self.pending.push_back(Pending {
             pyramid,
-            lidar,
             retries: 0,
         });
         while self.pending.len() > self.config.retry.max_pending as usize {
@@ -457,14 +544,19 @@ impl Registrar {
         if self.pending.is_empty() {
             return;
         }
-        let Some(&guess) = self.graph.poses().last() else {
+        let Some(guess) = self
+            .scans
+            .len()
+            .checked_sub(1)
+            .and_then(|i| self.pose(i as ScanId))
+        else {
             return;
         };
         let mut still = VecDeque::new();
         while let Some(mut p) = self.pending.pop_front() {
             let alignment = self.align_to_window(&p.pyramid, &guess);
             if alignment.is_ok() {
-                let result = self.insert(Arc::clone(&p.pyramid), p.lidar, &alignment, false);
+                let result = self.insert(Arc::clone(&p.pyramid), &alignment, false);
                 self.stats.recovered += 1;
                 self.recovered.push(result);
             } else {
