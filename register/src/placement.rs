@@ -123,6 +123,19 @@ impl Registration for RegistrarStage {
         "register"
     }
 
+    fn restore(
+        &mut self,
+        scan: &Arc<TexelScan>,
+        input: ScanInput<'_>,
+        id: ScanId,
+        world_from_scan: Pose,
+    ) {
+        let config = &self.config;
+        self.registrar
+            .get_or_insert_with(|| Registrar::with_anchor(config.clone(), world_from_scan))
+            .restore(Arc::clone(scan), input.lidar, id, world_from_scan);
+    }
+
     fn register(&mut self, scan: &Arc<TexelScan>, input: ScanInput<'_>) -> StageOutput {
         let registrar = match &mut self.registrar {
             Some(r) => r,

@@ -3,6 +3,7 @@
 //! a keyframe, its world pose derived from the keyframe's) and the failed scans
 //! waiting for a retry, and reports what changes in the model as [`ModelEvent`]s.
 
+mod restore;
 mod revisit;
 
 use std::collections::VecDeque;
