@@ -83,9 +83,10 @@ async fn run_once(capture: &Path, pace: Option<f64>) -> Result<Run, String> {
 fn first_scan(hub: &texel_daemon::hub::Hub) -> Option<std::sync::Arc<texel::TexelScan>> {
     let frame = hub.fetch_scan(0).ok()?;
     match texel::wire::decode_frame(&frame, &texel::wire::Limits::FROM_SERVER) {
-        Ok(Some((texel::wire::Message::ScanAdded(wire), _))) => {
-            wire.into_scan().ok().map(|(_, scan, _)| std::sync::Arc::new(scan))
-        }
+        Ok(Some((texel::wire::Message::ScanAdded(wire), _))) => wire
+            .into_scan()
+            .ok()
+            .map(|(_, scan, _)| std::sync::Arc::new(scan)),
         _ => None,
     }
 }

@@ -309,7 +309,10 @@ fn report(args: &Args, walk: u64, samples: &[Sample], joiner: &Joiner) -> Result
         &[
             texel_plots::Line {
                 name: "resident".into(),
-                points: samples.iter().map(|s| (s.frames as f64, s.rss_mb)).collect(),
+                points: samples
+                    .iter()
+                    .map(|s| (s.frames as f64, s.rss_mb))
+                    .collect(),
             },
             texel_plots::Line {
                 name: "model in memory".into(),

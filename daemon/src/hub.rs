@@ -97,7 +97,7 @@ pub enum HubError {
     Wire(#[from] WireError),
     #[error("scan {0} was added twice")]
     Duplicate(ScanId),
-    #[error("pose revision for unknown scan {0}")]
+    #[error("no scan {0} (or not in the state the change needs)")]
     UnknownScan(ScanId),
     #[error("the hub is closed")]
     Closed,
@@ -116,6 +116,10 @@ pub enum FetchError {
     Lost(ScanId),
     #[error("cannot encode scan {id}'s pose: {source}")]
     Wire { id: ScanId, source: WireError },
+    #[error("scan {id} cannot be read: {message}")]
+    Failed { id: ScanId, message: String },
+    #[error("the hub is closed")]
+    Closed,
 }
 
 /// The shared model and its subscribers.
@@ -280,6 +284,40 @@ impl Hub {
         Ok(())
     }
 
+    /// Takes a scan out of the served model by hand (as retirement would): viewers are
+    /// told to forget it, requests for it are refused, it stays in the store.
+    pub fn withdraw(&self, id: ScanId) -> Result<(), HubError> {
+        let mut inner = self.lock();
+        if inner.closed.is_some() {
+            return Err(HubError::Closed);
+        }
+        if !inner.entries.get(&id).is_some_and(|e| !e.retired) {
+            return Err(HubError::UnknownScan(id));
+        }
+        let changes = Changes {
+            retired: vec![id],
+            restored: Vec::new(),
+        };
+        self.apply_changes(&mut inner, &changes, None)
+    }
+
+    /// Brings a withdrawn scan back into the served model: viewers are sent its
+    /// listing.
+    pub fn relist(&self, id: ScanId) -> Result<(), HubError> {
+        let mut inner = self.lock();
+        if inner.closed.is_some() {
+            return Err(HubError::Closed);
+        }
+        if !inner.entries.get(&id).is_some_and(|e| e.retired) {
+            return Err(HubError::UnknownScan(id));
+        }
+        let changes = Changes {
+            retired: Vec::new(),
+            restored: vec![id],
+        };
+        self.apply_changes(&mut inner, &changes, None)
+    }
+
     /// Withdraws the scans retirement retired (but `skip`, handled by the caller)
     /// and lists the ones it restored.
     fn apply_changes(
@@ -376,6 +414,9 @@ impl Hub {
     pub fn fetch_scan(&self, id: ScanId) -> Result<Bytes, FetchError> {
         {
             let mut inner = self.lock();
+            if inner.closed.is_some() {
+                return Err(FetchError::Closed);
+            }
             let e = inner.entries.get(&id).ok_or(FetchError::Unknown(id))?;
             if e.retired {
                 return Err(FetchError::Withdrawn(id));
@@ -412,6 +453,9 @@ impl Hub {
     /// meantime, else the frame and, if it moved since it was encoded, its current pose.
     pub fn finish_fetch(&self, id: ScanId, frame: Bytes) -> Result<Vec<Bytes>, FetchError> {
         let inner = self.lock();
+        if inner.closed.is_some() {
+            return Err(FetchError::Closed);
+        }
         let e = inner.entries.get(&id).ok_or(FetchError::Unknown(id))?;
         if e.retired {
             return Err(FetchError::Withdrawn(id));

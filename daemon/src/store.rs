@@ -145,10 +145,8 @@ impl Store {
         let nanos = std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
             .map_or(0, |d| d.as_nanos());
-        let path = std::env::temp_dir().join(format!(
-            "texel-model-{}-{nanos}.scans",
-            std::process::id()
-        ));
+        let path =
+            std::env::temp_dir().join(format!("texel-model-{}-{nanos}.scans", std::process::id()));
         let store = Self::create(&path)?;
         std::fs::remove_file(&path).map_err(|source| io_error(&path, source))?;
         Ok(store)

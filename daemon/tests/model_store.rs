@@ -27,7 +27,10 @@ fn frame(id: u64, scan: &TexelScan, pose: Pose) -> Bytes {
 }
 
 fn decode(frame: &[u8]) -> Message {
-    decode_frame(frame, &Limits::FROM_SERVER).unwrap().unwrap().0
+    decode_frame(frame, &Limits::FROM_SERVER)
+        .unwrap()
+        .unwrap()
+        .0
 }
 
 #[test]
@@ -49,8 +52,15 @@ fn memory_stays_within_the_budget_and_evicted_frames_read_back_byte_for_byte() {
         let pose = Pose::translation(id as f64, 0.0, 0.0);
         let f = frame(id, &s, pose);
         store.append(id, &f).unwrap();
-        hub.add_scan(id, ScanListing::of_scan(&s, f.len() as u64, 1.0), pose, f.clone(), true, None)
-            .unwrap();
+        hub.add_scan(
+            id,
+            ScanListing::of_scan(&s, f.len() as u64, 1.0),
+            pose,
+            f.clone(),
+            true,
+            None,
+        )
+        .unwrap();
         frames.push(f);
         let status = hub.status();
         assert!(status.in_memory <= 3, "{status:?}");
@@ -60,12 +70,20 @@ fn memory_stays_within_the_budget_and_evicted_frames_read_back_byte_for_byte() {
     assert_eq!(status.on_disk, 7);
     // The newest three are in memory: asking for them reads nothing.
     for id in 7..10u64 {
-        assert_eq!(hub.fetch_scan(id).unwrap(), frames[id as usize], "scan {id}");
+        assert_eq!(
+            hub.fetch_scan(id).unwrap(),
+            frames[id as usize],
+            "scan {id}"
+        );
     }
     assert_eq!(hub.status().store_reads, 0);
     // The oldest left memory; asking reads them back, exactly as served.
     for id in 0..7u64 {
-        assert_eq!(hub.fetch_scan(id).unwrap(), frames[id as usize], "scan {id}");
+        assert_eq!(
+            hub.fetch_scan(id).unwrap(),
+            frames[id as usize],
+            "scan {id}"
+        );
         assert!(hub.status().in_memory <= 3);
     }
     assert_eq!(hub.status().store_reads, 7);
@@ -95,7 +113,8 @@ fn a_redundant_scan_is_not_served_until_a_revision_makes_it_useful() {
         store.append(id, &f).unwrap();
         let coverage = ScanCoverage::of(&s, &config);
         let listing = ScanListing::of_scan(&s, f.len() as u64, coverage.score() as f32);
-        hub.add_scan(id, listing, pose, f, true, Some(coverage)).unwrap();
+        hub.add_scan(id, listing, pose, f, true, Some(coverage))
+            .unwrap();
     };
     // The same view twice: the second adds nothing.
     add(0, Pose::identity());
@@ -111,7 +130,8 @@ fn a_redundant_scan_is_not_served_until_a_revision_makes_it_useful() {
     assert_eq!(snapshot.len(), 3, "reset, one listing, complete");
 
     // Scan 0 turns out to be elsewhere: scan 1 is the only view of its surfaces again.
-    hub.revise_pose(0, Pose::translation(50.0, 0.0, 0.0)).unwrap();
+    hub.revise_pose(0, Pose::translation(50.0, 0.0, 0.0))
+        .unwrap();
     let mut listed = false;
     while let Ok(f) = sub.live.try_recv() {
         if let Message::ScanListed { id: 1, .. } = decode(&f) {
@@ -130,10 +150,20 @@ fn a_fetched_scan_carries_its_current_pose() {
     let hub = Hub::new(16);
     let s = scan(1);
     let f = frame(0, &s, Pose::identity());
-    hub.add_scan(0, ScanListing::of_scan(&s, 1, 1.0), Pose::identity(), f.clone(), false, None)
-        .unwrap();
+    hub.add_scan(
+        0,
+        ScanListing::of_scan(&s, 1, 1.0),
+        Pose::identity(),
+        f.clone(),
+        false,
+        None,
+    )
+    .unwrap();
     let fetched = hub.fetch_scan(0).unwrap();
-    assert_eq!(hub.finish_fetch(0, fetched.clone()).unwrap(), vec![f.clone()]);
+    assert_eq!(
+        hub.finish_fetch(0, fetched.clone()).unwrap(),
+        vec![f.clone()]
+    );
     let moved = Pose::translation(0.0, 2.0, 0.0);
     hub.revise_pose(0, moved).unwrap();
     let frames = hub.finish_fetch(0, fetched).unwrap();

@@ -182,13 +182,20 @@ fn a_killed_session_resumes_from_its_recording_and_ends_like_an_uninterrupted_on
         recording_b.clone(),
         texel_daemon::resume::segment_path(&recording_b, 1),
     ];
-    assert!(segments[1].exists(), "the resumed session records a new segment");
+    assert!(
+        segments[1].exists(),
+        "the resumed session records a new segment"
+    );
     let (order_b, poses_b) = recorded_poses(&segments);
 
     // Nothing placed before the kill is lost, and the session went on to the end.
     assert_eq!(&order_b[..order_killed.len()], &order_killed[..]);
     let last_a = *order_a.iter().max().unwrap();
-    assert_eq!(order_b.iter().max(), Some(&last_a), "the resumed run reached the end");
+    assert_eq!(
+        order_b.iter().max(),
+        Some(&last_a),
+        "the resumed run reached the end"
+    );
     // At most the frames in flight at the kill (sent, not yet registered) are missing.
     let missing = order_a.iter().filter(|t| !poses_b.contains_key(t)).count();
     assert!(missing <= 6, "{missing} frames missing after the resume");

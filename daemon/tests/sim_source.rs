@@ -266,6 +266,8 @@ async fn run_source(
         render_threads: 1,
         late,
         truth: true,
+        loops: 1,
+        resume_after_ns: None,
     });
     let metrics = SourceMetrics::new("sim", "sim");
     let (tx, mut rx) = tokio::sync::mpsc::channel(4096);

@@ -19,10 +19,7 @@ fn walk() -> Vec<Pose> {
     (0..FRAMES)
         .map(|k| {
             let a = 0.8 + k as f64 * 0.06;
-            look_at(
-                [0.3 + 1.8 * a.cos(), 1.6 * a.sin(), 1.7],
-                [0.3, 0.0, 0.6],
-            )
+            look_at([0.3 + 1.8 * a.cos(), 1.6 * a.sin(), 1.7], [0.3, 0.0, 0.6])
         })
         .collect()
 }
@@ -49,7 +46,12 @@ fn a_restored_registrar_goes_on_like_the_uninterrupted_one() {
     // The uninterrupted run.
     let mut whole = Registrar::with_anchor(config.clone(), truth[0]);
     for f in &frames {
-        assert!(whole.register(Arc::clone(f), &s.model.lidar).status.is_registered());
+        assert!(
+            whole
+                .register(Arc::clone(f), &s.model.lidar)
+                .status
+                .is_registered()
+        );
     }
 
     // A run cut after CUT scans, restored from what it had placed (the poses it had
@@ -64,7 +66,12 @@ fn a_restored_registrar_goes_on_like_the_uninterrupted_one() {
     let mut order: Vec<usize> = (0..CUT).collect();
     order.swap(3, 5);
     for &id in &order {
-        resumed.restore(Arc::clone(&frames[id]), &s.model.lidar, id as u64, placed[id]);
+        resumed.restore(
+            Arc::clone(&frames[id]),
+            &s.model.lidar,
+            id as u64,
+            placed[id],
+        );
     }
     assert!(resumed.take_events().is_empty(), "restoring emits nothing");
     for (id, p) in placed.iter().enumerate() {
@@ -86,7 +93,10 @@ fn a_restored_registrar_goes_on_like_the_uninterrupted_one() {
         let (_, e) = pose_difference(&resumed.pose(k as u64).unwrap(), &truth[k]);
         let (_, w) = pose_difference(&whole.pose(k as u64).unwrap(), &truth[k]);
         // As close to the truth as the uninterrupted run, give or take 2 cm.
-        assert!(e < w + 0.02, "frame {k}: {e} m from the truth, against {w} m");
+        assert!(
+            e < w + 0.02,
+            "frame {k}: {e} m from the truth, against {w} m"
+        );
         worst = worst.max(d);
     }
     assert!(worst < 0.02, "{worst} m from the uninterrupted run");

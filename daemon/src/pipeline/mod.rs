@@ -37,9 +37,8 @@ use tokio_util::sync::CancellationToken;
 
 use crate::config::{RegistrationMode, SessionConfig};
 use crate::hub::{Hub, ModelOptions};
-use crate::resume::{self, ResumeError};
-use crate::store::Store;
 use crate::record::{RecordItem, RecordSummary, Recorder};
+use crate::resume::{self, ResumeError};
 use crate::server::{self, ServeOptions};
 use crate::source::replay::{Pace, ReplaySource};
 use crate::source::serial::SerialSource;
@@ -51,10 +50,11 @@ use crate::source::v4l::V4lSource;
 use crate::source::v4l_convert::PixelFormat;
 use crate::source::{FrameSink, Source, SourceMetrics};
 use crate::status::{Metrics, QueueProbe, status_line};
+use crate::store::Store;
 use encode::Encoder;
-use restore::{Restored, restore_session};
 use ingest::Ingest;
 use placement::{CapturePoses, RegistrarStage, Registration};
+use restore::{Restored, restore_session};
 use worker::Worker;
 
 #[derive(Debug, Error)]
@@ -143,7 +143,11 @@ impl Session {
         let mut registration = registration;
         // A resumed session reads its recording's segments and records to the next.
         let segments = if config.record.resume {
-            let base = config.record.path.clone().ok_or(ResumeError::NotRecording)?;
+            let base = config
+                .record
+                .path
+                .clone()
+                .ok_or(ResumeError::NotRecording)?;
             let segments = resume::segments(&base)?;
             config.record.path = Some(segments.next.clone());
             Some((base, segments))

@@ -7,9 +7,9 @@ use std::sync::Arc;
 
 use tokio::sync::mpsc;
 
+use super::SessionError;
 use super::encode::{Encoder, Publish};
 use super::placement::{Registration, ScanInput};
-use super::SessionError;
 use crate::config::SessionConfig;
 use crate::hub::Hub;
 use crate::resume;
