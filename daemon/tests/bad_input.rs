@@ -157,6 +157,9 @@ async fn serving_session(token: Option<&str>, max_clients: usize) -> (Session, C
     let capture = dir.path().join("c.mcap");
     captures::write(&capture, 2, 10_000_000, Some(PoseTopic::Truth));
     let mut c = SessionConfig::default();
+    // Every scan served: what this test follows is the stream, not retirement
+    // (the synthetic frames overlap so much that most would retire).
+    c.model.retirement.enabled = false;
     c.source.replay = vec![ReplayConfig {
         name: "replay".into(),
         capture,

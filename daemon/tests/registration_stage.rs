@@ -104,6 +104,9 @@ async fn failures_recoveries_and_revisions_reach_viewers_and_the_recording() {
     captures::write(&capture, FRAMES, PERIOD_NS, Some(PoseTopic::Truth));
 
     let mut c = SessionConfig::default();
+    // Every scan served: what this test follows is the stream, not retirement
+    // (the synthetic frames overlap so much that most would retire).
+    c.model.retirement.enabled = false;
     c.source.replay = vec![ReplayConfig {
         name: "replay".into(),
         capture: capture.clone(),

@@ -21,6 +21,9 @@ const PERIOD_NS: u64 = 50_000_000;
 
 fn config(capture: &Path, record: Option<&Path>) -> SessionConfig {
     let mut c = SessionConfig::default();
+    // Every scan served: what this test follows is the stream, not retirement
+    // (the synthetic frames overlap so much that most would retire).
+    c.model.retirement.enabled = false;
     c.source.replay = vec![ReplayConfig {
         name: "replay".into(),
         capture: capture.to_path_buf(),

@@ -36,7 +36,8 @@ fn session_file(dir: &Path, name: &str, stay: bool) -> (PathBuf, PathBuf) {
              [pipeline]\noverload = \"backpressure\"\n\
              [record]\npath = \"{}\"\nflush_interval_ms = 200\n\
              [serve]\nbind = \"127.0.0.1:0\"\n\
-             [status]\ninterval_ms = 200\n",
+             [status]\ninterval_ms = 200\n\
+             [model.retirement]\nenabled = false\n",
             !stay,
             scene.display(),
             recording.display()
@@ -60,12 +61,30 @@ fn spawn(args: &[&std::ffi::OsStr]) -> (Child, mpsc::Receiver<String>) {
     std::thread::spawn(move || {
         for line in BufReader::new(stderr).lines() {
             let Ok(line) = line else { break };
-            if tx.send(line).is_err() {
+            if tx.send(strip_ansi(&line)).is_err() {
                 break;
             }
         }
     });
     (child, rx)
+}
+
+/// The line without its terminal colour codes (`ESC [ ... m`).
+fn strip_ansi(line: &str) -> String {
+    let mut out = String::with_capacity(line.len());
+    let mut chars = line.chars();
+    while let Some(c) = chars.next() {
+        if c == '\u{1b}' {
+            for d in chars.by_ref() {
+                if d == 'm' {
+                    break;
+                }
+            }
+        } else {
+            out.push(c);
+        }
+    }
+    out
 }
 
 fn wait_line(rx: &mpsc::Receiver<String>, needle: &str, log: &mut Vec<String>) -> String {

@@ -207,7 +207,10 @@ async fn unknown_and_withdrawn_scans_are_unavailable_and_the_connection_stays_us
     .await;
     match &answers[0] {
         Applied::Unavailable { id: 1, reason } => {
-            assert!(reason.contains("withdrawn"), "{reason}");
+            assert!(
+                reason.contains("scan 1") && reason.contains("retired"),
+                "{reason}"
+            );
         }
         other => panic!("expected scan 1 unavailable, got {other:?}"),
     }

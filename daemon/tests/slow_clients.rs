@@ -22,6 +22,9 @@ use tokio_util::sync::CancellationToken;
 
 fn config(capture: &Path, fast: bool) -> SessionConfig {
     let mut c = SessionConfig::default();
+    // Every scan served: what this test follows is the stream, not retirement
+    // (the synthetic frames overlap so much that most would retire).
+    c.model.retirement.enabled = false;
     c.source.replay = vec![ReplayConfig {
         name: "replay".into(),
         capture: capture.to_path_buf(),
