@@ -72,7 +72,7 @@ fn settings(quick: bool) -> Vec<Option<CoverageConfig>> {
     if quick {
         return vec![
             None,
-            with(10.0, 0.05, 0.25),
+            Some(base),
             with(10.0, 0.1, 0.5),
             with(20.0, 0.1, 0.5),
             with(10.0, 0.1, 1.0),
