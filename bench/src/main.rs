@@ -82,6 +82,8 @@ enum TradeoffsCommand {
     Rendering(tradeoffs::rendering::TradeoffsArgs),
     /// Calibration: error against truth and time over views and LM iterations.
     Calibration(tradeoffs::calibration::Args),
+    /// Retirement: held-out image quality against scans kept and memory held.
+    Retirement(tradeoffs::retirement::RetirementArgs),
 }
 
 fn main() -> ExitCode {
@@ -128,6 +130,9 @@ fn main() -> ExitCode {
         }
         Command::Tradeoffs(TradeoffsCommand::Calibration(args)) => {
             ("tradeoffs calibration", tradeoffs::calibration::run(&args))
+        }
+        Command::Tradeoffs(TradeoffsCommand::Retirement(args)) => {
+            ("tradeoffs retirement", tradeoffs::retirement::run(&args))
         }
         Command::Calib(command) => ("calib", texel_bench::calibration::commands::run(command)),
     };

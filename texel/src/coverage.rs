@@ -51,10 +51,10 @@ impl Default for CoverageConfig {
     fn default() -> Self {
         Self {
             enabled: true,
-            cell_m: 0.2,
+            cell_m: 1.0,
             sample_stride_px: 8,
-            angle_tolerance_deg: 10.0,
-            reliability_margin: 0.05,
+            angle_tolerance_deg: 20.0,
+            reliability_margin: 0.1,
             range_gamma: 1.0,
             max_candidates_per_cell: 32,
             max_checks_per_call: 64,
@@ -68,7 +68,7 @@ impl CoverageConfig {
         if self.cell_m.is_finite() {
             self.cell_m.clamp(0.01, 100.0)
         } else {
-            0.2
+            1.0
         }
     }
 
@@ -131,8 +131,6 @@ impl ScanCoverage {
     /// nor degenerate) of positive normal accuracy. A scan without such triangles
     /// has no samples: it covers nothing.
     pub fn of(scan: &TexelScan, config: &CoverageConfig) -> Self {
-        let accuracy = usable_vertex_accuracy(scan);
-        let cop = Vector3::from(scan.cop_m);
         let cop_finite = scan.cop_m.iter().all(|c| c.is_finite());
         let width = scan.grid_width as usize;
         let height = scan.grid_height as usize;
@@ -142,23 +140,25 @@ impl ScanCoverage {
                 samples: Vec::new(),
             };
         }
-        let stride = stride_for(width, height, config.stride_px() as usize);
-        let blocks_x = width.div_ceil(stride);
-        let blocks_y = height.div_ceil(stride);
-        let mut samples = Vec::with_capacity((blocks_x * blocks_y).min(MAX_SAMPLES));
-        for by in 0..blocks_y {
-            for bx in 0..blocks_x {
-                let block = Block {
-                    x0: bx * stride,
-                    y0: by * stride,
-                    x1: ((bx + 1) * stride).min(width),
-                    y1: ((by + 1) * stride).min(height),
-                };
-                if let Some(s) = block_sample(scan, &accuracy, &cop, width, &block)
-                    && samples.len() < MAX_SAMPLES
-                {
-                    samples.push(s);
-                }
+        let grid = BlockGrid::new(width, height, config.stride_px() as usize);
+        let usable = usable_vertices(scan);
+        let accuracy = block_accuracy(scan, &grid);
+        let cop = Vector3::from(scan.cop_m);
+        let mut samples = Vec::with_capacity(grid.count().min(MAX_SAMPLES));
+        for b in 0..grid.count() {
+            let Some(&(sum, n)) = accuracy.get(b) else {
+                continue;
+            };
+            if n == 0 || sum <= 0.0 {
+                continue;
+            }
+            if let Some(point_m) = block_point(scan, &usable, &cop, &grid.block(b))
+                && samples.len() < MAX_SAMPLES
+            {
+                samples.push(CoverageSample {
+                    point_m,
+                    normal_accuracy: (sum / f64::from(n)) as f32,
+                });
             }
         }
         Self {
@@ -197,83 +197,128 @@ struct Block {
     y1: usize,
 }
 
-/// The stride that keeps the sample count within [`MAX_SAMPLES`].
-fn stride_for(width: usize, height: usize, configured: usize) -> usize {
-    let mut stride = configured.max(1);
-    while width.div_ceil(stride) * height.div_ceil(stride) > MAX_SAMPLES {
-        stride += 1;
-    }
-    stride
+/// The lidar grid cut into square blocks of `stride` pixels, row-major.
+struct BlockGrid {
+    width: usize,
+    height: usize,
+    stride: usize,
+    blocks_x: usize,
 }
 
-/// The sample of one block: the usable vertex nearest the block centre.
-fn block_sample(
+impl BlockGrid {
+    /// The grid of blocks; the stride grows past the configured one when the grid
+    /// would otherwise have more than [`MAX_SAMPLES`] blocks.
+    fn new(width: usize, height: usize, configured: usize) -> Self {
+        let mut stride = configured.max(1);
+        while width.div_ceil(stride) * height.div_ceil(stride) > MAX_SAMPLES {
+            stride += 1;
+        }
+        Self {
+            width,
+            height,
+            stride,
+            blocks_x: width.div_ceil(stride),
+        }
+    }
+
+    fn count(&self) -> usize {
+        self.blocks_x * self.height.div_ceil(self.stride)
+    }
+
+    /// The block of lidar pixel `pixel` (row-major), `None` outside the grid.
+    fn of_pixel(&self, pixel: usize) -> Option<usize> {
+        let (x, y) = (pixel % self.width, pixel / self.width);
+        (y < self.height).then(|| (y / self.stride) * self.blocks_x + x / self.stride)
+    }
+
+    fn block(&self, b: usize) -> Block {
+        let (bx, by) = (b % self.blocks_x, b / self.blocks_x);
+        Block {
+            x0: bx * self.stride,
+            y0: by * self.stride,
+            x1: ((bx + 1) * self.stride).min(self.width),
+            y1: ((by + 1) * self.stride).min(self.height),
+        }
+    }
+}
+
+/// The block's point: the vertex nearest the block centre among those of a usable
+/// triangle, at a positive distance from the centre of projection.
+fn block_point(
     scan: &TexelScan,
-    accuracy: &[f32],
+    usable: &[bool],
     cop: &Vector3<f64>,
-    width: usize,
     block: &Block,
-) -> Option<CoverageSample> {
+) -> Option<[f32; 3]> {
+    let width = scan.grid_width as usize;
     // Twice the centre, so odd and even blocks stay in integers.
     let cx2 = block.x0 + block.x1 - 1;
     let cy2 = block.y0 + block.y1 - 1;
-    let mut best: Option<(usize, CoverageSample)> = None;
+    let mut best: Option<(usize, [f32; 3])> = None;
     for y in block.y0..block.y1 {
         for x in block.x0..block.x1 {
             let Some(&v) = scan.pixel_vertex.get(y * width + x) else {
                 continue;
             };
-            if v == NO_VERTEX {
+            if v == NO_VERTEX || !usable.get(v as usize).copied().unwrap_or(false) {
                 continue;
             }
-            let v = v as usize;
-            let (Some(&a), Some(&p)) = (accuracy.get(v), scan.vertices.get(v)) else {
+            let Some(&p) = scan.vertices.get(v as usize) else {
                 continue;
             };
             let point = Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
-            let usable = a > 0.0 && p.iter().all(|c| c.is_finite());
-            if !usable || (cop - point).norm() < MIN_RANGE_M {
+            if !p.iter().all(|c| c.is_finite()) || (cop - point).norm() < MIN_RANGE_M {
                 continue;
             }
             let d = (2 * x).abs_diff(cx2).pow(2) + (2 * y).abs_diff(cy2).pow(2);
             if best.as_ref().is_none_or(|(bd, _)| d < *bd) {
-                best = Some((
-                    d,
-                    CoverageSample {
-                        point_m: p,
-                        normal_accuracy: a,
-                    },
-                ));
+                best = Some((d, p));
             }
         }
     }
-    best.map(|(_, s)| s)
+    best.map(|(_, p)| p)
 }
 
-/// Mean normal accuracy of the usable triangles around each vertex; 0 for a vertex
-/// of none (or whose triangles all have accuracy 0 or not finite).
-fn usable_vertex_accuracy(scan: &TexelScan) -> Vec<f32> {
-    let mut sums = vec![(0.0f64, 0u32); scan.vertices.len()];
+/// Whether each vertex belongs to a usable triangle (neither stretched nor
+/// degenerate).
+fn usable_vertices(scan: &TexelScan) -> Vec<bool> {
+    let mut usable = vec![false; scan.vertices.len()];
     for (t, tri) in scan.triangles.iter().enumerate() {
-        let usable = scan.triangle_flags.get(t).is_some_and(|f| f.is_usable());
-        let acc = f64::from(scan.triangle_accuracy.get(t).copied().unwrap_or(0.0));
-        if !usable || !acc.is_finite() || acc <= 0.0 {
+        if !scan.triangle_flags.get(t).is_some_and(|f| f.is_usable()) {
             continue;
         }
         for &v in tri {
-            if let Some(s) = sums.get_mut(v as usize) {
-                s.0 += acc.min(1.0);
-                s.1 += 1;
+            if let Some(u) = usable.get_mut(v as usize) {
+                *u = true;
             }
         }
     }
-    sums.iter()
-        .map(|&(sum, n)| {
-            if n > 0 {
-                (sum / f64::from(n)) as f32
-            } else {
-                0.0
-            }
-        })
-        .collect()
+    usable
+}
+
+/// Per block: the sum and count of the normal accuracies of the usable triangles
+/// whose first vertex lies in it. The block mean, not one triangle's, is the
+/// sample's accuracy: single triangles carry the range noise of three returns.
+fn block_accuracy(scan: &TexelScan, grid: &BlockGrid) -> Vec<(f64, u32)> {
+    let mut sums = vec![(0.0f64, 0u32); grid.count()];
+    for (t, tri) in scan.triangles.iter().enumerate() {
+        if !scan.triangle_flags.get(t).is_some_and(|f| f.is_usable()) {
+            continue;
+        }
+        let acc = f64::from(scan.triangle_accuracy.get(t).copied().unwrap_or(0.0));
+        let acc = if acc.is_finite() {
+            acc.clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
+        let block = scan
+            .vertex_pixel
+            .get(tri[0] as usize)
+            .and_then(|&p| grid.of_pixel(p as usize));
+        if let Some(s) = block.and_then(|b| sums.get_mut(b)) {
+            s.0 += acc;
+            s.1 += 1;
+        }
+    }
+    sums
 }

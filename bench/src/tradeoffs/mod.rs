@@ -8,6 +8,7 @@ pub mod calibration;
 pub mod plot;
 pub mod registration;
 pub mod rendering;
+pub mod retirement;
 
 use std::path::{Path, PathBuf};
 

@@ -9,7 +9,7 @@
 
 pub mod metrics;
 mod poses;
-mod report;
+pub(crate) mod report;
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -68,7 +68,7 @@ pub struct Config {
 }
 
 impl Config {
-    fn base(mode: Mode) -> Self {
+    pub(crate) fn base(mode: Mode) -> Self {
         Self {
             mode,
             k: 4,
@@ -113,7 +113,7 @@ impl Config {
 /// Uncovered pixels get this colour so the mask can find them (the scenes never
 /// produce pure magenta).
 const BACKGROUND: [f32; 3] = [1.0, 0.0, 1.0];
-const BACKGROUND_RGB: [u8; 3] = [255, 0, 255];
+pub(crate) const BACKGROUND_RGB: [u8; 3] = [255, 0, 255];
 
 /// The sweep: the three shading modes at the defaults, then one knob at a time.
 pub fn sweep(quick: bool) -> Vec<Config> {
@@ -225,7 +225,7 @@ pub fn run(args: &TradeoffsArgs) -> Result<()> {
 }
 
 /// The capture registered with the daemon's defaults, kept in the cache.
-fn registered_capture(capture: &Path) -> Result<(PathBuf, f64)> {
+pub(crate) fn registered_capture(capture: &Path) -> Result<(PathBuf, f64)> {
     let out = capture.with_extension("registered.mcap");
     if out.exists() {
         return Ok((out, f64::NAN));
