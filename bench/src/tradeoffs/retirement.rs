@@ -144,9 +144,8 @@ pub fn run(args: &RetirementArgs) -> Result<()> {
 /// The registered scans of a loaded capture with their poses, in time order.
 fn placed_scans(model: &texel::model::Model) -> Vec<(ScanId, Arc<TexelScan>, Pose)> {
     model
-        .scans()
-        .iter()
-        .map(|s| (s.id, Arc::clone(&s.scan), s.world_from_scan))
+        .resident()
+        .map(|(s, scan)| (s.id, Arc::clone(scan), s.world_from_scan))
         .collect()
 }
 
