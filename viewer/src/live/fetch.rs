@@ -93,8 +93,9 @@ pub fn fetch_model(
                     )));
                 }
                 _ => {
-                    have = replica.model.len();
-                    if replica.live && have >= wait_scans.max(1) {
+                    // Listed scans arrive without their data; the client fetches them.
+                    have = replica.model.resident_len();
+                    if replica.complete() && have >= wait_scans.max(1) {
                         return Ok(replica.model);
                     }
                 }
