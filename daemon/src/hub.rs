@@ -142,11 +142,7 @@ impl Hub {
     }
 
     pub fn with_model(client_queue: usize, options: ModelOptions) -> Arc<Self> {
-        let retirement = options
-            .coverage
-            .clone()
-            .filter(|c| c.enabled)
-            .map(Retirement::new);
+        let retirement = options.coverage.filter(|c| c.enabled).map(Retirement::new);
         Arc::new(Self {
             inner: Mutex::new(Inner {
                 entries: BTreeMap::new(),
@@ -291,7 +287,7 @@ impl Hub {
         if inner.closed.is_some() {
             return Err(HubError::Closed);
         }
-        if !inner.entries.get(&id).is_some_and(|e| !e.retired) {
+        if inner.entries.get(&id).is_none_or(|e| e.retired) {
             return Err(HubError::UnknownScan(id));
         }
         let changes = Changes {
@@ -334,12 +330,12 @@ impl Hub {
                 continue;
             }
             e.retired = true;
-            if e.stored {
-                if let Some(f) = e.frame.take() {
-                    let used = e.used;
-                    inner.frame_bytes -= f.len() as u64;
-                    inner.lru.remove(&used);
-                }
+            if e.stored
+                && let Some(f) = e.frame.take()
+            {
+                let used = e.used;
+                inner.frame_bytes -= f.len() as u64;
+                inner.lru.remove(&used);
             }
             inner.served -= 1;
             let frame = Bytes::from(Message::ScanWithdrawn { id }.encode()?);

@@ -103,7 +103,7 @@ fn a_redundant_scan_is_not_served_until_a_revision_makes_it_useful() {
         ModelOptions {
             memory_budget_bytes: u64::MAX,
             store: Some(Arc::clone(&store)),
-            coverage: Some(config.clone()),
+            coverage: Some(config),
         },
     );
     let mut sub = hub.subscribe().unwrap();

@@ -85,13 +85,13 @@ fn a_restored_registrar_goes_on_like_the_uninterrupted_one() {
         assert_eq!(r.scan_id, Some(k as u64));
     }
     let mut worst = 0.0f64;
-    for k in CUT..FRAMES {
+    for (k, t) in truth.iter().enumerate().skip(CUT) {
         let (_, d) = pose_difference(
             &resumed.pose(k as u64).unwrap(),
             &whole.pose(k as u64).unwrap(),
         );
-        let (_, e) = pose_difference(&resumed.pose(k as u64).unwrap(), &truth[k]);
-        let (_, w) = pose_difference(&whole.pose(k as u64).unwrap(), &truth[k]);
+        let (_, e) = pose_difference(&resumed.pose(k as u64).unwrap(), t);
+        let (_, w) = pose_difference(&whole.pose(k as u64).unwrap(), t);
         // As close to the truth as the uninterrupted run, give or take 2 cm.
         assert!(
             e < w + 0.02,

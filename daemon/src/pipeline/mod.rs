@@ -234,7 +234,7 @@ fn model_options(
     Ok(ModelOptions {
         memory_budget_bytes: config.model.memory_budget_bytes(),
         store: Some(Arc::new(store)),
-        coverage: Some(config.model.retirement.clone()),
+        coverage: Some(config.model.retirement),
     })
 }
 
@@ -459,7 +459,7 @@ async fn run(
         metrics: Arc::clone(&metrics),
         texture: config.serve.texture,
         jpeg_quality: config.serve.jpeg_quality,
-        coverage: config.model.retirement.clone(),
+        coverage: config.model.retirement,
     };
     let encode_thread = std::thread::Builder::new()
         .name("texel-encode".into())

@@ -41,7 +41,7 @@ pub async fn restore_session(
         metrics,
         texture: config.serve.texture,
         jpeg_quality: config.serve.jpeg_quality,
-        coverage: config.model.retirement.clone(),
+        coverage: config.model.retirement,
     };
     let fuse = config.pipeline.fuse;
     let encode_thread = std::thread::Builder::new()
