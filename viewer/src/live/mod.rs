@@ -21,6 +21,16 @@ use texel::wire::Status;
 /// skipped.
 pub const EVENT_QUEUE: usize = 256;
 
+/// How many requests from the window may wait for the connection thread.
+pub const COMMAND_QUEUE: usize = 64;
+
+/// What the window asks of its live source.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SourceCommand {
+    /// Send this scan's data (it answers with the scan or says it is unavailable).
+    RequestScan(texel::model::ScanId),
+}
+
 /// The state of a live connection, as the overlay shows it.
 #[derive(Debug, Clone, PartialEq)]
 pub enum ConnectionState {

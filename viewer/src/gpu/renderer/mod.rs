@@ -250,6 +250,26 @@ impl Renderer {
         self.scans.clear();
     }
 
+    /// Drops a scan's GPU data (its buffers and texture are freed when no frame in
+    /// flight uses them any more). Returns the bytes it held, if it was uploaded.
+    pub fn remove_scan(&mut self, id: ScanId) -> Option<u64> {
+        self.scans.remove(&id).map(|p| p.gpu.bytes)
+    }
+
+    pub fn has_scan(&self, id: ScanId) -> bool {
+        self.scans.contains_key(&id)
+    }
+
+    /// The GPU bytes of an uploaded scan (buffers and texture, exactly).
+    pub fn scan_bytes(&self, id: ScanId) -> Option<u64> {
+        self.scans.get(&id).map(|p| p.gpu.bytes)
+    }
+
+    /// The GPU bytes of every uploaded scan.
+    pub fn scans_bytes(&self) -> u64 {
+        self.scans.values().map(|p| p.gpu.bytes).sum()
+    }
+
     pub fn scan_count(&self) -> usize {
         self.scans.len()
     }
