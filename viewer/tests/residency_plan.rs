@@ -206,3 +206,25 @@ fn a_scan_at_the_edge_is_kept_but_not_fetched() {
     assert!(far.selected.is_empty());
     assert_eq!(far.evict, vec![7]);
 }
+
+/// Two scans the view needs and room for one: the one held stays against a newcomer
+/// that ranks higher by less than the stickiness, and gives way to a clearly better
+/// one.
+#[test]
+fn a_held_scan_gives_way_only_to_a_clearly_better_one() {
+    let camera = VirtualCamera::new(Pose::identity(), 50.0, 160, 120).unwrap();
+    let options = PlanOptions::new(10);
+    let scan = |id, priority, state| PlanScan {
+        id,
+        listing: listing(0.5, 5.0, priority),
+        world_from_scan: Pose::identity(),
+        bytes: 10,
+        state,
+    };
+    let held = scan(1, 1.0, DataState::OnGpu);
+    let p = plan(&[held, scan(2, 1.2, DataState::Absent)], &camera, &options);
+    assert_eq!((p.selected, p.left_out), (vec![1], vec![2]));
+    assert!(p.evict.is_empty() && p.fetch.is_empty());
+    let p = plan(&[held, scan(2, 1.5, DataState::Absent)], &camera, &options);
+    assert_eq!((p.selected, p.evict, p.fetch), (vec![2], vec![1], vec![2]));
+}

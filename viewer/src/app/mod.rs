@@ -9,7 +9,7 @@ mod ui;
 
 use std::path::PathBuf;
 use std::sync::Arc;
-use std::sync::mpsc::Receiver;
+use std::sync::mpsc::{Receiver, SyncSender};
 use std::time::Instant;
 
 use anyhow::Context;
@@ -25,7 +25,8 @@ pub use controls::CameraControls;
 
 use crate::camera::VirtualCamera;
 use crate::gpu::{FrameStats, GpuContext, RenderSettings, RenderTarget, Renderer};
-use crate::live::{ConnectionState, LatencyMeter, ViewerEvent, fov_y_deg_of_scan};
+use crate::live::{ConnectionState, LatencyMeter, SourceCommand, ViewerEvent, fov_y_deg_of_scan};
+use crate::residency::{Fetcher, Residency, ResidencyStats};
 
 pub struct AppOptions {
     pub title: String,
@@ -35,6 +36,11 @@ pub struct AppOptions {
     pub fov_deg: Option<f64>,
     pub settings: RenderSettings,
     pub events: Receiver<ViewerEvent>,
+    /// Where missing scans are asked for (a live source); `None`: every scan's data
+    /// arrives through `events` and is kept on the CPU for re-upload.
+    pub commands: Option<SyncSender<SourceCommand>>,
+    /// The GPU bytes scans may hold.
+    pub budget_bytes: u64,
     /// Start following the newest scan.
     pub follow_newest: bool,
     /// Read back the frame after this many frames once the model holds this many
@@ -60,12 +66,15 @@ pub struct ViewerState {
     /// Whether the first snapshot is complete.
     pub snapshot_complete: bool,
     pub latency: LatencyMeter,
+    /// What of the model is on the GPU, within the budget.
+    pub residency: Residency,
+    pub residency_stats: ResidencyStats,
     camera_placed: bool,
     fov_known: bool,
 }
 
 impl ViewerState {
-    pub fn new(settings: RenderSettings, fov_deg: Option<f64>) -> Self {
+    pub fn new(settings: RenderSettings, fov_deg: Option<f64>, residency: Residency) -> Self {
         Self {
             model: Model::new(),
             settings,
@@ -79,6 +88,8 @@ impl ViewerState {
             status: None,
             snapshot_complete: false,
             latency: LatencyMeter::default(),
+            residency_stats: residency.stats(),
+            residency,
             camera_placed: false,
             fov_known: fov_deg.is_some(),
         }
@@ -97,8 +108,12 @@ impl ViewerState {
                 ViewerEvent::Model { event, received } => (event, received),
                 ViewerEvent::Reset => {
                     self.model = Model::new();
-                    renderer.clear_scans();
+                    self.residency.reset(renderer);
                     self.snapshot_complete = false;
+                    continue;
+                }
+                ViewerEvent::ScanUnavailable { id, reason } => {
+                    self.residency.unavailable(id, reason);
                     continue;
                 }
                 ViewerEvent::SnapshotComplete { .. } => {
@@ -119,7 +134,9 @@ impl ViewerState {
                 eprintln!("warning: model event skipped: {e}");
                 continue;
             }
-            let result = match event {
+            // Residency uploads what the view needs at the next step.
+            self.residency.observe(&event, &self.model, renderer);
+            match event {
                 ModelEvent::ScanAdded {
                     id,
                     scan,
@@ -131,62 +148,101 @@ impl ViewerState {
                         self.fov_deg = fov;
                         self.fov_known = true;
                     }
-                    if self.follow_newest || !self.camera_placed {
-                        self.jump(world_from_scan, &scan);
+                    let newest = self.model.scans().last().is_some_and(|s| s.id == id);
+                    if (self.follow_newest && newest) || !self.camera_placed {
+                        self.jump(world_from_scan, median_range_m(&scan));
                     }
-                    renderer.add_scan(id, &scan, world_from_scan)
                 }
                 ModelEvent::PoseRevised {
                     id,
                     world_from_scan,
                 } => {
-                    renderer.set_pose(id, world_from_scan);
                     // Following the sensor: the newest scan's revised pose moves the
                     // camera with it.
                     if self.follow_newest
                         && self.model.scans().last().is_some_and(|s| s.id == id)
                         && let Some(scan) = self.model.get(id).and_then(|s| s.scan.clone())
                     {
-                        self.jump(world_from_scan, &scan);
+                        self.jump(world_from_scan, median_range_m(&scan));
                     }
-                    Ok(())
                 }
-                // Listings, withdrawals and evictions change what is known, not
-                // what is drawn from resident data.
+                // A model that arrives as listings first: look from the first one.
+                ModelEvent::ScanListed {
+                    world_from_scan,
+                    listing,
+                    ..
+                } if !self.camera_placed => {
+                    self.jump(world_from_scan, listing_range_m(&listing));
+                }
                 ModelEvent::ScanListed { .. }
                 | ModelEvent::ScanWithdrawn { .. }
-                | ModelEvent::ScanEvicted { .. } => Ok(()),
-            };
-            if let Err(e) = result {
-                eprintln!("warning: {e}");
+                | ModelEvent::ScanEvicted { .. } => {}
             }
         }
         if let Some(id) = self.jump_to.take()
             && let Some(s) = self.model.get(id)
-            && let Some(scan) = s.scan.clone()
         {
+            let pivot = s
+                .scan
+                .as_deref()
+                .map_or_else(|| listing_range_m(&s.listing), median_range_m);
             let pose = s.world_from_scan;
-            self.jump(pose, &scan);
+            self.jump(pose, pivot);
         }
     }
 
-    /// Puts the camera at a scan's acquisition pose, pivoting at its median range.
-    fn jump(&mut self, world_from_scan: texel::Pose, scan: &texel::TexelScan) {
-        let mut ranges: Vec<f32> = scan
-            .vertices
-            .iter()
-            .map(|v| v[2])
-            .filter(|z| z.is_finite())
-            .collect();
-        ranges.sort_by(f32::total_cmp);
-        let pivot = ranges.get(ranges.len() / 2).copied().unwrap_or(3.0);
-        self.controls = CameraControls::new(world_from_scan, f64::from(pivot));
+    /// Carries out residency for `camera`: evicts, uploads, fetches.
+    pub fn update_residency(&mut self, renderer: &mut Renderer, camera: &VirtualCamera) {
+        if self.residency.options.hidden != self.settings.hidden {
+            self.residency.options.hidden = self.settings.hidden.clone();
+        }
+        self.residency_stats = self.residency.step(&mut self.model, renderer, camera);
+    }
+
+    /// Puts the camera at a scan's acquisition pose, pivoting `pivot_m` ahead.
+    fn jump(&mut self, world_from_scan: texel::Pose, pivot_m: f64) {
+        self.controls = CameraControls::new(world_from_scan, pivot_m);
         self.camera_placed = true;
     }
 
     pub fn camera(&self, width: u32, height: u32) -> Option<VirtualCamera> {
         VirtualCamera::new(self.controls.world_from_eo, self.fov_deg, width, height).ok()
     }
+}
+
+/// The median range (z) of a scan's vertices: where the camera pivots; 3 m for a scan
+/// without a finite vertex.
+fn median_range_m(scan: &texel::TexelScan) -> f64 {
+    let mut ranges: Vec<f32> = scan
+        .vertices
+        .iter()
+        .map(|v| v[2])
+        .filter(|z| z.is_finite())
+        .collect();
+    ranges.sort_by(f32::total_cmp);
+    f64::from(ranges.get(ranges.len() / 2).copied().unwrap_or(3.0))
+}
+
+/// The middle of a listing's box along its optical axis (z): the pivot before the
+/// data is here; 3 m when that is not a positive finite distance.
+fn listing_range_m(listing: &texel::model::ScanListing) -> f64 {
+    let z = 0.5 * (f64::from(listing.bounds_min_m[2]) + f64::from(listing.bounds_max_m[2]));
+    if z.is_finite() && z > 0.0 { z } else { 3.0 }
+}
+
+/// The residency of a window: fetching through `commands` when there are any, else
+/// from a store of every scan that arrived.
+fn window_residency(budget_bytes: u64, commands: Option<SyncSender<SourceCommand>>) -> Residency {
+    let fetcher = match commands {
+        Some(commands) => Fetcher::Remote { commands },
+        None => Fetcher::Local {
+            store: Default::default(),
+        },
+    };
+    let mut residency = Residency::new(budget_bytes, fetcher);
+    // Uploads are paced so a frame stays short while a model streams in.
+    residency.max_uploads_per_step = 8;
+    residency
 }
 
 struct WindowState {
@@ -217,7 +273,8 @@ struct App {
 pub fn run(options: AppOptions) -> anyhow::Result<()> {
     let event_loop = EventLoop::new().context("cannot open a window (is there a display?)")?;
     event_loop.set_control_flow(ControlFlow::Poll);
-    let mut viewer = ViewerState::new(options.settings.clone(), options.fov_deg);
+    let residency = window_residency(options.budget_bytes, options.commands.clone());
+    let mut viewer = ViewerState::new(options.settings.clone(), options.fov_deg, residency);
     viewer.follow_newest = options.follow_newest;
     let mut app = App {
         options,
@@ -358,6 +415,7 @@ impl App {
             .create_view(&wgpu::TextureViewDescriptor::default());
         let (width, height) = (w.config.width, w.config.height);
         if let Some(camera) = self.viewer.camera(width, height) {
+            self.viewer.update_residency(&mut w.renderer, &camera);
             let target = RenderTarget {
                 view: &view,
                 format: w.config.format,
@@ -434,7 +492,9 @@ impl App {
         self.frames += 1;
         if let Some((path, after, min_scans)) = &self.options.screenshot
             && self.frames >= *after
-            && (self.viewer.model.len() >= *min_scans
+            && ((self.viewer.model.len() >= *min_scans
+                && self.viewer.residency_stats.in_flight == 0
+                && self.viewer.residency_stats.pending == 0)
                 || self.started.elapsed() > std::time::Duration::from_secs(60))
         {
             let image = read_frame(&w.gpu, &frame.texture)?;
@@ -442,10 +502,11 @@ impl App {
                 .save(path)
                 .with_context(|| format!("writing {}", path.display()))?;
             println!(
-                "screenshot {}: {} scans in the model, {} drawn",
+                "screenshot {}: {} scans in the model, {} drawn; {}",
                 path.display(),
                 self.viewer.model.len(),
-                self.viewer.stats.drawn
+                self.viewer.stats.drawn,
+                self.viewer.residency_stats.describe()
             );
             w.gpu.queue.present(frame);
             event_loop.exit();

@@ -8,6 +8,7 @@ pub mod connection;
 pub mod fetch;
 pub mod replay;
 pub mod snapshots;
+pub mod transport;
 
 use std::sync::mpsc::{Receiver, SyncSender, TrySendError};
 use std::time::{Duration, Instant};
@@ -99,6 +100,11 @@ pub enum ViewerEvent {
         received: Instant,
     },
     Connection(ConnectionState),
+    /// The source cannot give a scan that was asked for.
+    ScanUnavailable {
+        id: texel::model::ScanId,
+        reason: String,
+    },
 }
 
 impl ViewerEvent {
