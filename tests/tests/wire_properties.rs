@@ -16,7 +16,7 @@ use std::cell::Cell;
 use std::sync::Arc;
 
 use proptest::prelude::*;
-use texel::model::Model;
+use texel::model::{Model, ScanListing};
 use texel::pose::pose_from_parts;
 use texel::wire::{
     Limits, MAX_NAME_LEN, Message, Status, Texture, TextureFormat, WireScan, decode_frame,
@@ -210,7 +210,38 @@ fn message_strategy() -> impl Strategy<Value = Message> {
             }))
         }),
         name().prop_map(|reason| Message::Goodbye { reason }),
+        (any::<u64>(), listing_strategy(), pose_strategy()).prop_map(
+            |(id, listing, world_from_scan)| Message::ScanListed {
+                id,
+                listing,
+                world_from_scan,
+            }
+        ),
+        any::<u64>().prop_map(|id| Message::ScanWithdrawn { id }),
+        (any::<u64>(), name()).prop_map(|(id, reason)| Message::ScanUnavailable { id, reason }),
+        any::<u64>().prop_map(|id| Message::RequestScan { id }),
     ]
+}
+
+/// A listing with bounds in order: each axis's two values sorted.
+fn listing_strategy() -> impl Strategy<Value = ScanListing> {
+    (
+        any::<u64>(),
+        prop::array::uniform3((-1e6f32..1e6, -1e6f32..1e6)),
+        prop::array::uniform3(-1e3f32..1e3),
+        -1e9f32..1e9,
+        any::<u64>(),
+    )
+        .prop_map(
+            |(timestamp_ns, axes, cop_m, priority, encoded_bytes)| ScanListing {
+                timestamp_ns,
+                bounds_min_m: axes.map(|(a, b)| a.min(b)),
+                bounds_max_m: axes.map(|(a, b)| a.max(b)),
+                cop_m,
+                priority,
+                encoded_bytes,
+            },
+        )
 }
 
 proptest! {
@@ -241,7 +272,7 @@ proptest! {
 
     #[test]
     fn framed_garbage_of_every_kind_decodes_without_panic_or_allocation_beyond_it(
-        kind in prop_oneof![0u8..4, 0x10u8..0x14, Just(0x20u8), Just(0x30u8), any::<u8>()],
+        kind in prop_oneof![0u8..4, 0x10u8..0x17, Just(0x20u8), Just(0x30u8), Just(0x40u8), any::<u8>()],
         body in prop::collection::vec(any::<u8>(), 0..512),
     ) {
         // A correct length prefix, so the kind's own decoder sees the garbage.
@@ -251,6 +282,39 @@ proptest! {
         let (result, peak) = peak_allocation(|| decode_frame(&bytes, &Limits::FROM_SERVER));
         prop_assert!(!matches!(result, Ok(None)), "a complete frame is never incomplete");
         prop_assert!(peak <= bytes.len() + SLACK, "{} bytes allocated for {}", peak, bytes.len());
+    }
+
+    /// A listing of any floats encodes exactly when the decoder would accept it:
+    /// every number finite and each axis's bounds in order; then it round-trips.
+    #[test]
+    fn listings_encode_exactly_when_they_are_valid_and_then_round_trip(
+        floats in prop::array::uniform10(prop_oneof![
+            any::<f32>(),
+            Just(f32::NAN),
+            Just(f32::INFINITY),
+            -10.0f32..10.0,
+        ]),
+        id in any::<u64>(),
+    ) {
+        let listing = ScanListing {
+            timestamp_ns: 1,
+            bounds_min_m: [floats[0], floats[1], floats[2]],
+            bounds_max_m: [floats[3], floats[4], floats[5]],
+            cop_m: [floats[6], floats[7], floats[8]],
+            priority: floats[9],
+            encoded_bytes: 2,
+        };
+        let valid = floats.iter().all(|v| v.is_finite())
+            && (0..3).all(|k| floats[k] <= floats[k + 3]);
+        let m = Message::ScanListed { id, listing, world_from_scan: Pose::identity() };
+        match m.encode() {
+            Ok(bytes) => {
+                prop_assert!(valid, "{listing:?} encoded");
+                let (back, _) = decode_frame(&bytes, &Limits::FROM_SERVER).unwrap().unwrap();
+                prop_assert_eq!(back, m);
+            }
+            Err(_) => prop_assert!(!valid, "{listing:?} refused"),
+        }
     }
 
     #[test]

@@ -538,6 +538,24 @@ pub fn sample_messages() -> Vec<Message> {
         Message::Goodbye {
             reason: "shutting down".into(),
         },
+        Message::ScanListed {
+            id: 3,
+            listing: crate::model::ScanListing {
+                timestamp_ns: 42,
+                bounds_min_m: [0.0, 0.0, 1.0],
+                bounds_max_m: [1.0, 1.0, 1.5],
+                cop_m: [0.0, 0.1, 0.2],
+                priority: 0.5,
+                encoded_bytes: 1234,
+            },
+            world_from_scan: Pose::translation(1.0, -2.0, 0.5),
+        },
+        Message::ScanWithdrawn { id: 3 },
+        Message::ScanUnavailable {
+            id: 8,
+            reason: "scan 8 is not in the served model".into(),
+        },
+        Message::RequestScan { id: 8 },
     ]
 }
 
@@ -549,6 +567,9 @@ fn poses(message: &Message) -> Vec<&Pose> {
             world_from_scan, ..
         } => vec![world_from_scan],
         Message::ScanAdded(scan) => vec![&scan.world_from_scan, &scan.scan_from_lidar],
+        Message::ScanListed {
+            world_from_scan, ..
+        } => vec![world_from_scan],
         _ => Vec::new(),
     }
 }

@@ -98,6 +98,13 @@ pub enum Applied {
     SnapshotComplete,
     ScanAdded(ScanId),
     PoseRevised(ScanId),
+    ScanListed(ScanId),
+    ScanWithdrawn(ScanId),
+    /// A request for the scan cannot be answered.
+    Unavailable {
+        id: ScanId,
+        reason: String,
+    },
     Status,
     /// The server ends the stream.
     Goodbye(String),
@@ -146,7 +153,9 @@ impl Replica {
                 let applied = match &event {
                     ModelEvent::ScanAdded { id, .. } => Applied::ScanAdded(*id),
                     ModelEvent::PoseRevised { id, .. } => Applied::PoseRevised(*id),
-                    _ => Applied::Ignored,
+                    ModelEvent::ScanListed { id, .. } => Applied::ScanListed(*id),
+                    ModelEvent::ScanWithdrawn { id } => Applied::ScanWithdrawn(*id),
+                    ModelEvent::ScanEvicted { .. } => Applied::Ignored,
                 };
                 self.model.apply(event)?;
                 applied
@@ -155,6 +164,7 @@ impl Replica {
                 self.status = Some(*status);
                 Applied::Status
             }
+            Update::Unavailable { id, reason } => Applied::Unavailable { id, reason },
             Update::Goodbye(reason) => Applied::Goodbye(reason),
             Update::Ignored => Applied::Ignored,
         })
@@ -174,8 +184,13 @@ pub enum Update {
     SnapshotComplete {
         scan_count: u64,
     },
-    /// A scan joins the model or moves.
+    /// A scan joins the model (its data, or its listing), moves or leaves it.
     Model(ModelEvent),
+    /// A request for scan `id` cannot be answered, and why.
+    Unavailable {
+        id: ScanId,
+        reason: String,
+    },
     Status(Box<Status>),
     /// The server ends the stream (a goodbye, or a refusal after the handshake).
     Goodbye(String),
@@ -203,8 +218,21 @@ pub fn update(message: Message) -> Result<Update, WireError> {
             id,
             world_from_scan,
         }),
+        Message::ScanListed {
+            id,
+            listing,
+            world_from_scan,
+        } => Update::Model(ModelEvent::ScanListed {
+            id,
+            listing,
+            world_from_scan,
+        }),
+        Message::ScanWithdrawn { id } => Update::Model(ModelEvent::ScanWithdrawn { id }),
+        Message::ScanUnavailable { id, reason } => Update::Unavailable { id, reason },
         Message::Status(status) => Update::Status(status),
         Message::Goodbye { reason } | Message::Refused { reason } => Update::Goodbye(reason),
-        Message::ClientHello { .. } | Message::ServerHello { .. } => Update::Ignored,
+        Message::ClientHello { .. } | Message::ServerHello { .. } | Message::RequestScan { .. } => {
+            Update::Ignored
+        }
     })
 }

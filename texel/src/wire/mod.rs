@@ -1,5 +1,5 @@
-//! The viewer stream's wire format (`docs/wire-protocol.md`, version 1): the messages
-//! between the daemon and its viewers, their encoding, and a sans-I/O decoder that
+//! The viewer stream's wire format (`docs/wire-protocol.md`, version 2): the messages
+//! between the daemon and its viewers (scans listed, then fetched by id), their encoding, and a sans-I/O decoder that
 //! tells "incomplete, read more" (`Ok(None)`) from "invalid" (`Err`), checking every
 //! length against a limit and against the bytes present before allocating for it.
 //!
@@ -9,9 +9,11 @@
 
 mod bytes_in;
 pub mod client;
+mod listing;
 mod scan;
 mod status;
 
+pub use listing::LISTING_LEN;
 pub use scan::{
     MAX_GRID_SIDE, MAX_TEXTURE_BYTES, Texture, TextureFormat, TextureRef, WireScan, WireScanRef,
     check_sendable,
@@ -20,12 +22,12 @@ pub use status::{ModelStatus, QueueStatus, RecordingStatus, SourceStatus, StageL
 
 use thiserror::Error;
 
-use crate::model::ScanId;
+use crate::model::{ScanId, ScanListing};
 use crate::pose::{Pose, pose_from_parts, pose_to_parts};
 use bytes_in::{BodyReader, PutLe};
 
 /// The protocol version this module speaks.
-pub const PROTOCOL_VERSION: u16 = 1;
+pub const PROTOCOL_VERSION: u16 = 2;
 /// Opens every client hello, so that a stray connection (HTTP, another protocol) is
 /// refused at its first bytes.
 pub const CLIENT_MAGIC: [u8; 4] = *b"TXLV";
@@ -37,7 +39,8 @@ pub const MAX_NAME_LEN: usize = 256;
 pub const MAX_REASON_LEN: usize = 1024;
 /// The longest status JSON.
 pub const MAX_STATUS_LEN: usize = 256 * 1024;
-/// Frames a client may send are at most this long (a hello with its token).
+/// Frames a client may send are at most this long (a hello with its token; a request
+/// is 13 bytes).
 pub const MAX_CLIENT_FRAME_LEN: u32 = 4096;
 /// Frames a server may send are at most this long: a scan of the largest lidar grid
 /// (1024², 2 triangles per cell) with the largest texture.
@@ -69,8 +72,12 @@ mod kind {
     pub const SNAPSHOT_COMPLETE: u8 = 0x11;
     pub const SCAN_ADDED: u8 = 0x12;
     pub const POSE_REVISED: u8 = 0x13;
+    pub const SCAN_LISTED: u8 = 0x14;
+    pub const SCAN_WITHDRAWN: u8 = 0x15;
+    pub const SCAN_UNAVAILABLE: u8 = 0x16;
     pub const STATUS: u8 = 0x20;
     pub const GOODBYE: u8 = 0x30;
+    pub const REQUEST_SCAN: u8 = 0x40;
 }
 
 /// Every message of the protocol.
@@ -90,16 +97,31 @@ pub enum Message {
     },
     /// Server -> client, then the server closes: why the connection was refused.
     Refused { reason: String },
-    /// Server -> client: forget the model; a snapshot of `scan_count` scans follows
-    /// (`ScanAdded` and `PoseRevised` messages), closed by `SnapshotComplete`. Sent on
-    /// connecting and whenever a slow client is resynchronised.
+    /// Server -> client: forget the model (and every request not yet answered); a
+    /// snapshot of `scan_count` scans follows (one `ScanListed` each), closed by
+    /// `SnapshotComplete`. Sent on connecting and whenever a slow client is
+    /// resynchronised.
     ModelReset { scan_count: u64 },
     /// Server -> client: the snapshot is complete; live updates follow.
     SnapshotComplete { scan_count: u64 },
-    /// Server -> client: a scan joins the model.
+    /// Server -> client: a scan's data: a newly registered scan, or the answer to a
+    /// `RequestScan`.
     ScanAdded(Box<WireScan>),
     /// Server -> client: a scan's pose was refined.
     PoseRevised { id: ScanId, world_from_scan: Pose },
+    /// Server -> client: a served scan without its data (fetch it with `RequestScan`).
+    ScanListed {
+        id: ScanId,
+        listing: ScanListing,
+        world_from_scan: Pose,
+    },
+    /// Server -> client: the scan left the served model; forget it.
+    ScanWithdrawn { id: ScanId },
+    /// Server -> client: a `RequestScan` cannot be answered (unknown id, withdrawn,
+    /// store damaged), and why.
+    ScanUnavailable { id: ScanId, reason: String },
+    /// Client -> server: send scan `id`'s data (a `ScanAdded`, or `ScanUnavailable`).
+    RequestScan { id: ScanId },
     /// Server -> client: the daemon's periodic status.
     Status(Box<Status>),
     /// Either way, then the sender closes: why the stream ends.
@@ -146,6 +168,10 @@ impl Message {
             Self::SnapshotComplete { .. } => "SnapshotComplete",
             Self::ScanAdded(_) => "ScanAdded",
             Self::PoseRevised { .. } => "PoseRevised",
+            Self::ScanListed { .. } => "ScanListed",
+            Self::ScanWithdrawn { .. } => "ScanWithdrawn",
+            Self::ScanUnavailable { .. } => "ScanUnavailable",
+            Self::RequestScan { .. } => "RequestScan",
             Self::Status(_) => "Status",
             Self::Goodbye { .. } => "Goodbye",
         }
@@ -216,6 +242,26 @@ impl Message {
                 out.put_u8(kind::POSE_REVISED);
                 out.put_u64(*id);
                 put_pose(&mut out, "PoseRevised.world_from_scan", world_from_scan)?;
+            }
+            Self::ScanListed {
+                id,
+                listing,
+                world_from_scan,
+            } => {
+                out.put_u8(kind::SCAN_LISTED);
+                listing::put_scan_listed(&mut out, *id, listing, world_from_scan)?;
+            }
+            Self::ScanWithdrawn { id } => {
+                out.put_u8(kind::SCAN_WITHDRAWN);
+                out.put_u64(*id);
+            }
+            Self::ScanUnavailable { id, reason } => {
+                out.put_u8(kind::SCAN_UNAVAILABLE);
+                listing::put_unavailable(&mut out, *id, reason)?;
+            }
+            Self::RequestScan { id } => {
+                out.put_u8(kind::REQUEST_SCAN);
+                out.put_u64(*id);
             }
             Self::Status(status) => {
                 out.put_u8(kind::STATUS);
@@ -344,6 +390,24 @@ fn decode_body(frame: &[u8]) -> Result<Message, WireError> {
                 world_from_scan,
             }
         }
+        kind::SCAN_LISTED => {
+            let (id, listing, world_from_scan) = listing::read_scan_listed(body)?;
+            Message::ScanListed {
+                id,
+                listing,
+                world_from_scan,
+            }
+        }
+        kind::SCAN_WITHDRAWN => Message::ScanWithdrawn {
+            id: listing::read_id(body, "ScanWithdrawn")?,
+        },
+        kind::SCAN_UNAVAILABLE => {
+            let (id, reason) = listing::read_unavailable(body)?;
+            Message::ScanUnavailable { id, reason }
+        }
+        kind::REQUEST_SCAN => Message::RequestScan {
+            id: listing::read_id(body, "RequestScan")?,
+        },
         kind::STATUS => {
             let mut r = BodyReader::new(body, "Status");
             let json = r.string("json", MAX_STATUS_LEN)?;
@@ -363,7 +427,12 @@ fn decode_body(frame: &[u8]) -> Result<Message, WireError> {
     Ok(message)
 }
 
-fn put_string(out: &mut Vec<u8>, what: &'static str, s: &str, max: usize) -> Result<(), WireError> {
+pub(crate) fn put_string(
+    out: &mut Vec<u8>,
+    what: &'static str,
+    s: &str,
+    max: usize,
+) -> Result<(), WireError> {
     if s.len() > max {
         return Err(WireError::encode(
             what,
@@ -450,6 +519,12 @@ mod tests {
                 id: 7,
                 world_from_scan: Pose::translation(1.0, 2.0, 3.0),
             },
+            Message::ScanWithdrawn { id: 4 },
+            Message::ScanUnavailable {
+                id: 5,
+                reason: "scan 5 is not in the served model".into(),
+            },
+            Message::RequestScan { id: u64::MAX },
             Message::Goodbye {
                 reason: "shutting down".into(),
             },

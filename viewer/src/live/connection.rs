@@ -290,7 +290,9 @@ pub(super) fn forward(message: Message, tx: &SyncSender<ViewerEvent>) -> Result<
                 "the daemon ended the stream: {reason}"
             )));
         }
-        Update::Ignored => return Ok(true),
+        // The client fetches every listed scan by itself; one it cannot get stays
+        // listed without data.
+        Update::Ignored | Update::Unavailable { .. } => return Ok(true),
     };
     Ok(send(tx, event))
 }
