@@ -3,8 +3,10 @@
 //! it asks of the model on as a [`ViewerEvent`] (the consumer holds the only model),
 //! and send the requests for scans the consumer makes on its bounded command
 //! channel. When the connection is lost, say so and reconnect with exponential
-//! backoff; requests not sent are dropped (the daemon then sends a fresh snapshot,
-//! which starts with a reset, and the consumer asks again). A refusal (wrong token,
+//! backoff. Requests carry the number of resets their asker had seen: the thread sends
+//! nothing on a connection before forwarding its first reset and drops requests made
+//! before the latest reset (they name scans of a model that is gone; the consumer
+//! asks again). A refusal (wrong token,
 //! wrong version) ends the thread: retrying cannot fix it.
 
 use std::net::{SocketAddr, ToSocketAddrs};
@@ -112,6 +114,8 @@ fn run(
 ) {
     let mut backoff = options.backoff_min;
     let mut attempt = 0u32;
+    // Resets forwarded: the generation of the consumer's model.
+    let mut resets = 0u64;
     while !stop.load(Ordering::Acquire) {
         attempt = attempt.saturating_add(1);
         if !send(
@@ -126,7 +130,7 @@ fn run(
         // Requests made for a connection that was lost concern its model; the new
         // one starts with a reset after which the consumer asks again.
         while commands.try_recv().is_ok() {}
-        let (reason, connected) = match connect_once(options, tx, commands, stop) {
+        let (reason, connected) = match connect_once(options, tx, commands, &mut resets, stop) {
             (Ended::Stopped, _) => return,
             (Ended::Final(reason), _) => {
                 let _ = send(
@@ -183,6 +187,7 @@ fn connect_once(
     options: &ConnectOptions,
     tx: &SyncSender<ViewerEvent>,
     commands: &Receiver<SourceCommand>,
+    resets: &mut u64,
     stop: &AtomicBool,
 ) -> (Ended, bool) {
     let addr = match resolve(&options.addr) {
@@ -215,11 +220,13 @@ fn connect_once(
         return (Ended::Lost(e.to_string()), true);
     }
     let mut last_heard = Instant::now();
+    // Nothing is sent before this connection's snapshot has begun.
+    let mut synced = false;
     loop {
         if stop.load(Ordering::Acquire) {
             return (Ended::Stopped, true);
         }
-        if let Err(ended) = send_requests(&mut client, commands) {
+        if synced && let Err(ended) = send_requests(&mut client, commands, *resets) {
             return (ended, true);
         }
         let message = match client.next_message() {
@@ -240,6 +247,10 @@ fn connect_once(
             Err(e) => return (Ended::Lost(e.to_string()), true),
         };
         last_heard = Instant::now();
+        if matches!(message, Message::ModelReset { .. }) {
+            *resets += 1;
+            synced = true;
+        }
         match forward(message, tx) {
             Ok(true) => {}
             Ok(false) => return (Ended::Stopped, true),
@@ -248,12 +259,17 @@ fn connect_once(
     }
 }
 
-/// Sends every request waiting on the command channel.
-fn send_requests(link: &mut Link, commands: &Receiver<SourceCommand>) -> Result<(), Ended> {
+/// Sends every request waiting on the command channel that was made for the
+/// model of generation `resets`; drops older ones.
+fn send_requests(
+    link: &mut Link,
+    commands: &Receiver<SourceCommand>,
+    resets: u64,
+) -> Result<(), Ended> {
     loop {
         match commands.try_recv() {
             Ok(command) => {
-                if let Some(message) = request_message(command) {
+                if let Some(message) = request_message(command, resets) {
                     link.send(&message)
                         .map_err(|e| Ended::Lost(format!("sending a request: {e}")))?;
                 }
@@ -265,10 +281,12 @@ fn send_requests(link: &mut Link, commands: &Receiver<SourceCommand>) -> Result<
     }
 }
 
-/// The wire message of a command.
-fn request_message(command: SourceCommand) -> Option<Message> {
+/// The wire message of a command, `None` when it is stale.
+fn request_message(command: SourceCommand, resets: u64) -> Option<Message> {
     match command {
-        SourceCommand::RequestScan(_) => None,
+        SourceCommand::RequestScan { id, generation } => {
+            (generation == resets).then_some(Message::RequestScan { id })
+        }
     }
 }
 
@@ -290,9 +308,9 @@ pub(super) fn forward(message: Message, tx: &SyncSender<ViewerEvent>) -> Result<
                 "the daemon ended the stream: {reason}"
             )));
         }
-        // The client fetches every listed scan by itself; one it cannot get stays
-        // listed without data.
-        Update::Ignored | Update::Unavailable { .. } => return Ok(true),
+        // The consumer asked for it: it stops asking until the scan is listed again.
+        Update::Unavailable { id, reason } => ViewerEvent::ScanUnavailable { id, reason },
+        Update::Ignored => return Ok(true),
     };
     Ok(send(tx, event))
 }

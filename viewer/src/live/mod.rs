@@ -28,8 +28,14 @@ pub const COMMAND_QUEUE: usize = 64;
 /// What the window asks of its live source.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum SourceCommand {
-    /// Send this scan's data (it answers with the scan or says it is unavailable).
-    RequestScan(texel::model::ScanId),
+    /// Send scan `id`'s data (the source answers with the scan or says it is
+    /// unavailable). `generation`: how many [`ViewerEvent::Reset`]s the asker had
+    /// applied; a request made before the latest reset concerns a model that is gone
+    /// and is dropped.
+    RequestScan {
+        id: texel::model::ScanId,
+        generation: u64,
+    },
 }
 
 /// The state of a live connection, as the overlay shows it.

@@ -144,6 +144,8 @@ pub struct Residency {
     /// Uploads per step (the window paces them over frames; headless takes all).
     pub max_uploads_per_step: usize,
     stats: ResidencyStats,
+    /// Resets seen: requests carry it so that the source drops stale ones.
+    generation: u64,
 }
 
 impl Residency {
@@ -165,6 +167,7 @@ impl Residency {
                 budget_bytes,
                 ..Default::default()
             },
+            generation: 0,
         }
     }
 
@@ -258,9 +261,10 @@ impl Residency {
         self.unavailable.insert(id, reason);
     }
 
-    /// The source reset its model (a reconnect): requests are forgotten, ids will
-    /// be reused.
+    /// The source reset its model (a reconnect, a resynchronisation): requests are
+    /// forgotten (and the source drops those not sent yet), ids will be reused.
     pub fn reset(&mut self, renderer: &mut Renderer) {
+        self.generation += 1;
         renderer.clear_scans();
         self.in_flight.clear();
         self.unavailable.clear();
@@ -345,7 +349,11 @@ impl Residency {
         self.stats.uploads += uploads as u64;
         if let Fetcher::Remote { commands } = &self.fetcher {
             for &id in &plan.fetch {
-                match commands.try_send(SourceCommand::RequestScan(id)) {
+                let request = SourceCommand::RequestScan {
+                    id,
+                    generation: self.generation,
+                };
+                match commands.try_send(request) {
                     Ok(()) => {
                         self.in_flight.insert(id, now);
                     }
