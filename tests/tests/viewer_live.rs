@@ -253,6 +253,7 @@ fn the_connection_reconnects_and_resynchronises() {
                     ViewerEvent::SnapshotComplete { scans } => format!("snapshot {scans}"),
                     ViewerEvent::Status { .. } => "status".into(),
                     ViewerEvent::Connection(c) => c.describe(),
+                    ViewerEvent::ScanUnavailable { id, .. } => format!("unavailable {id}"),
                 });
                 if done(&event, model) {
                     return;
