@@ -145,7 +145,7 @@ pub fn run(
             .join(format!("snapshot-{:04}.png", summary.written.len() + 1));
         shoot(&mut renderer, &camera, options, &path)?;
         println!(
-            "{} ({} scans; {})",
+            "{} ({} scans), {}",
             path.display(),
             model.len(),
             resident.describe()
