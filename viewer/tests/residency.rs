@@ -92,6 +92,10 @@ fn eviction_and_fetch_within_budget_render_the_unlimited_image() {
     assert_eq!(r.scan_ids().collect::<Vec<_>>(), vec![3, 4, 5]);
     assert_eq!((stats.left_out, stats.resident), (0, 3));
     assert!(stats.used_bytes <= budget);
+    // The renderer's count of an upload is the one the planner was given.
+    for id in 3..6 {
+        assert_eq!(r.scan_bytes(id), Some(bytes(&full, id)));
+    }
     // Then the box: the other site is evicted (GPU and CPU copies), the box fetched.
     let here = box_camera(&Pose::identity());
     let stats = residency.step(&mut model, &mut r, &here);

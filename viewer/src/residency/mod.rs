@@ -420,3 +420,33 @@ impl Residency {
         self.in_flight.keys().copied().collect()
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn listing(encoded_bytes: u64) -> ScanListing {
+        ScanListing {
+            timestamp_ns: 0,
+            bounds_min_m: [0.0; 3],
+            bounds_max_m: [1.0; 3],
+            cop_m: [0.0; 3],
+            priority: 0.0,
+            encoded_bytes,
+        }
+    }
+
+    #[test]
+    fn sizes_are_estimated_from_what_was_seen() {
+        let mut e = SizeEstimator::default();
+        assert_eq!(e.estimate(&listing(100)), 400);
+        assert_eq!(e.estimate(&listing(0)), DEFAULT_SCAN_BYTES);
+        e.learn(3000, 1000);
+        e.learn(1000, 0);
+        // 3 GPU bytes per wire byte; the mean of the two sizes seen.
+        assert_eq!(e.estimate(&listing(100)), 300);
+        assert_eq!(e.estimate(&listing(0)), 2000);
+        // Huge wire sizes saturate instead of wrapping.
+        assert_eq!(e.estimate(&listing(u64::MAX)), u64::MAX);
+    }
+}
