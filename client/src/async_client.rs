@@ -1,16 +1,20 @@
 //! The async (tokio) TCP client of the viewer stream.
 
-use texel::wire::Message;
+use texel::model::ScanId;
+use texel::wire::{DEFAULT_MAX_IN_FLIGHT, FetchPlan, Message};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{TcpStream, ToSocketAddrs};
 
-use crate::{ClientError, FrameReader, ServerInfo, hello, welcome};
+use crate::{ClientError, FrameReader, ServerInfo, hello, request, welcome};
 
-/// An async connection to a daemon.
+/// An async connection to a daemon; it requests the listed scans it lacks as it
+/// reads (see the crate's documentation).
 pub struct Client {
     stream: TcpStream,
     frames: FrameReader,
     pub server: ServerInfo,
+    fetch: FetchPlan,
+    max_in_flight: usize,
 }
 
 impl Client {
@@ -37,12 +41,45 @@ impl Client {
             stream,
             frames,
             server,
+            fetch: FetchPlan::new(),
+            max_in_flight: DEFAULT_MAX_IN_FLIGHT,
         })
     }
 
+    /// How many scan requests the client keeps outstanding by itself; 0: none (the
+    /// caller sends its own with [`Self::request_scan`]).
+    pub fn set_max_in_flight(&mut self, max_in_flight: usize) {
+        self.max_in_flight = max_in_flight;
+    }
+
+    /// What the client knows of the listed scans and its requests.
+    pub fn fetch_plan(&self) -> &FetchPlan {
+        &self.fetch
+    }
+
+    /// Asks for scan `id`'s data (answered by `ScanAdded` or `ScanUnavailable`).
+    pub async fn request_scan(&mut self, id: ScanId) -> Result<(), ClientError> {
+        self.send_raw(&request(id)?).await
+    }
+
+    /// Writes bytes as they are (a test's hostile or hand-made frames).
+    pub async fn send_raw(&mut self, bytes: &[u8]) -> Result<(), ClientError> {
+        self.stream.write_all(bytes).await.map_err(ClientError::Io)
+    }
+
     /// The next message; `None` when the server closed the connection cleanly.
+    /// Requests the listed scans it still lacks first.
     pub async fn next_message(&mut self) -> Result<Option<Message>, ClientError> {
-        read_async(&mut self.stream, &mut self.frames).await
+        let message = read_async(&mut self.stream, &mut self.frames).await?;
+        if let Some(m) = &message {
+            self.fetch.observe(m);
+            if self.max_in_flight > 0 {
+                for id in self.fetch.wanted(self.max_in_flight) {
+                    self.request_scan(id).await?;
+                }
+            }
+        }
+        Ok(message)
     }
 
     /// Says goodbye and closes.

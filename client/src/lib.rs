@@ -1,15 +1,22 @@
 //! TCP transports of the viewer stream's client side (`texel::wire::client`): a
 //! [`BlockingClient`] for a plain thread and, with the `tokio` feature, an async
 //! [`Client`]. A viewer talks to a daemon through these and the protocol alone.
+//!
+//! The daemon lists its scans and sends their data on request (protocol version 2):
+//! by default a client requests every listed scan by itself, highest priority first,
+//! at most [`DEFAULT_MAX_IN_FLIGHT`] outstanding, as it reads, so a caller that only
+//! reads messages still ends up with the whole model. A viewer that fetches within a
+//! budget turns this off (`set_max_in_flight(0)`) and sends its own requests.
 
 use std::io::Read;
 use std::time::Duration;
 
 use texel::wire::Message;
 pub use texel::wire::client::{
-    Applied, ClientError, FrameReader, Replica, ReplicaError, ServerInfo, Update, hello, update,
-    welcome,
+    Applied, ClientError, FrameReader, Replica, ReplicaError, ServerInfo, Update, hello, request,
+    update, welcome,
 };
+pub use texel::wire::{DEFAULT_MAX_IN_FLIGHT, FetchPlan};
 
 #[cfg(feature = "tokio")]
 mod async_client;
@@ -21,6 +28,8 @@ pub struct BlockingClient {
     stream: std::net::TcpStream,
     frames: FrameReader,
     pub server: ServerInfo,
+    fetch: FetchPlan,
+    max_in_flight: usize,
 }
 
 impl BlockingClient {
@@ -37,6 +46,9 @@ impl BlockingClient {
         stream
             .set_read_timeout(Some(timeout))
             .map_err(ClientError::Io)?;
+        stream
+            .set_write_timeout(Some(timeout))
+            .map_err(ClientError::Io)?;
         let _ = stream.set_nodelay(true);
         stream
             .write_all(&hello(token, client_name)?)
@@ -49,14 +61,49 @@ impl BlockingClient {
                 server_name: String::new(),
                 session_name: String::new(),
             },
+            fetch: FetchPlan::new(),
+            max_in_flight: DEFAULT_MAX_IN_FLIGHT,
         };
         let first = client.next_message()?.ok_or(ClientError::Truncated)?;
         client.server = welcome(first)?;
         Ok(client)
     }
 
+    /// How many scan requests the client keeps outstanding by itself; 0: none (the
+    /// caller sends its own with [`Self::request_scan`]).
+    pub fn set_max_in_flight(&mut self, max_in_flight: usize) {
+        self.max_in_flight = max_in_flight;
+    }
+
+    /// What the client knows of the listed scans and its requests.
+    pub fn fetch_plan(&self) -> &FetchPlan {
+        &self.fetch
+    }
+
+    /// Asks for scan `id`'s data (answered by `ScanAdded` or `ScanUnavailable`).
+    pub fn request_scan(&mut self, id: texel::model::ScanId) -> Result<(), ClientError> {
+        use std::io::Write;
+        self.stream
+            .write_all(&request(id)?)
+            .map_err(ClientError::Io)
+    }
+
     /// The next message; `None` when the server closed the connection cleanly.
+    /// Requests the listed scans it still lacks first (see the crate's documentation).
     pub fn next_message(&mut self) -> Result<Option<Message>, ClientError> {
+        let message = self.read_message()?;
+        if let Some(m) = &message {
+            self.fetch.observe(m);
+            if self.max_in_flight > 0 {
+                for id in self.fetch.wanted(self.max_in_flight) {
+                    self.request_scan(id)?;
+                }
+            }
+        }
+        Ok(message)
+    }
+
+    fn read_message(&mut self) -> Result<Option<Message>, ClientError> {
         let mut chunk = vec![0u8; 64 * 1024];
         loop {
             if let Some(m) = self.frames.take_message()? {

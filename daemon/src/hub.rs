@@ -13,7 +13,7 @@ use std::sync::{Arc, Mutex, MutexGuard};
 
 use bytes::Bytes;
 use texel::Pose;
-use texel::model::{Model, ModelError, ModelEvent, ScanId};
+use texel::model::{Model, ModelError, ModelEvent, ModelScan, ScanId, ScanListing};
 use texel::wire::{Message, WireError};
 use tokio::sync::mpsc;
 
@@ -23,7 +23,8 @@ use texel::TexelScan;
 pub struct Subscription {
     pub client_id: u64,
     /// The frames that rebuild the model as it was when subscribing: `ModelReset`,
-    /// every scan, the revised poses, `SnapshotComplete`.
+    /// one `ScanListed` per served scan (with its current pose), `SnapshotComplete`;
+    /// the client fetches the data it needs by id.
     pub snapshot: Vec<Bytes>,
     /// Live frames after the snapshot.
     pub live: mpsc::Receiver<Bytes>,
@@ -44,6 +45,8 @@ struct Inner {
     /// The `PoseRevised` frame of the latest revision of each scan, if any.
     revision_frames: Vec<Option<Bytes>>,
     clients: Vec<ClientSlot>,
+    /// Scans withdrawn from the served model, kept to be listed again.
+    withdrawn: std::collections::BTreeMap<ScanId, texel::model::ModelScan>,
     next_client_id: u64,
     /// Set once the hub is closed: the reason clients are told.
     closed: Option<String>,
@@ -74,6 +77,7 @@ impl Hub {
                 scan_frames: Vec::new(),
                 revision_frames: Vec::new(),
                 clients: Vec::new(),
+                withdrawn: std::collections::BTreeMap::new(),
                 next_client_id: 0,
                 closed: None,
             }),
@@ -168,10 +172,11 @@ impl Hub {
             return Err(HubError::Closed);
         }
         let scan_count = inner.model.len() as u64;
-        let mut snapshot = Vec::with_capacity(2 + 2 * inner.scan_frames.len());
+        let mut snapshot = Vec::with_capacity(2 + inner.model.len());
         snapshot.push(Bytes::from(Message::ModelReset { scan_count }.encode()?));
-        snapshot.extend(inner.scan_frames.iter().cloned());
-        snapshot.extend(inner.revision_frames.iter().flatten().cloned());
+        for frame in Self::listings(&inner) {
+            snapshot.push(frame?);
+        }
         snapshot.push(Bytes::from(
             Message::SnapshotComplete { scan_count }.encode()?,
         ));
@@ -235,5 +240,138 @@ impl Hub {
                 .map(Bytes::len)
                 .sum::<usize>();
         (scans, frames)
+    }
+}
+
+// Fetching scans by id (protocol version 2): listings, withdrawals and the two steps
+// of answering a request.
+
+/// Why a requested scan cannot be sent; the Display is the reason the viewer is told
+/// in `ScanUnavailable`.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum FetchError {
+    #[error("scan {0} is not in the served model")]
+    Unknown(ScanId),
+    #[error("scan {0} was withdrawn from the served model")]
+    Withdrawn(ScanId),
+    #[error("scan {id} cannot be read from the store: {message}")]
+    Store { id: ScanId, message: String },
+    #[error("the hub is closed")]
+    Closed,
+}
+
+impl Hub {
+    /// A `ScanListed` frame per served scan, by id, each with its current pose.
+    fn listings(inner: &Inner) -> impl Iterator<Item = Result<Bytes, HubError>> + '_ {
+        inner
+            .model
+            .scans()
+            .iter()
+            .map(|s| Self::listing_frame(inner, s))
+    }
+
+    /// A scan's `ScanListed` frame (its listing from its data and frame size).
+    fn listing_frame(inner: &Inner, s: &ModelScan) -> Result<Bytes, HubError> {
+        let encoded_bytes = usize::try_from(s.id)
+            .ok()
+            .and_then(|i| inner.scan_frames.get(i))
+            .map_or(0, |f| f.len() as u64);
+        let listing = match &s.scan {
+            Some(scan) => ScanListing::of_scan(scan, encoded_bytes, 0.0),
+            None => s.listing,
+        };
+        let message = Message::ScanListed {
+            id: s.id,
+            listing,
+            world_from_scan: s.world_from_scan,
+        };
+        Ok(Bytes::from(message.encode()?))
+    }
+
+    fn unavailable(inner: &Inner, id: ScanId) -> FetchError {
+        if inner.closed.is_some() {
+            FetchError::Closed
+        } else if inner.withdrawn.contains_key(&id) {
+            FetchError::Withdrawn(id)
+        } else {
+            FetchError::Unknown(id)
+        }
+    }
+
+    /// The `ScanAdded` frame of a served scan, as first published. Blocking (a store
+    /// may read it from disk): call it off the async threads.
+    pub fn fetch_scan(&self, id: ScanId) -> Result<Bytes, FetchError> {
+        let inner = self.lock();
+        if inner.closed.is_none() && inner.model.get(id).is_some() {
+            let frame = usize::try_from(id)
+                .ok()
+                .and_then(|i| inner.scan_frames.get(i));
+            if let Some(frame) = frame {
+                return Ok(frame.clone());
+            }
+        }
+        Err(Self::unavailable(&inner, id))
+    }
+
+    /// The frames that answer a request with `frame` (from [`Self::fetch_scan`]), to
+    /// be written at once by the task that writes the live frames: the scan must
+    /// still be served, and a `PoseRevised` with its current pose follows the frame
+    /// if it was revised. Checked under the hub lock, so every live frame queued
+    /// after this call is newer.
+    pub fn finish_fetch(&self, id: ScanId, frame: Bytes) -> Result<Vec<Bytes>, FetchError> {
+        let inner = self.lock();
+        if inner.closed.is_some() || inner.model.get(id).is_none() {
+            return Err(Self::unavailable(&inner, id));
+        }
+        let revision = usize::try_from(id)
+            .ok()
+            .and_then(|i| inner.revision_frames.get(i))
+            .and_then(Option::clone);
+        Ok(std::iter::once(frame).chain(revision).collect())
+    }
+
+    /// Withdraws a scan from the served model and tells every client.
+    pub fn withdraw(&self, id: ScanId) -> Result<(), HubError> {
+        let frame = Bytes::from(Message::ScanWithdrawn { id }.encode()?);
+        let mut inner = self.lock();
+        if inner.closed.is_some() {
+            return Err(HubError::Closed);
+        }
+        let Some(scan) = inner.model.get(id).cloned() else {
+            return Err(ModelError::UnknownScan {
+                id,
+                what: "withdrawal",
+            }
+            .into());
+        };
+        inner.model.apply(ModelEvent::ScanWithdrawn { id })?;
+        inner.withdrawn.insert(id, scan);
+        Self::broadcast(&mut inner, &frame);
+        Ok(())
+    }
+
+    /// Serves a withdrawn scan again and lists it to every client.
+    pub fn relist(&self, id: ScanId) -> Result<(), HubError> {
+        let mut inner = self.lock();
+        if inner.closed.is_some() {
+            return Err(HubError::Closed);
+        }
+        let Some(scan) = inner.withdrawn.remove(&id) else {
+            return Err(ModelError::UnknownScan {
+                id,
+                what: "relisting",
+            }
+            .into());
+        };
+        let frame = Self::listing_frame(&inner, &scan)?;
+        if let Some(data) = scan.scan {
+            inner.model.apply(ModelEvent::ScanAdded {
+                id,
+                scan: data,
+                world_from_scan: scan.world_from_scan,
+            })?;
+        }
+        Self::broadcast(&mut inner, &frame);
+        Ok(())
     }
 }

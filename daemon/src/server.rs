@@ -3,7 +3,8 @@
 //! `pending`) while it has the handshake timeout to deliver a valid hello
 //! (`handshake`), and only then a viewer slot: unauthenticated connections never
 //! hold a slot, so they cannot lock out those with the token. A viewer gets the model
-//! so far as a snapshot, then live updates from its bounded queue; one that falls
+//! so far as a snapshot of listings, then live updates from its bounded queue and
+//! the scans it requests by id (`stream`); one that falls
 //! behind or stops reading is resynchronised or dropped by policy (`stream`). Closing
 //! the hub ends every viewer's stream with the rest of its queue and a goodbye saying
 //! why; `shutdown` then stops accepting and waits a bounded time.
@@ -48,6 +49,8 @@ pub struct ServeOptions {
     pub session_name: String,
     /// How long the goodbye (or refusal) to each client may take.
     pub goodbye_timeout: Duration,
+    /// Scan requests a viewer may have outstanding before it is disconnected.
+    pub max_requests_in_flight: usize,
 }
 
 impl ServeOptions {
@@ -64,6 +67,7 @@ impl ServeOptions {
             server_name: concat!("texeld ", env!("CARGO_PKG_VERSION")).to_string(),
             session_name: session_name.to_string(),
             goodbye_timeout: Duration::from_millis(500),
+            max_requests_in_flight: serve.max_requests_in_flight,
         }
     }
 }
@@ -229,6 +233,7 @@ async fn serve_viewer(
         max_resyncs: options.max_resyncs,
         write_timeout: options.write_timeout,
         shutdown: &shared.hard_stop,
+        max_requests_in_flight: options.max_requests_in_flight,
     };
     let welcome = Message::ServerHello {
         version: PROTOCOL_VERSION,
@@ -263,6 +268,7 @@ async fn serve_viewer(
             metrics.add(Counter::ClientsDropped, 1);
             metrics.add(Counter::ClientsWriteTimeouts, 1);
         }
+        End::TooManyRequests(_) => metrics.add(Counter::ClientsDropped, 1),
         End::Error(_) => {}
     }
     let reason = match end {

@@ -487,6 +487,7 @@ fn serve_limits_have_defaults_and_bad_values_are_named() {
     assert_eq!(d.max_pending_handshakes, 64);
     assert_eq!(d.max_pending_handshakes_per_address, 8);
     assert_eq!(d.write_timeout_ms, 10_000);
+    assert_eq!(d.max_requests_in_flight, 64);
 
     let c = SessionConfig::from_toml_str(
         "[serve]\nhandshake_timeout_ms = 700\nmax_pending_handshakes = 10\n\
@@ -513,6 +514,11 @@ fn serve_limits_have_defaults_and_bad_values_are_named() {
             "serve.handshake_timeout_ms",
         ),
         ("write_timeout_ms = 0", "serve.write_timeout_ms"),
+        ("max_requests_in_flight = 0", "serve.max_requests_in_flight"),
+        (
+            "max_requests_in_flight = 5000",
+            "serve.max_requests_in_flight",
+        ),
         ("max_pending_handshakes = 0", "serve.max_pending_handshakes"),
         (
             "max_pending_handshakes_per_address = 0",

@@ -86,21 +86,19 @@ async fn every_scan_reaches_early_and_late_clients_with_the_capture_poses() {
     assert_eq!(early.server.version, texel::wire::PROTOCOL_VERSION);
     let mut early_model = Replica::new();
     follow(&mut early, &mut early_model, |r, _| {
-        r.model.len() == FRAMES as usize
+        r.model.resident_len() == FRAMES as usize
     })
     .await;
     assert_has_capture_poses(&early_model);
 
-    // A newcomer after the replay ended gets the whole model from the snapshot.
+    // A newcomer after the replay ended gets the whole model: the snapshot lists it,
+    // the client fetches every scan.
     tokio::time::timeout(Duration::from_secs(10), session.sources_done.cancelled())
         .await
         .unwrap();
     let mut late = Client::connect(addr, "", "late").await.unwrap();
     let mut late_model = Replica::new();
-    follow(&mut late, &mut late_model, |_, a| {
-        *a == Applied::SnapshotComplete
-    })
-    .await;
+    follow(&mut late, &mut late_model, |r, _| r.complete()).await;
     assert_eq!(late_model.resets, 1);
     assert_has_capture_poses(&late_model);
     for (a, b) in early_model

@@ -100,7 +100,7 @@ async fn a_client_that_reads_nothing_holds_up_nobody_and_is_resynchronised_or_dr
         let mut active_model = Replica::new();
         // The active client and ingest finish while the stalled one reads nothing.
         follow_until(&mut active, &mut active_model, |r, _| {
-            r.model.len() == frames
+            r.model.resident_len() == frames
         })
         .await;
         tokio::time::timeout(Duration::from_secs(20), session.sources_done.cancelled())
@@ -112,8 +112,9 @@ async fn a_client_that_reads_nothing_holds_up_nobody_and_is_resynchronised_or_dr
         match policy {
             SlowClientPolicy::Resync => {
                 // It is sent a fresh snapshot and ends with the same model.
-                follow_until(&mut stalled, &mut replica, |r, a| {
-                    *a == Applied::SnapshotComplete && r.resets >= 2
+                // It is sent a fresh snapshot of listings and fetches every scan.
+                follow_until(&mut stalled, &mut replica, |r, _| {
+                    r.resets >= 2 && r.complete() && r.model.len() == frames
                 })
                 .await;
                 assert_same_model(&replica.model, &active_model.model);
@@ -158,19 +159,28 @@ async fn a_reconnecting_client_ends_with_the_same_model_as_one_connected_through
     let mut flaky_model = Replica::new();
 
     // The flaky viewer sees a few scans and leaves...
-    follow_until(&mut flaky, &mut flaky_model, |r, _| r.model.len() == 4).await;
+    follow_until(&mut flaky, &mut flaky_model, |r, _| {
+        r.model.resident_len() == 4
+    })
+    .await;
     flaky.close().await;
     // ...while the steady one keeps going...
-    follow_until(&mut steady, &mut steady_model, |r, _| r.model.len() == 12).await;
+    follow_until(&mut steady, &mut steady_model, |r, _| {
+        r.model.resident_len() == 12
+    })
+    .await;
     // ...and the flaky one comes back mid-replay.
     let mut flaky = Client::connect(addr, "", "flaky again").await.unwrap();
     let mut flaky_model = Replica::new();
     let n = frames as usize;
     follow_until(&mut flaky, &mut flaky_model, |r, _| {
-        r.live && r.model.len() == n
+        r.complete() && r.model.resident_len() == n
     })
     .await;
-    follow_until(&mut steady, &mut steady_model, |r, _| r.model.len() == n).await;
+    follow_until(&mut steady, &mut steady_model, |r, _| {
+        r.model.resident_len() == n
+    })
+    .await;
     assert_eq!(steady_model.resets, 1);
     assert_eq!(flaky_model.resets, 1);
     assert_same_model(&flaky_model.model, &steady_model.model);

@@ -316,6 +316,9 @@ pub struct ServeSection {
     /// How long a write to a viewer may go without the socket taking a byte before
     /// the viewer is dropped as stalled.
     pub write_timeout_ms: u64,
+    /// Scan requests (`RequestScan`) a viewer may have outstanding; one more and it
+    /// is told so and disconnected.
+    pub max_requests_in_flight: usize,
 }
 
 impl Default for ServeSection {
@@ -339,6 +342,9 @@ impl Default for ServeSection {
             // Long enough for a viewer that pauses (a busy UI thread) and for a
             // frame on a slow link, which still takes bytes as it goes.
             write_timeout_ms: 10_000,
+            // Four times what a client keeps outstanding by default: room for the
+            // requests still in transit when a resync makes it start over.
+            max_requests_in_flight: 64,
         }
     }
 }
@@ -650,6 +656,10 @@ const MAX_HANDSHAKE_TIMEOUT_MS: u64 = 60_000;
 /// The longest write timeout: ten minutes of a viewer reading nothing is a dead one.
 const MAX_WRITE_TIMEOUT_MS: u64 = 600_000;
 
+/// The most scan requests a viewer may keep outstanding: each costs a queue entry,
+/// and a few dozen already keep a connection busy.
+const MAX_REQUESTS_IN_FLIGHT: usize = 4096;
+
 /// Checks the server's connection limits (counts of zero are refused with the other
 /// queue sizes); the error names the key.
 fn validate_serve_limits(serve: &ServeSection) -> Result<(), (&'static str, String)> {
@@ -668,6 +678,15 @@ fn validate_serve_limits(serve: &ServeSection) -> Result<(), (&'static str, Stri
             format!(
                 "must be in 1..={MAX_WRITE_TIMEOUT_MS}, got {}",
                 serve.write_timeout_ms
+            ),
+        ));
+    }
+    if !(1..=MAX_REQUESTS_IN_FLIGHT).contains(&serve.max_requests_in_flight) {
+        return Err((
+            "serve.max_requests_in_flight",
+            format!(
+                "must be in 1..={MAX_REQUESTS_IN_FLIGHT}, got {}",
+                serve.max_requests_in_flight
             ),
         ));
     }

@@ -72,6 +72,13 @@ pub fn admit(hello: Message, token: Option<&str>) -> Result<String, String> {
     else {
         return Err(format!("expected ClientHello, got {}", hello.kind_name()));
     };
+    if version == 1 {
+        // Version 1 clients expect every scan's data in the snapshot; a version 2
+        // daemon lists scans and sends them on request.
+        return Err(format!(
+            "protocol version 1 is not served; this daemon speaks version {PROTOCOL_VERSION}: update the viewer"
+        ));
+    }
     if version != PROTOCOL_VERSION {
         return Err(format!(
             "protocol version {version} is not supported; this server speaks {PROTOCOL_VERSION}"

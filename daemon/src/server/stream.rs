@@ -1,6 +1,15 @@
-//! A viewer's stream after its handshake: the snapshot, then live updates from its
-//! bounded hub queue, again after every resync; and the slow-consumer policy. A
-//! viewer is slow in one of two ways, each with its own answer:
+//! A viewer's stream after its handshake: the snapshot (scan listings), then live
+//! updates from its bounded hub queue and the answers to its scan requests, again
+//! after every resync; and the slow-consumer policy.
+//!
+//! The client's messages are read all along, while frames are written: its requests
+//! queue (bounded by `serve.max_requests_in_flight`, beyond which it is disconnected
+//! with the reason) and are served one at a time: the scan's frame is fetched on a
+//! blocking thread (a store may read it from disk) while live frames keep flowing,
+//! then checked against the hub and written between two live frames. A reset (a
+//! resync) drops the queued requests, as the client forgets them too.
+//!
+//! A viewer is slow in one of two ways, each with its own answer:
 //! - it reads, but slower than the model grows: its queue overflows and the hub cuts
 //!   it off; it gets a fresh snapshot, up to `max_resyncs` times in a row, then is
 //!   disconnected (at once with `slow_client = "disconnect"`);
@@ -8,17 +17,21 @@
 //!   write timeout ends the connection, so its slot returns (a resync would only be
 //!   another snapshot it does not read).
 
-use std::sync::atomic::Ordering;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Duration;
 
 use bytes::{Bytes, BytesMut};
-use texel::wire::{Limits, Message, decode_frame};
+use texel::model::ScanId;
+use texel::wire::{Limits, MAX_REASON_LEN, Message, decode_frame};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::tcp::{OwnedReadHalf, OwnedWriteHalf};
+use tokio::sync::{mpsc, oneshot};
+use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 
 use crate::config::SlowClientPolicy;
-use crate::hub::{Hub, HubError};
+use crate::hub::{FetchError, Hub, HubError};
 
 /// How a viewer's stream ended.
 pub enum End {
@@ -28,6 +41,8 @@ pub enum End {
     TooSlow(u32),
     /// A write made no progress within the write timeout.
     Stalled(Duration),
+    /// It had more scan requests outstanding than the limit.
+    TooManyRequests(usize),
     Error(String),
 }
 
@@ -44,6 +59,10 @@ impl End {
                 "too slow: read nothing for {} ms; disconnected",
                 timeout.as_millis()
             ),
+            Self::TooManyRequests(limit) => format!(
+                "too many scan requests: more than {limit} in flight \
+                 (serve.max_requests_in_flight = {limit}); disconnected"
+            ),
             Self::Error(e) => e.clone(),
         }
     }
@@ -55,6 +74,8 @@ pub struct StreamSettings<'a> {
     pub max_resyncs: u32,
     pub write_timeout: Duration,
     pub shutdown: &'a CancellationToken,
+    /// Scan requests a client may have outstanding.
+    pub max_requests_in_flight: usize,
 }
 
 /// Writes one frame. Each write must hand the socket some bytes within
@@ -96,52 +117,186 @@ pub async fn goodbye(wr: &mut OwnedWriteHalf, reason: &str, timeout: Duration) {
     }
 }
 
+/// A request being answered: its id and the blocking fetch of its frame.
+type Fetching = Option<(ScanId, JoinHandle<Result<Bytes, FetchError>>)>;
+
 /// Streams the model to a viewer until it leaves, is dropped, or the hub closes.
 /// Resyncs are counted in `resynced`.
 pub async fn stream_model(
     rd: &mut OwnedReadHalf,
     wr: &mut OwnedWriteHalf,
     inbuf: &mut BytesMut,
-    hub: &Hub,
+    hub: &Arc<Hub>,
     settings: &StreamSettings<'_>,
+    resynced: impl FnMut(),
+) -> End {
+    let limit = settings.max_requests_in_flight.max(1);
+    // Requests received and not yet answered (or dropped at a reset); the queue holds
+    // those not yet started, so it never holds more than `limit`.
+    let outstanding = AtomicUsize::new(0);
+    let (requests_tx, mut requests_rx) = mpsc::channel(limit);
+    let (end_tx, mut end_rx) = oneshot::channel();
+    let reader = read_client(rd, inbuf, &outstanding, limit, requests_tx, end_tx);
+    let writer = write_stream(
+        wr,
+        hub,
+        settings,
+        &outstanding,
+        &mut requests_rx,
+        &mut end_rx,
+        resynced,
+    );
+    tokio::select! {
+        end = writer => end,
+        () = reader => End::Error("the client reader ended".into()),
+    }
+}
+
+/// Reads the client's messages until it leaves or misbehaves; then hands the writer
+/// the reason (which it acts on between two frames, so a goodbye never lands inside
+/// a frame) and waits to be dropped.
+async fn read_client(
+    rd: &mut OwnedReadHalf,
+    inbuf: &mut BytesMut,
+    outstanding: &AtomicUsize,
+    limit: usize,
+    requests: mpsc::Sender<ScanId>,
+    end_tx: oneshot::Sender<End>,
+) {
+    let end = 'read: loop {
+        // Every whole frame first: the decoder refuses an over-long one before its
+        // body is awaited, so `inbuf` stays within a frame and a read.
+        loop {
+            match decode_frame(inbuf, &Limits::FROM_CLIENT) {
+                Ok(Some((message, used))) => {
+                    let _ = inbuf.split_to(used);
+                    match message {
+                        Message::RequestScan { id } => {
+                            if outstanding.load(Ordering::Acquire) >= limit {
+                                break 'read End::TooManyRequests(limit);
+                            }
+                            outstanding.fetch_add(1, Ordering::AcqRel);
+                            if requests.try_send(id).is_err() {
+                                break 'read End::TooManyRequests(limit);
+                            }
+                        }
+                        Message::Goodbye { .. } => break 'read End::ClientLeft,
+                        m => {
+                            break 'read End::Error(format!(
+                                "unexpected {} from the client",
+                                m.kind_name()
+                            ));
+                        }
+                    }
+                }
+                Ok(None) => break,
+                Err(e) => break 'read End::Error(format!("invalid message: {e}")),
+            }
+        }
+        match rd.read_buf(inbuf).await {
+            Ok(0) => break End::ClientLeft,
+            Ok(_) => {}
+            Err(e) => break End::Error(format!("read failed: {e}")),
+        }
+    };
+    let _ = end_tx.send(end);
+    std::future::pending::<()>().await;
+}
+
+/// The reason the reader gave, if it ended: it explains a failed write better.
+fn reader_end(end_rx: &mut oneshot::Receiver<End>, fallback: End) -> End {
+    end_rx.try_recv().unwrap_or(fallback)
+}
+
+/// Snapshots, live frames and request answers, until the stream ends.
+async fn write_stream(
+    wr: &mut OwnedWriteHalf,
+    hub: &Arc<Hub>,
+    settings: &StreamSettings<'_>,
+    outstanding: &AtomicUsize,
+    requests: &mut mpsc::Receiver<ScanId>,
+    end_rx: &mut oneshot::Receiver<End>,
     mut resynced: impl FnMut(),
 ) -> End {
     let (write_timeout, shutdown) = (settings.write_timeout, settings.shutdown);
     let mut resyncs = 0u32;
+    let mut fetching: Fetching = None;
     loop {
         let mut sub = match hub.subscribe() {
             Ok(s) => s,
             Err(HubError::Closed) => return End::Shutdown,
             Err(e) => return End::Error(e.to_string()),
         };
+        // The snapshot starts with a reset: the client forgets its requests, and so
+        // does the server.
+        if fetching.take().is_some() {
+            outstanding.fetch_sub(1, Ordering::AcqRel);
+        }
+        while requests.try_recv().is_ok() {
+            outstanding.fetch_sub(1, Ordering::AcqRel);
+        }
         let client_id = sub.client_id;
         let result = async {
             for frame in &sub.snapshot {
+                if let Ok(end) = end_rx.try_recv() {
+                    return Err(end);
+                }
                 write_frame(wr, frame, write_timeout, shutdown).await?;
             }
             loop {
-                let next: Option<Bytes> = tokio::select! {
-                    f = sub.live.recv() => f,
-                    r = rd.read_buf(inbuf) => {
-                        client_input(r, inbuf)?;
-                        continue;
+                let idle = fetching.is_none();
+                tokio::select! {
+                    end = &mut *end_rx => {
+                        return Err(end.unwrap_or(End::ClientLeft));
                     }
                     () = shutdown.cancelled() => return Err(End::Shutdown),
-                };
-                if sub.lagged.load(Ordering::Acquire) {
-                    return Ok(());
-                }
-                match next {
-                    Some(frame) => {
-                        write_frame(wr, &frame, write_timeout, shutdown).await?;
-                        if sub.live.is_empty() {
-                            // Caught up: earlier resyncs are forgiven.
-                            resyncs = 0;
+                    next = sub.live.recv() => {
+                        if sub.lagged.load(Ordering::Acquire) {
+                            return Ok(());
+                        }
+                        match next {
+                            Some(frame) => {
+                                write_frame(wr, &frame, write_timeout, shutdown).await?;
+                                if sub.live.is_empty() {
+                                    // Caught up: earlier resyncs are forgiven.
+                                    resyncs = 0;
+                                }
+                            }
+                            // The hub dropped this feed: cut off for lagging, or closed.
+                            None if sub.lagged.load(Ordering::Acquire) => return Ok(()),
+                            None => return Err(End::Shutdown),
                         }
                     }
-                    // The hub dropped this feed: cut off for lagging, or closed.
-                    None if sub.lagged.load(Ordering::Acquire) => return Ok(()),
-                    None => return Err(End::Shutdown),
+                    Some(id) = requests.recv(), if idle => {
+                        let hub = Arc::clone(hub);
+                        let task = tokio::task::spawn_blocking(move || hub.fetch_scan(id));
+                        fetching = Some((id, task));
+                    }
+                    fetched = async {
+                        match fetching.as_mut() {
+                            Some((_, task)) => task.await,
+                            None => std::future::pending().await,
+                        }
+                    }, if !idle => {
+                        let Some((id, _)) = fetching.take() else {
+                            continue;
+                        };
+                        let answer = match fetched {
+                            Ok(Ok(frame)) => hub.finish_fetch(id, frame),
+                            Ok(Err(e)) => Err(e),
+                            Err(e) => Err(FetchError::Store {
+                                id,
+                                message: format!("the read failed: {e}"),
+                            }),
+                        };
+                        let written = answer_request(wr, id, answer, settings).await;
+                        // Counted until answered, as the client counts it.
+                        outstanding.fetch_sub(1, Ordering::AcqRel);
+                        written?;
+                        if sub.lagged.load(Ordering::Acquire) {
+                            return Ok(());
+                        }
+                    }
                 }
             }
         }
@@ -149,7 +304,10 @@ pub async fn stream_model(
         hub.unsubscribe(client_id);
         // `Ok` means the client's queue overflowed.
         if let Err(end) = result {
-            return end;
+            return match end {
+                End::Error(_) | End::Stalled(_) => reader_end(end_rx, end),
+                end => end,
+            };
         }
         resyncs += 1;
         if settings.slow_client == SlowClientPolicy::Disconnect || resyncs > settings.max_resyncs {
@@ -159,21 +317,28 @@ pub async fn stream_model(
     }
 }
 
-/// Handles bytes from a client after the handshake: a goodbye or end of stream ends
-/// the connection; anything else is a protocol error.
-fn client_input(read: std::io::Result<usize>, inbuf: &mut BytesMut) -> Result<(), End> {
-    match read {
-        Ok(0) => return Err(End::ClientLeft),
-        Ok(_) => {}
-        Err(e) => return Err(End::Error(format!("read failed: {e}"))),
-    }
-    match decode_frame(inbuf, &Limits::FROM_CLIENT) {
-        Ok(None) => Ok(()),
-        Ok(Some((Message::Goodbye { .. }, _))) => Err(End::ClientLeft),
-        Ok(Some((m, _))) => Err(End::Error(format!(
-            "unexpected {} from the client",
-            m.kind_name()
-        ))),
-        Err(e) => Err(End::Error(format!("invalid message: {e}"))),
+/// Writes the answer to a request: the scan's frames, or why it is unavailable.
+async fn answer_request(
+    wr: &mut OwnedWriteHalf,
+    id: ScanId,
+    answer: Result<Vec<Bytes>, FetchError>,
+    settings: &StreamSettings<'_>,
+) -> Result<(), End> {
+    let (write_timeout, shutdown) = (settings.write_timeout, settings.shutdown);
+    match answer {
+        Ok(frames) => {
+            for frame in &frames {
+                write_frame(wr, frame, write_timeout, shutdown).await?;
+            }
+            Ok(())
+        }
+        Err(FetchError::Closed) => Err(End::Shutdown),
+        Err(e) => {
+            let reason: String = e.to_string().chars().take(MAX_REASON_LEN / 4).collect();
+            let frame = Message::ScanUnavailable { id, reason }
+                .encode()
+                .map_err(|e| End::Error(format!("cannot encode an answer: {e}")))?;
+            write_frame(wr, &frame, write_timeout, shutdown).await
+        }
     }
 }

@@ -1,8 +1,8 @@
 //! The viewer stream's client side without sockets: the handshake messages, a frame
 //! reader that tells "incomplete, read more" from "invalid", the [`Update`] each
 //! message asks for, and the [`Replica`] that applies them to a local [`Model`]
-//! (resets and snapshots included), so every viewer holds the same model as the
-//! daemon. Transports (a TCP socket, a WebSocket,
+//! (resets and snapshots included) and says which listed scans to fetch, so every
+//! viewer holds the same model as the daemon. Transports (a TCP socket, a WebSocket,
 //! an in-process channel) feed it bytes; `texel-client` has the TCP ones.
 
 use std::time::Duration;
@@ -10,7 +10,7 @@ use std::time::Duration;
 use bytes::BytesMut;
 use thiserror::Error;
 
-use super::{Limits, Message, PROTOCOL_VERSION, Status, WireError, decode_frame};
+use super::{FetchPlan, Limits, Message, PROTOCOL_VERSION, Status, WireError, decode_frame};
 use crate::model::{Model, ModelError, ModelEvent, ScanId};
 
 #[derive(Debug, Error)]
@@ -69,6 +69,11 @@ pub fn hello(token: &str, client_name: &str) -> Result<Vec<u8>, ClientError> {
     .encode()?)
 }
 
+/// A request for scan `id`'s data, encoded.
+pub fn request(id: ScanId) -> Result<Vec<u8>, ClientError> {
+    Ok(Message::RequestScan { id }.encode()?)
+}
+
 /// The server's answer to the hello: who it is, or why it refused.
 pub fn welcome(message: Message) -> Result<ServerInfo, ClientError> {
     match message {
@@ -120,7 +125,7 @@ pub enum ReplicaError {
     Model(#[from] ModelError),
 }
 
-/// A viewer's copy of the daemon's model.
+/// A viewer's copy of the daemon's whole model: every listed scan, fetched.
 #[derive(Debug, Default)]
 pub struct Replica {
     pub model: Model,
@@ -129,6 +134,8 @@ pub struct Replica {
     /// How many times the server reset the model (1 for the first snapshot).
     pub resets: u64,
     pub status: Option<Status>,
+    /// Which listed scans are missing and which were requested.
+    fetch: FetchPlan,
 }
 
 impl Replica {
@@ -136,8 +143,29 @@ impl Replica {
         Self::default()
     }
 
+    /// The scans to request now (sent as `RequestScan` by the caller), counted as
+    /// requested: listed, not resident, not yet requested, highest
+    /// `listing.priority` first, at most `max_in_flight` outstanding in all. An
+    /// answer (`ScanAdded`, `ScanUnavailable`) or a withdrawal ends a request; a
+    /// `ModelReset` forgets them all.
+    pub fn wanted(&mut self, max_in_flight: usize) -> Vec<ScanId> {
+        self.fetch.wanted(max_in_flight)
+    }
+
+    /// Requests sent and not yet answered.
+    pub fn in_flight(&self) -> usize {
+        self.fetch.in_flight()
+    }
+
+    /// The snapshot is complete and every listed scan is resident, but those the
+    /// server said are unavailable.
+    pub fn complete(&self) -> bool {
+        self.live && self.fetch.complete()
+    }
+
     /// Applies one message (decoding a scan's texture).
     pub fn apply(&mut self, message: Message) -> Result<Applied, ReplicaError> {
+        self.fetch.observe(&message);
         Ok(match update(message)? {
             Update::Reset { scan_count } => {
                 self.model = Model::new();

@@ -9,10 +9,12 @@
 
 mod bytes_in;
 pub mod client;
+mod fetch;
 mod listing;
 mod scan;
 mod status;
 
+pub use fetch::{DEFAULT_MAX_IN_FLIGHT, FetchPlan};
 pub use listing::LISTING_LEN;
 pub use scan::{
     MAX_GRID_SIDE, MAX_TEXTURE_BYTES, Texture, TextureFormat, TextureRef, WireScan, WireScanRef,
