@@ -276,9 +276,11 @@ impl Hub {
             .ok()
             .and_then(|i| inner.scan_frames.get(i))
             .map_or(0, |f| f.len() as u64);
-        let listing = match &s.scan {
-            Some(scan) => ScanListing::of_scan(scan, encoded_bytes, 0.0),
-            None => s.listing,
+        // The model listed the scan from its data when it was added
+        // (`ScanListing::of_scan(scan, 0, 0.0)`): only the frame's size is new.
+        let listing = ScanListing {
+            encoded_bytes,
+            ..s.listing
         };
         let message = Message::ScanListed {
             id: s.id,

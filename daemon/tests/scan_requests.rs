@@ -155,6 +155,12 @@ async fn a_late_joiner_gets_listings_first_and_fetches_the_early_clients_model()
         assert_eq!(a.world_from_scan, b.world_from_scan, "scan {}", a.id);
         assert_eq!(a.scan, b.scan, "scan {}: PNG textures are exact", a.id);
         assert!(b.is_resident());
+        assert_eq!(b.listing.bounds_min_m, a.listing.bounds_min_m);
+        assert_eq!(b.listing.bounds_max_m, a.listing.bounds_max_m);
+        assert!(
+            b.listing.encoded_bytes > 0,
+            "the listing gives the frame's size"
+        );
     }
     assert_eq!(late_model.in_flight(), 0);
     server.stop().await;

@@ -264,3 +264,81 @@ pub fn update(message: Message) -> Result<Update, WireError> {
         }
     })
 }
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, clippy::expect_used)] // tests panic on failure by design
+    use super::*;
+    use crate::fuzzing::sample_messages;
+    use crate::model::ScanListing;
+    use crate::pose::Pose;
+
+    fn listed(id: ScanId, priority: f32) -> Message {
+        Message::ScanListed {
+            id,
+            listing: ScanListing {
+                timestamp_ns: id,
+                bounds_min_m: [0.0; 3],
+                bounds_max_m: [1.0; 3],
+                cop_m: [0.0; 3],
+                priority,
+                encoded_bytes: 10,
+            },
+            world_from_scan: Pose::translation(id as f64, 0.0, 0.0),
+        }
+    }
+
+    #[test]
+    fn a_replica_asks_for_what_it_lacks_and_is_complete_once_answered() {
+        let scan = sample_messages()
+            .into_iter()
+            .find(|m| matches!(m, Message::ScanAdded(_)))
+            .unwrap();
+        let Message::ScanAdded(wire) = &scan else {
+            unreachable!()
+        };
+        let with_id = |id| {
+            let mut w = wire.clone();
+            w.id = id;
+            Message::ScanAdded(w)
+        };
+        let mut r = Replica::new();
+        r.apply(Message::ModelReset { scan_count: 3 }).unwrap();
+        for (id, priority) in [(0, 0.5), (1, 2.0), (2, 1.0)] {
+            assert_eq!(
+                r.apply(listed(id, priority)).unwrap(),
+                Applied::ScanListed(id)
+            );
+        }
+        r.apply(Message::SnapshotComplete { scan_count: 3 })
+            .unwrap();
+        assert!(!r.complete());
+        assert_eq!(r.wanted(2), vec![1, 2]);
+        assert_eq!(r.wanted(2), Vec::<ScanId>::new());
+        assert_eq!(r.apply(with_id(1)).unwrap(), Applied::ScanAdded(1));
+        let unavailable = Message::ScanUnavailable {
+            id: 2,
+            reason: "gone".into(),
+        };
+        assert_eq!(
+            r.apply(unavailable).unwrap(),
+            Applied::Unavailable {
+                id: 2,
+                reason: "gone".into()
+            }
+        );
+        assert_eq!(r.wanted(2), vec![0]);
+        r.apply(Message::ScanWithdrawn { id: 0 }).unwrap();
+        assert_eq!(r.in_flight(), 0);
+        assert!(r.complete(), "scan 2 is unavailable, scan 0 withdrawn");
+        assert_eq!(r.model.len(), 2);
+        assert_eq!(r.model.resident_len(), 1);
+        // A fetched scan takes the pose its frame carries (a revision follows if any).
+        assert_eq!(
+            r.model.get(1).unwrap().world_from_scan,
+            wire.world_from_scan
+        );
+        r.apply(Message::ModelReset { scan_count: 0 }).unwrap();
+        assert_eq!((r.model.len(), r.in_flight(), r.complete()), (0, 0, false));
+    }
+}

@@ -102,7 +102,8 @@ pub fn fetch_model(
                 }
                 _ => {}
             }
-            have = replica.model.len();
+            // Listed scans arrive without their data; the client fetches them.
+            have = replica.model.resident_len();
             if replica.complete() && have >= wait_scans.max(1) {
                 return Ok(replica.model);
             }
