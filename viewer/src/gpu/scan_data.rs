@@ -1,6 +1,7 @@
-//! One scan's GPU data, uploaded once when the scan joins the model: vertices (scan
-//! frame, f32, small), two index buffers (usable triangles; with stretched ones), the
-//! EO texture and a uniform that a pose or camera change rewrites.
+//! One scan's GPU data, uploaded once when the view needs the scan and held until it
+//! is evicted: vertices (scan frame, f32, small), two index buffers (usable
+//! triangles; with stretched ones), the EO texture and a uniform that a pose or camera
+//! change rewrites; and its exact size in bytes, known before uploading.
 
 use bytemuck::{Pod, Zeroable};
 use glam::{DVec3, Mat4, UVec4, Vec2, Vec3, Vec4};

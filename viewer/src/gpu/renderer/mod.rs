@@ -2,7 +2,7 @@
 //! model sync), the frame uniform and the depth buffer; per frame it culls, writes
 //! the uniforms and hands the frame to one compositing strategy (`painter.rs`,
 //! `kbuffer.rs`, `naive_layers.rs`). Per frame only uniforms are written; scan data
-//! is uploaded once.
+//! is uploaded once and dropped when residency evicts it (`crate::residency`).
 
 mod frame;
 mod kbuffer;
