@@ -1,6 +1,8 @@
 //! `texel-bench viewer`: frame time and GPU memory for models of 10, 30 and 100 scans
 //! with about 10 in view, k-buffer against the naive layers, all measured in one run
-//! (ratios are against baselines from the same run: the machine is shared and noisy).
+//! (ratios are against baselines from the same run: the machine is shared and noisy);
+//! then residency: the frame time with every scan resident against only those the
+//! view needs, and what planning residency costs per frame for large models.
 
 use std::time::Instant;
 
@@ -23,6 +25,9 @@ pub struct BenchArgs {
     /// Scans per k-buffer batch in the main table.
     #[arg(long, default_value_t = 4)]
     pub batch: u32,
+    /// Measure residency only (skip the strategy tables).
+    #[arg(long)]
+    pub residency_only: bool,
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -95,6 +100,9 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<()> {
         args.height,
     )?;
     let mut settings = RenderSettings::with_mode(Mode::Blended);
+    if args.residency_only {
+        return residency(&gpu, &sensor, &camera, &settings, args);
+    }
     println!(
         "{:>6} {:>6} {:>10} {:>12} {:>12} {:>14} {:>12}",
         "scans", "drawn", "strategy", "frame ms", "targets MiB", "vs k-buf time", "vs k-buf mem"
@@ -176,6 +184,102 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<()> {
         );
     }
     profile(&gpu, &mut renderer, &camera, &mut settings, args)?;
+    settings.strategy = Strategy::KBuffer { batch: args.batch };
+    residency(&gpu, &sensor, &camera, &settings, args)
+}
+
+/// Residency: the 100-scan corridor with every scan resident against a budget that
+/// holds what the view needs (frame time, GPU bytes of the scans); then the planner's
+/// time per frame on listings of 2,000 and 20,000 scans (a corridor wall per 100
+/// scans, walls 3 m apart, the camera seeing about 10 scans).
+fn residency(
+    gpu: &GpuContext,
+    sensor: &texel::Sensor,
+    camera: &VirtualCamera,
+    settings: &RenderSettings,
+    args: &BenchArgs,
+) -> anyhow::Result<()> {
+    use texel_viewer::residency::{DataState, PlanOptions, PlanScan, Residency, plan};
+    let mib = |b: u64| b as f64 / 1048576.0;
+    let full = scenes::corridor(sensor, 100);
+    println!(
+        "residency, 100 scans, blended k-buffer (batch {}):",
+        args.batch
+    );
+    println!(
+        "{:>12} {:>9} {:>7} {:>12} {:>10} {:>12}",
+        "budget MiB", "resident", "drawn", "scans MiB", "frame ms", "vs all time"
+    );
+    // Every scan uploaded (no residency), then what the residency keeps.
+    let mut renderer = Renderer::new(gpu);
+    renderer.sync_model(&full)?;
+    let (all_ms, drawn, _) = measure(gpu, &mut renderer, camera, settings, args.frames)?;
+    println!(
+        "{:>12} {:>9} {drawn:>7} {:>12.1} {all_ms:>10.2} {:>12.2}",
+        "all",
+        renderer.scan_count(),
+        mib(renderer.scans_bytes()),
+        1.0
+    );
+    drop(renderer);
+    for budget_mb in [512u64, 4] {
+        let mut model = full.clone();
+        let mut residency =
+            Residency::over_model(Residency::budget_bytes_of_mb(budget_mb), &mut model);
+        let mut renderer = Renderer::new(gpu);
+        let stats = residency.step(&mut model, &mut renderer, camera);
+        let (ms, drawn, _) = measure(gpu, &mut renderer, camera, settings, args.frames)?;
+        println!(
+            "{budget_mb:>12} {:>9} {drawn:>7} {:>12.1} {ms:>10.2} {:>12.2}{}",
+            stats.resident,
+            mib(stats.used_bytes),
+            ms / all_ms,
+            if stats.left_out > 0 {
+                format!("  ({} of {} needed left out)", stats.left_out, stats.needed)
+            } else {
+                String::new()
+            }
+        );
+    }
+    let listing = full
+        .scans()
+        .first()
+        .map(|s| s.listing)
+        .ok_or_else(|| anyhow::anyhow!("empty corridor"))?;
+    for n in [2_000usize, 20_000] {
+        let scans: Vec<PlanScan> = (0..n)
+            .map(|i| PlanScan {
+                id: i as u64,
+                listing,
+                world_from_scan: texel::Pose::translation(
+                    (i % 100) as f64,
+                    0.0,
+                    -3.0 * (i / 100) as f64,
+                ),
+                bytes: 2 << 20,
+                state: if i < 40 {
+                    DataState::OnGpu
+                } else {
+                    DataState::Absent
+                },
+            })
+            .collect();
+        let options = PlanOptions::new(Residency::budget_bytes_of_mb(512));
+        let mut times = Vec::new();
+        let mut needed = 0;
+        for _ in 0..args.frames.max(1) {
+            let start = Instant::now();
+            let p = plan(&scans, camera, &options);
+            times.push(start.elapsed().as_secs_f64() * 1000.0);
+            needed = p.needed;
+        }
+        times.sort_by(f64::total_cmp);
+        println!(
+            "planning {n} scans: {:.2} ms per frame (median of {}), {needed} needed",
+            times[times.len() / 2],
+            times.len()
+        );
+    }
     Ok(())
 }
 

@@ -232,7 +232,9 @@ fn the_connection_reconnects_and_resynchronises() {
     let mut options = ConnectOptions::new(addr.to_string(), "");
     options.backoff_min = Duration::from_millis(50);
     options.backoff_max = Duration::from_millis(200);
-    let mut handle = spawn(options, tx);
+    // This test asks for no scans: the request channel stays empty.
+    let (_requests, request_rx) = std::sync::mpsc::sync_channel(1);
+    let mut handle = spawn(options, tx, request_rx);
     let mut model = texel::model::Model::new();
     let mut seen = Vec::new();
     let wait_until =
@@ -251,6 +253,7 @@ fn the_connection_reconnects_and_resynchronises() {
                     ViewerEvent::SnapshotComplete { scans } => format!("snapshot {scans}"),
                     ViewerEvent::Status { .. } => "status".into(),
                     ViewerEvent::Connection(c) => c.describe(),
+                    ViewerEvent::ScanUnavailable { id, .. } => format!("unavailable {id}"),
                 });
                 if done(&event, model) {
                     return;

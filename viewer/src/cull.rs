@@ -6,6 +6,7 @@
 //! taken there by the same camera-relative transform the GPU gets (before rounding).
 
 use glam::{BVec3, DVec3};
+use texel::model::ScanListing;
 use texel::{Pose, TexelScan};
 
 use crate::camera::VirtualCamera;
@@ -38,6 +39,24 @@ impl ScanBounds {
         Some(Self {
             centre_scan: centre,
             radius_m: radius * (1.0 + 1e-6) + 1e-6,
+            min_scan: lo - 1e-6,
+            max_scan: hi + 1e-6,
+        })
+    }
+
+    /// The sphere around a listing's box (what is known of a scan before its data):
+    /// never smaller than [`ScanBounds::of`] gives for the data. `None` when the box
+    /// is not finite or inverted.
+    pub fn of_listing(listing: &ScanListing) -> Option<Self> {
+        let lo = DVec3::from_array(listing.bounds_min_m.map(f64::from));
+        let hi = DVec3::from_array(listing.bounds_max_m.map(f64::from));
+        if !(lo.is_finite() && hi.is_finite()) || lo.cmpgt(hi).any() {
+            return None;
+        }
+        let centre = 0.5 * (lo + hi);
+        Some(Self {
+            centre_scan: centre,
+            radius_m: 0.5 * (hi - lo).length() * (1.0 + 1e-6) + 1e-6,
             min_scan: lo - 1e-6,
             max_scan: hi + 1e-6,
         })

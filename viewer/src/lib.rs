@@ -10,4 +10,5 @@ pub mod gpu;
 pub mod headless;
 pub mod live;
 pub mod reliability;
+pub mod residency;
 pub mod scenes;

@@ -16,6 +16,7 @@ use texel_viewer::gpu::{GpuContext, RenderSettings, Renderer, Strategy};
 use texel_viewer::headless::parse_views;
 use texel_viewer::live;
 use texel_viewer::live::snapshots::SnapshotView;
+use texel_viewer::residency::Residency;
 
 #[derive(Parser)]
 #[command(
@@ -170,6 +171,10 @@ struct DisplayArgs {
     /// Use the naive one-layer-per-scan composite instead of the k-buffer.
     #[arg(long)]
     naive: bool,
+    /// GPU memory the scans may hold, MiB: the scans the view needs are kept within
+    /// it, the rest evicted and fetched again when needed.
+    #[arg(long, value_name = "N", default_value_t = texel_viewer::residency::DEFAULT_BUDGET_MB)]
+    gpu_budget_mb: u64,
 }
 
 impl DisplayArgs {
@@ -198,6 +203,13 @@ impl DisplayArgs {
             s.strategy = Strategy::NaiveLayers;
         }
         Ok(s)
+    }
+
+    fn budget_bytes(&self) -> anyhow::Result<u64> {
+        if self.gpu_budget_mb == 0 {
+            bail!("--gpu-budget-mb must be at least 1");
+        }
+        Ok(Residency::budget_bytes_of_mb(self.gpu_budget_mb))
     }
 }
 
@@ -285,6 +297,7 @@ fn load(path: &std::path::Path) -> anyhow::Result<LoadedCapture> {
 
 fn render(args: RenderArgs) -> anyhow::Result<()> {
     let settings = args.display.settings()?;
+    let budget_bytes = args.display.budget_bytes()?;
     let loaded = args.source.load(&args.fetch)?;
     let default_fov = loaded.default_fov_deg;
     let mut views = Vec::new();
@@ -317,19 +330,25 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
     }
     let gpu = GpuContext::headless()?;
     let mut renderer = Renderer::new(&gpu);
-    renderer.sync_model(&loaded.model)?;
+    // Each view uploads what it needs within the budget (evicting what the previous
+    // view needed and this one does not).
+    let mut model = loaded.model;
+    let mut residency = Residency::over_model(budget_bytes, &mut model);
+    residency.options.hidden = settings.hidden.clone();
     for (out, pose, fov) in views {
         let camera = VirtualCamera::new(pose, fov, args.width, args.height)?;
+        let resident = residency.step(&mut model, &mut renderer, &camera);
         let (image, stats) = renderer.render_to_image(&camera, &settings)?;
         image
             .save(&out)
             .with_context(|| format!("writing {}", out.display()))?;
         eprintln!(
-            "{}: {} scans drawn, {} outside the view, {} facing away",
+            "{}: {} scans drawn, {} outside the view, {} facing away; {}",
             out.display(),
             stats.drawn,
             stats.culled_frustum,
-            stats.culled_facing
+            stats.culled_facing,
+            resident.describe()
         );
     }
     Ok(())
@@ -337,6 +356,7 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
 
 fn open(args: OpenArgs) -> anyhow::Result<()> {
     let settings = args.display.settings()?;
+    let budget_bytes = args.display.budget_bytes()?;
     let (events, fov, keep_alive): (_, Option<f64>, Box<dyn std::any::Any>) = if args.load {
         let loaded = load(&args.capture)?;
         let fov = VirtualCamera::fov_y_deg_of(&loaded.eo_camera);
@@ -367,6 +387,8 @@ fn open(args: OpenArgs) -> anyhow::Result<()> {
         fov_deg: fov,
         settings,
         events,
+        commands: None,
+        budget_bytes,
         follow_newest: false,
         screenshot: args.screenshot.map(|p| (p, args.frames, args.min_scans)),
     });
@@ -417,10 +439,13 @@ fn stop_on_signal() -> Arc<AtomicBool> {
 
 fn connect(args: LiveArgs, addr: String) -> anyhow::Result<()> {
     let settings = args.display.settings()?;
+    let budget_bytes = args.display.budget_bytes()?;
     let (tx, rx) = std::sync::mpsc::sync_channel(live::EVENT_QUEUE);
+    let (commands, command_rx) = std::sync::mpsc::sync_channel(live::COMMAND_QUEUE);
     let mut connection = live::connection::spawn(
         live::connection::ConnectOptions::new(addr.clone(), args.token.clone()),
         tx,
+        command_rx,
     );
     let snapshots = args
         .snapshots
@@ -455,6 +480,8 @@ fn connect(args: LiveArgs, addr: String) -> anyhow::Result<()> {
                     fov_deg: args.fov_deg,
                     settings,
                     max_snapshots: args.max_snapshots,
+                    budget_bytes,
+                    commands: Some(commands),
                 },
                 &stop,
             )?;
@@ -473,6 +500,8 @@ fn connect(args: LiveArgs, addr: String) -> anyhow::Result<()> {
             fov_deg: args.fov_deg,
             settings,
             events: rx,
+            commands: Some(commands),
+            budget_bytes,
             follow_newest: true,
             screenshot: args.screenshot.map(|p| (p, args.frames, args.min_scans)),
         }),

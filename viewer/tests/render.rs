@@ -180,8 +180,12 @@ fn ties_go_to_the_lower_scan_id() {
     r.sync_model(&model).unwrap();
     let mut r0 = texel_viewer::gpu::Renderer::new(gpu());
     only_first = {
+        // Scan 0's listing and its data.
         let mut m = Model::new();
-        m.apply(only_first.snapshot().next().unwrap()).unwrap();
+        for e in only_first.snapshot().take(2) {
+            m.apply(e).unwrap();
+        }
+        assert_eq!(m.resident_len(), 1);
         m
     };
     r0.sync_model(&only_first).unwrap();

@@ -76,26 +76,16 @@ fn every_scan_is_placed_at_the_captures_pose_as_loading_the_file_places_it() {
         reason.contains(&format!("{frames} scans placed")),
         "{reason}"
     );
-    for (a, b) in replayed.snapshot().zip(loaded.model.snapshot()) {
-        match (a, b) {
-            (
-                texel::model::ModelEvent::ScanAdded {
-                    id: ia,
-                    scan: sa,
-                    world_from_scan: pa,
-                },
-                texel::model::ModelEvent::ScanAdded {
-                    id: ib,
-                    scan: sb,
-                    world_from_scan: pb,
-                },
-            ) => {
-                assert_eq!(ia, ib);
-                assert_eq!(pa, pb, "scan {ia} placed elsewhere");
-                assert_eq!(*sa, *sb, "scan {ia} fused differently");
-            }
-            other => panic!("not a scan: {other:?}"),
-        }
+    assert_eq!(replayed.resident_len(), frames);
+    assert_eq!(loaded.model.resident_len(), frames);
+    for ((a, sa), (b, sb)) in replayed.resident().zip(loaded.model.resident()) {
+        assert_eq!(a.id, b.id);
+        assert_eq!(
+            a.world_from_scan, b.world_from_scan,
+            "scan {} placed elsewhere",
+            a.id
+        );
+        assert_eq!(**sa, **sb, "scan {} fused differently", a.id);
     }
 }
 

@@ -1,20 +1,20 @@
 //! The window: winit + egui over the same renderer as headless rendering. Scans arrive
 //! through a channel of viewer events (a live daemon connection, an in-process
-//! replay, or a loaded capture) and are uploaded as they come; the overlay shows the
-//! connection, the daemon's status and the stream latency, and controls mode,
-//! blending, visibility and the camera.
+//! replay, or a loaded capture); what the view needs is uploaded within the GPU budget
+//! (`state.rs`, `crate::residency`); the overlay shows the connection, the daemon's
+//! status, the stream latency and the residency, and controls mode, blending,
+//! visibility and the camera.
 
 mod controls;
+mod state;
 mod ui;
 
 use std::path::PathBuf;
 use std::sync::Arc;
-use std::sync::mpsc::Receiver;
+use std::sync::mpsc::{Receiver, SyncSender};
 use std::time::Instant;
 
 use anyhow::Context;
-use texel::model::{Model, ModelEvent};
-use texel::wire::Status;
 use winit::application::ApplicationHandler;
 use winit::event::{ElementState, MouseButton, MouseScrollDelta, WindowEvent};
 use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
@@ -22,10 +22,12 @@ use winit::keyboard::{KeyCode, PhysicalKey};
 use winit::window::{Window, WindowId};
 
 pub use controls::CameraControls;
+pub use state::ViewerState;
 
-use crate::camera::VirtualCamera;
-use crate::gpu::{FrameStats, GpuContext, RenderSettings, RenderTarget, Renderer};
-use crate::live::{ConnectionState, LatencyMeter, ViewerEvent, fov_y_deg_of_scan};
+use state::window_residency;
+
+use crate::gpu::{GpuContext, RenderSettings, RenderTarget, Renderer};
+use crate::live::{SourceCommand, ViewerEvent};
 
 pub struct AppOptions {
     pub title: String,
@@ -35,158 +37,16 @@ pub struct AppOptions {
     pub fov_deg: Option<f64>,
     pub settings: RenderSettings,
     pub events: Receiver<ViewerEvent>,
+    /// Where missing scans are asked for (a live source); `None`: every scan's data
+    /// arrives through `events` and is kept on the CPU for re-upload.
+    pub commands: Option<SyncSender<SourceCommand>>,
+    /// The GPU bytes scans may hold.
+    pub budget_bytes: u64,
     /// Start following the newest scan.
     pub follow_newest: bool,
     /// Read back the frame after this many frames once the model holds this many
     /// scans (or a minute has passed), write it, and exit.
     pub screenshot: Option<(PathBuf, u32, usize)>,
-}
-
-/// What the viewer shows, independent of the window.
-pub struct ViewerState {
-    pub model: Model,
-    pub settings: RenderSettings,
-    pub controls: CameraControls,
-    pub fov_deg: f64,
-    pub follow_newest: bool,
-    pub stats: FrameStats,
-    pub fps: f64,
-    /// A request from the UI to jump to a scan's acquisition view.
-    pub jump_to: Option<u64>,
-    /// The source's connection, if it reports one.
-    pub connection: Option<ConnectionState>,
-    /// The daemon's latest status and when it came.
-    pub status: Option<(Status, Instant)>,
-    /// Whether the first snapshot is complete.
-    pub snapshot_complete: bool,
-    pub latency: LatencyMeter,
-    camera_placed: bool,
-    fov_known: bool,
-}
-
-impl ViewerState {
-    pub fn new(settings: RenderSettings, fov_deg: Option<f64>) -> Self {
-        Self {
-            model: Model::new(),
-            settings,
-            controls: CameraControls::new(texel::Pose::identity(), 3.0),
-            fov_deg: fov_deg.unwrap_or(50.0),
-            follow_newest: false,
-            stats: FrameStats::default(),
-            fps: 0.0,
-            jump_to: None,
-            connection: None,
-            status: None,
-            snapshot_complete: false,
-            latency: LatencyMeter::default(),
-            camera_placed: false,
-            fov_known: fov_deg.is_some(),
-        }
-    }
-
-    /// Applies the events waiting (at most a bounded batch per frame, so the window
-    /// stays responsive while a large snapshot arrives) and uploads what they bring;
-    /// a bad event is reported and skipped, never fatal.
-    pub fn apply_events(&mut self, events: &Receiver<ViewerEvent>, renderer: &mut Renderer) {
-        const MAX_PER_FRAME: usize = 64;
-        for _ in 0..MAX_PER_FRAME {
-            let Ok(event) = events.try_recv() else {
-                break;
-            };
-            let (event, received) = match event {
-                ViewerEvent::Model { event, received } => (event, received),
-                ViewerEvent::Reset => {
-                    self.model = Model::new();
-                    renderer.clear_scans();
-                    self.snapshot_complete = false;
-                    continue;
-                }
-                ViewerEvent::SnapshotComplete { .. } => {
-                    self.snapshot_complete = true;
-                    continue;
-                }
-                ViewerEvent::Status { status, received } => {
-                    self.status = Some((*status, received));
-                    continue;
-                }
-                ViewerEvent::Connection(state) => {
-                    self.connection = Some(state);
-                    continue;
-                }
-            };
-            self.latency.received(received);
-            if let Err(e) = self.model.apply(event.clone()) {
-                eprintln!("warning: model event skipped: {e}");
-                continue;
-            }
-            let result = match event {
-                ModelEvent::ScanAdded {
-                    id,
-                    scan,
-                    world_from_scan,
-                } => {
-                    if !self.fov_known
-                        && let Some(fov) = fov_y_deg_of_scan(&scan)
-                    {
-                        self.fov_deg = fov;
-                        self.fov_known = true;
-                    }
-                    if self.follow_newest || !self.camera_placed {
-                        self.jump(world_from_scan, &scan);
-                    }
-                    renderer.add_scan(id, &scan, world_from_scan)
-                }
-                ModelEvent::PoseRevised {
-                    id,
-                    world_from_scan,
-                } => {
-                    renderer.set_pose(id, world_from_scan);
-                    // Following the sensor: the newest scan's revised pose moves the
-                    // camera with it.
-                    if self.follow_newest
-                        && self.model.scans().last().is_some_and(|s| s.id == id)
-                        && let Some(scan) = self.model.get(id).and_then(|s| s.scan.clone())
-                    {
-                        self.jump(world_from_scan, &scan);
-                    }
-                    Ok(())
-                }
-                // Listings, withdrawals and evictions change what is known, not
-                // what is drawn from resident data.
-                ModelEvent::ScanListed { .. }
-                | ModelEvent::ScanWithdrawn { .. }
-                | ModelEvent::ScanEvicted { .. } => Ok(()),
-            };
-            if let Err(e) = result {
-                eprintln!("warning: {e}");
-            }
-        }
-        if let Some(id) = self.jump_to.take()
-            && let Some(s) = self.model.get(id)
-            && let Some(scan) = s.scan.clone()
-        {
-            let pose = s.world_from_scan;
-            self.jump(pose, &scan);
-        }
-    }
-
-    /// Puts the camera at a scan's acquisition pose, pivoting at its median range.
-    fn jump(&mut self, world_from_scan: texel::Pose, scan: &texel::TexelScan) {
-        let mut ranges: Vec<f32> = scan
-            .vertices
-            .iter()
-            .map(|v| v[2])
-            .filter(|z| z.is_finite())
-            .collect();
-        ranges.sort_by(f32::total_cmp);
-        let pivot = ranges.get(ranges.len() / 2).copied().unwrap_or(3.0);
-        self.controls = CameraControls::new(world_from_scan, f64::from(pivot));
-        self.camera_placed = true;
-    }
-
-    pub fn camera(&self, width: u32, height: u32) -> Option<VirtualCamera> {
-        VirtualCamera::new(self.controls.world_from_eo, self.fov_deg, width, height).ok()
-    }
 }
 
 struct WindowState {
@@ -217,7 +77,8 @@ struct App {
 pub fn run(options: AppOptions) -> anyhow::Result<()> {
     let event_loop = EventLoop::new().context("cannot open a window (is there a display?)")?;
     event_loop.set_control_flow(ControlFlow::Poll);
-    let mut viewer = ViewerState::new(options.settings.clone(), options.fov_deg);
+    let residency = window_residency(options.budget_bytes, options.commands.clone());
+    let mut viewer = ViewerState::new(options.settings.clone(), options.fov_deg, residency);
     viewer.follow_newest = options.follow_newest;
     let mut app = App {
         options,
@@ -358,6 +219,7 @@ impl App {
             .create_view(&wgpu::TextureViewDescriptor::default());
         let (width, height) = (w.config.width, w.config.height);
         if let Some(camera) = self.viewer.camera(width, height) {
+            self.viewer.update_residency(&mut w.renderer, &camera);
             let target = RenderTarget {
                 view: &view,
                 format: w.config.format,
@@ -434,7 +296,9 @@ impl App {
         self.frames += 1;
         if let Some((path, after, min_scans)) = &self.options.screenshot
             && self.frames >= *after
-            && (self.viewer.model.len() >= *min_scans
+            && ((self.viewer.model.len() >= *min_scans
+                && self.viewer.residency_stats.in_flight == 0
+                && self.viewer.residency_stats.pending == 0)
                 || self.started.elapsed() > std::time::Duration::from_secs(60))
         {
             let image = read_frame(&w.gpu, &frame.texture)?;
@@ -442,10 +306,11 @@ impl App {
                 .save(path)
                 .with_context(|| format!("writing {}", path.display()))?;
             println!(
-                "screenshot {}: {} scans in the model, {} drawn",
+                "screenshot {}: {} scans in the model, {} drawn; {}",
                 path.display(),
                 self.viewer.model.len(),
-                self.viewer.stats.drawn
+                self.viewer.stats.drawn,
+                self.viewer.residency_stats.describe()
             );
             w.gpu.queue.present(frame);
             event_loop.exit();

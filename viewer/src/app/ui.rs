@@ -31,6 +31,7 @@ pub(super) fn panel(ctx: &egui::Context, v: &mut ViewerState, roomy: bool) {
                 v.stats.target_memory.total() as f64 / 1048576.0,
                 v.stats.scan_bytes as f64 / 1048576.0
             ));
+            residency_section(ui, v);
             ui.separator();
             egui::ComboBox::from_label("mode")
                 .selected_text(v.settings.composite.mode.name())
@@ -79,6 +80,39 @@ pub(super) fn panel(ctx: &egui::Context, v: &mut ViewerState, roomy: bool) {
                     }
                 });
         });
+}
+
+/// What of the model is on the GPU: resident / known scans, budget used, fetches in
+/// flight, and what the view needs but the budget left out.
+fn residency_section(ui: &mut egui::Ui, v: &ViewerState) {
+    let r = &v.residency_stats;
+    let mib = |b: u64| b as f64 / 1048576.0;
+    ui.label(format!(
+        "resident {}/{} scans, GPU {:.1}/{:.0} MiB, fetching {}{}",
+        r.resident,
+        r.known,
+        mib(r.used_bytes),
+        mib(r.budget_bytes),
+        r.in_flight,
+        if r.pending > r.in_flight {
+            format!(" ({} waiting)", r.pending - r.in_flight)
+        } else {
+            String::new()
+        }
+    ));
+    if r.left_out > 0 {
+        ui.colored_label(
+            egui::Color32::from_rgb(230, 170, 80),
+            format!(
+                "over budget: the view needs {} scans, {} left out (the most reliable are shown)",
+                r.needed, r.left_out
+            ),
+        );
+    }
+    let unavailable = v.residency.unavailable_scans().len();
+    if unavailable > 0 {
+        ui.label(format!("{unavailable} scans unavailable"));
+    }
 }
 
 /// The model's source: connection state, the daemon's status (sources, counters,

@@ -14,6 +14,7 @@ mod targets;
 pub use readback::{LayerReadback, read_rgba_texture};
 pub use relative::{gpu_from_pose_relative, pose_relative};
 pub use renderer::{FrameStats, RenderSettings, RenderTarget, Renderer, Strategy};
+pub use scan_data::scan_gpu_bytes;
 pub use targets::TargetMemory;
 
 /// Formats of the per-scan layers and the pre-pass target. Integer formats hold

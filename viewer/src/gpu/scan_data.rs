@@ -1,6 +1,7 @@
-//! One scan's GPU data, uploaded once when the scan joins the model: vertices (scan
-//! frame, f32, small), two index buffers (usable triangles; with stretched ones), the
-//! EO texture and a uniform that a pose or camera change rewrites.
+//! One scan's GPU data, uploaded once when the view needs the scan and held until it
+//! is evicted: vertices (scan frame, f32, small), two index buffers (usable
+//! triangles; with stretched ones), the EO texture and a uniform that a pose or camera
+//! change rewrites; and its exact size in bytes, known before uploading.
 
 use bytemuck::{Pod, Zeroable};
 use glam::{DVec3, Mat4, UVec4, Vec2, Vec3, Vec4};
@@ -156,7 +157,7 @@ impl GpuScan {
             + usable_buffer.size()
             + stretched_buffer.size()
             + uniform.size()
-            + u64::from(tex.width) * u64::from(tex.height) * 4;
+            + texture_bytes(tex.width, tex.height);
         Ok(Self {
             vertices: vertex_buffer,
             usable: usable_buffer,
@@ -180,6 +181,34 @@ impl GpuScan {
             (&self.usable, self.usable_count)
         }
     }
+}
+
+/// Bytes of an RGBA8 texture.
+fn texture_bytes(width: u32, height: u32) -> u64 {
+    u64::from(width) * u64::from(height) * 4
+}
+
+/// The GPU bytes an upload of `scan` holds, without uploading it: the buffers as
+/// [`GpuScan::upload`] sizes them (one word for an empty one) and the texture.
+pub fn scan_gpu_bytes(scan: &TexelScan) -> u64 {
+    let padded = |bytes: u64| bytes.max(4).next_multiple_of(wgpu::COPY_BUFFER_ALIGNMENT);
+    let n = scan.vertices.len() as u32;
+    let indices = |keep_stretched: bool| {
+        let triangles = scan
+            .triangles
+            .iter()
+            .enumerate()
+            .filter(|(t, tri)| {
+                triangle_drawn(scan, *t, keep_stretched) && tri.iter().all(|&v| v < n)
+            })
+            .count() as u64;
+        padded(triangles * 3 * 4)
+    };
+    padded(scan.vertices.len() as u64 * std::mem::size_of::<Vertex>() as u64)
+        + indices(false)
+        + indices(true)
+        + std::mem::size_of::<ScanUniform>() as u64
+        + texture_bytes(scan.texture.width, scan.texture.height)
 }
 
 fn buffer(

@@ -1,21 +1,29 @@
-//! A live connection to a daemon on a thread of its own: connect and handshake with
-//! the daemon's client (`texel_client`), decode every message and pass what it asks
-//! of the model on as a [`ViewerEvent`] (the consumer holds the only model); when the
-//! connection is
-//! lost, say so and reconnect with exponential backoff (the daemon then sends a
-//! fresh snapshot, which starts with a reset). A refusal (wrong token, wrong
-//! version) ends the thread: retrying cannot fix it.
+//! A live connection to a daemon on a thread of its own: connect and handshake
+//! ([`transport::Link`](super::transport::Link)), decode every message and pass what
+//! it asks of the model on as a [`ViewerEvent`] (the consumer holds the only model),
+//! and send the requests for scans the consumer makes on its bounded command
+//! channel. When the connection is lost, say so and reconnect with exponential
+//! backoff. Requests carry the number of resets their asker had seen: the thread sends
+//! nothing on a connection before forwarding its first reset and drops requests made
+//! before the latest reset (they name scans of a model that is gone; the consumer
+//! asks again). A refusal (wrong token,
+//! wrong version) ends the thread: retrying cannot fix it.
 
 use std::net::{SocketAddr, ToSocketAddrs};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::mpsc::SyncSender;
+use std::sync::mpsc::{Receiver, SyncSender, TryRecvError};
 use std::time::{Duration, Instant};
 
 use texel::wire::Message;
-use texel_client::{BlockingClient, ClientError, Update, update};
+use texel_client::{ClientError, Update, update};
 
-use super::{ConnectionState, ViewerEvent, send};
+use super::transport::Link;
+use super::{ConnectionState, SourceCommand, ViewerEvent, send};
+
+/// Between reads the thread sends what the consumer asked for: a read waits at most
+/// this long, so a request waits at most this long for the wire.
+const POLL: Duration = Duration::from_millis(20);
 
 /// How the connection thread behaves.
 #[derive(Debug, Clone)]
@@ -73,13 +81,17 @@ impl Drop for ConnectionHandle {
     }
 }
 
-/// Starts the connection thread; events go to `tx`.
-pub fn spawn(options: ConnectOptions, tx: SyncSender<ViewerEvent>) -> ConnectionHandle {
+/// Starts the connection thread; events go to `tx`, requests come from `commands`.
+pub fn spawn(
+    options: ConnectOptions,
+    tx: SyncSender<ViewerEvent>,
+    commands: Receiver<SourceCommand>,
+) -> ConnectionHandle {
     let stop = Arc::new(AtomicBool::new(false));
     let flag = Arc::clone(&stop);
     let thread = std::thread::Builder::new()
         .name("texel-viewer-net".into())
-        .spawn(move || run(&options, &tx, &flag))
+        .spawn(move || run(&options, &tx, &commands, &flag))
         .ok();
     ConnectionHandle { stop, thread }
 }
@@ -94,9 +106,16 @@ pub(super) enum Ended {
     Stopped,
 }
 
-fn run(options: &ConnectOptions, tx: &SyncSender<ViewerEvent>, stop: &AtomicBool) {
+fn run(
+    options: &ConnectOptions,
+    tx: &SyncSender<ViewerEvent>,
+    commands: &Receiver<SourceCommand>,
+    stop: &AtomicBool,
+) {
     let mut backoff = options.backoff_min;
     let mut attempt = 0u32;
+    // Resets forwarded: the generation of the consumer's model.
+    let mut resets = 0u64;
     while !stop.load(Ordering::Acquire) {
         attempt = attempt.saturating_add(1);
         if !send(
@@ -108,7 +127,10 @@ fn run(options: &ConnectOptions, tx: &SyncSender<ViewerEvent>, stop: &AtomicBool
         ) {
             return;
         }
-        let (reason, connected) = match connect_once(options, tx, stop) {
+        // Requests made for a connection that was lost concern its model; the new
+        // one starts with a reset after which the consumer asks again.
+        while commands.try_recv().is_ok() {}
+        let (reason, connected) = match connect_once(options, tx, commands, &mut resets, stop) {
             (Ended::Stopped, _) => return,
             (Ended::Final(reason), _) => {
                 let _ = send(
@@ -164,13 +186,15 @@ pub fn resolve(addr: &str) -> Result<SocketAddr, String> {
 fn connect_once(
     options: &ConnectOptions,
     tx: &SyncSender<ViewerEvent>,
+    commands: &Receiver<SourceCommand>,
+    resets: &mut u64,
     stop: &AtomicBool,
 ) -> (Ended, bool) {
     let addr = match resolve(&options.addr) {
         Ok(a) => a,
         Err(e) => return (Ended::Lost(e), false),
     };
-    let mut client = match BlockingClient::connect(
+    let mut client = match Link::connect(
         addr,
         &options.token,
         &options.client_name,
@@ -192,10 +216,18 @@ fn connect_once(
     ) {
         return (Ended::Stopped, true);
     }
+    if let Err(e) = client.set_read_timeout(POLL.min(options.io_timeout)) {
+        return (Ended::Lost(e.to_string()), true);
+    }
     let mut last_heard = Instant::now();
+    // Nothing is sent before this connection's snapshot has begun.
+    let mut synced = false;
     loop {
         if stop.load(Ordering::Acquire) {
             return (Ended::Stopped, true);
+        }
+        if synced && let Err(ended) = send_requests(&mut client, commands, *resets) {
+            return (ended, true);
         }
         let message = match client.next_message() {
             Ok(Some(m)) => m,
@@ -215,10 +247,45 @@ fn connect_once(
             Err(e) => return (Ended::Lost(e.to_string()), true),
         };
         last_heard = Instant::now();
+        if matches!(message, Message::ModelReset { .. }) {
+            *resets += 1;
+            synced = true;
+        }
         match forward(message, tx) {
             Ok(true) => {}
             Ok(false) => return (Ended::Stopped, true),
             Err(ended) => return (ended, true),
+        }
+    }
+}
+
+/// Sends every request waiting on the command channel that was made for the
+/// model of generation `resets`; drops older ones.
+fn send_requests(
+    link: &mut Link,
+    commands: &Receiver<SourceCommand>,
+    resets: u64,
+) -> Result<(), Ended> {
+    loop {
+        match commands.try_recv() {
+            Ok(command) => {
+                if let Some(message) = request_message(command, resets) {
+                    link.send(&message)
+                        .map_err(|e| Ended::Lost(format!("sending a request: {e}")))?;
+                }
+            }
+            Err(TryRecvError::Empty) => return Ok(()),
+            // The consumer is gone; the event channel says so at the next send.
+            Err(TryRecvError::Disconnected) => return Ok(()),
+        }
+    }
+}
+
+/// The wire message of a command, `None` when it is stale.
+fn request_message(command: SourceCommand, resets: u64) -> Option<Message> {
+    match command {
+        SourceCommand::RequestScan { id, generation } => {
+            (generation == resets).then_some(Message::RequestScan { id })
         }
     }
 }
@@ -241,9 +308,9 @@ pub(super) fn forward(message: Message, tx: &SyncSender<ViewerEvent>) -> Result<
                 "the daemon ended the stream: {reason}"
             )));
         }
-        // The client fetches every listed scan by itself; one it cannot get stays
-        // listed without data.
-        Update::Ignored | Update::Unavailable { .. } => return Ok(true),
+        // The consumer asked for it: it stops asking until the scan is listed again.
+        Update::Unavailable { id, reason } => ViewerEvent::ScanUnavailable { id, reason },
+        Update::Ignored => return Ok(true),
     };
     Ok(send(tx, event))
 }

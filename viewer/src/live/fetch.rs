@@ -1,7 +1,9 @@
 //! One model from a running daemon, for headless rendering (`render --connect`):
 //! connect (retrying while the daemon starts), apply the snapshot, then live updates
-//! until the model holds enough scans, and hand back the model. Deterministic: the
-//! same daemon model gives the same result, however the messages were chunked.
+//! until the model holds enough scans and the data of every listed scan (the client
+//! asks for it, a few requests at a time) is here or unavailable, and hand back the
+//! model (its GPU residency is the renderer's budget's business). Deterministic: the same daemon model gives the
+//! same result, however the messages were chunked.
 
 use std::time::{Duration, Instant};
 
@@ -51,6 +53,8 @@ pub fn fetch_model(
             Err(e) => return Err(failed(e)),
         };
         let io_timeout = left.clamp(Duration::from_millis(50), Duration::from_millis(500));
+
+        // The client requests every listed scan's data by itself as it reads.
         let mut client =
             match BlockingClient::connect(socket, token, "texel-viewer render", io_timeout) {
                 Ok(c) => c,
@@ -63,6 +67,7 @@ pub fn fetch_model(
                     continue;
                 }
             };
+
         let mut replica = Replica::new();
         loop {
             if start.elapsed() >= timeout {
@@ -92,13 +97,15 @@ pub fn fetch_model(
                         replica.model.len()
                     )));
                 }
-                _ => {
-                    // Listed scans arrive without their data; the client fetches them.
-                    have = replica.model.resident_len();
-                    if replica.complete() && have >= wait_scans.max(1) {
-                        return Ok(replica.model);
-                    }
+                Applied::Unavailable { id, reason } => {
+                    eprintln!("{addr}: scan {id} unavailable: {reason}");
                 }
+                _ => {}
+            }
+            // Listed scans arrive without their data; the client fetches them.
+            have = replica.model.resident_len();
+            if replica.complete() && have >= wait_scans.max(1) {
+                return Ok(replica.model);
             }
         }
     }

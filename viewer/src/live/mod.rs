@@ -8,6 +8,7 @@ pub mod connection;
 pub mod fetch;
 pub mod replay;
 pub mod snapshots;
+pub mod transport;
 
 use std::sync::mpsc::{Receiver, SyncSender, TrySendError};
 use std::time::{Duration, Instant};
@@ -20,6 +21,22 @@ use texel::wire::Status;
 /// this viewer by its slow-client policy), except for status messages, which are
 /// skipped.
 pub const EVENT_QUEUE: usize = 256;
+
+/// How many requests from the window may wait for the connection thread.
+pub const COMMAND_QUEUE: usize = 64;
+
+/// What the window asks of its live source.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SourceCommand {
+    /// Send scan `id`'s data (the source answers with the scan or says it is
+    /// unavailable). `generation`: how many [`ViewerEvent::Reset`]s the asker had
+    /// applied; a request made before the latest reset concerns a model that is gone
+    /// and is dropped.
+    RequestScan {
+        id: texel::model::ScanId,
+        generation: u64,
+    },
+}
 
 /// The state of a live connection, as the overlay shows it.
 #[derive(Debug, Clone, PartialEq)]
@@ -89,6 +106,11 @@ pub enum ViewerEvent {
         received: Instant,
     },
     Connection(ConnectionState),
+    /// The source cannot give a scan that was asked for.
+    ScanUnavailable {
+        id: texel::model::ScanId,
+        reason: String,
+    },
 }
 
 impl ViewerEvent {

@@ -1,11 +1,13 @@
 //! Snapshots of a live model without a display: the viewer events are applied to a
 //! model, and every `every` seconds (when the model changed) or every `every_scans`
 //! new scans, a view is rendered headless to a numbered PNG in a folder, from the
-//! newest scan's acquisition pose or from an orbit around the model.
+//! newest scan's acquisition pose or from an orbit around the model. Each view holds
+//! what it needs within the GPU budget; a live source is asked for what is missing
+//! and the snapshot waits (a bounded time) for it.
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::mpsc::{Receiver, RecvTimeoutError};
+use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender};
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
@@ -13,9 +15,13 @@ use nalgebra::{Point3, Vector3};
 use texel::Pose;
 use texel::model::Model;
 
-use super::{ViewerEvent, apply_to_model, fov_y_deg_of_scan};
+use super::{SourceCommand, ViewerEvent, fov_y_deg_of_scan};
 use crate::camera::VirtualCamera;
 use crate::gpu::{GpuContext, RenderSettings, Renderer};
+use crate::residency::{Fetcher, Residency};
+
+/// A snapshot waits at most this long for the scans its view asked for.
+const FETCH_WAIT: Duration = Duration::from_secs(10);
 
 /// Where snapshots are seen from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -39,6 +45,11 @@ pub struct SnapshotOptions {
     pub settings: RenderSettings,
     /// Stop after this many snapshots.
     pub max_snapshots: Option<usize>,
+    /// The GPU bytes scans may hold.
+    pub budget_bytes: u64,
+    /// Where missing scans are asked for (a live source); `None`: every scan's data
+    /// arrives as an event and is kept on the CPU.
+    pub commands: Option<SyncSender<SourceCommand>>,
 }
 
 /// What a snapshot run did.
@@ -61,6 +72,16 @@ pub fn run(
     let gpu = GpuContext::headless()?;
     let mut renderer = Renderer::new(&gpu);
     let mut model = Model::new();
+    let fetcher = match &options.commands {
+        Some(commands) => Fetcher::Remote {
+            commands: commands.clone(),
+        },
+        None => Fetcher::Local {
+            store: Default::default(),
+        },
+    };
+    let mut residency = Residency::new(options.budget_bytes, fetcher);
+    residency.options.hidden = options.settings.hidden.clone();
     let mut summary = SnapshotSummary::default();
     let mut last_shot = Instant::now();
     let mut changed_since_shot = false;
@@ -68,24 +89,35 @@ pub fn run(
     let mut ended = false;
     // Until the first snapshot of the source is complete, the model is partial.
     let mut complete = false;
+    // When the due snapshot started waiting for its scans.
+    let mut waiting_since: Option<Instant> = None;
     while !stop.load(Ordering::Acquire) && !ended {
         match events.recv_timeout(Duration::from_millis(100)) {
-            Ok(event) => {
-                if let ViewerEvent::Connection(state) = &event {
+            Ok(event) => match event {
+                ViewerEvent::Connection(state) => {
                     eprintln!("texel-viewer: {}", state.describe());
                     ended = matches!(state, super::ConnectionState::Ended { .. });
                 }
-                match event {
-                    ViewerEvent::Reset => {
-                        renderer.clear_scans();
-                        scans_at_shot = 0;
-                        complete = false;
-                    }
-                    ViewerEvent::SnapshotComplete { .. } => complete = true,
-                    _ => {}
+                ViewerEvent::Reset => {
+                    model = Model::new();
+                    residency.reset(&mut renderer);
+                    scans_at_shot = 0;
+                    complete = false;
+                    changed_since_shot = true;
                 }
-                changed_since_shot |= apply_to_model(&mut model, &event);
-            }
+                ViewerEvent::SnapshotComplete { .. } => complete = true,
+                ViewerEvent::ScanUnavailable { id, reason } => residency.unavailable(id, reason),
+                ViewerEvent::Model { event, .. } => {
+                    // Scans fetched for a view do not make a new snapshot due.
+                    let fetched = matches!(event, texel::model::ModelEvent::ScanAdded { id, .. }
+                        if residency.in_flight().contains(&id));
+                    if model.apply(event.clone()).is_ok() {
+                        residency.observe(&event, &model, &mut renderer);
+                        changed_since_shot |= !fetched;
+                    }
+                }
+                ViewerEvent::Status { .. } => {}
+            },
             Err(RecvTimeoutError::Timeout) => {}
             Err(RecvTimeoutError::Disconnected) => ended = true,
         }
@@ -96,12 +128,28 @@ pub fn run(
         if !due || model.is_empty() || !(complete || ended) {
             continue;
         }
+        let Some(camera) = snapshot_camera(&model, options, summary.written.len())? else {
+            continue;
+        };
+        let resident = residency.step(&mut model, &mut renderer, &camera);
+        let since = *waiting_since.get_or_insert_with(Instant::now);
+        if (resident.in_flight > 0 || resident.pending > 0)
+            && since.elapsed() < FETCH_WAIT
+            && !ended
+        {
+            continue;
+        }
+        waiting_since = None;
         let path = options
             .dir
             .join(format!("snapshot-{:04}.png", summary.written.len() + 1));
-        renderer.sync_model(&model)?;
-        shoot(&mut renderer, &model, options, summary.written.len(), &path)?;
-        println!("{} ({} scans)", path.display(), model.len());
+        shoot(&mut renderer, &camera, options, &path)?;
+        println!(
+            "{} ({} scans), {}",
+            path.display(),
+            model.len(),
+            resident.describe()
+        );
         summary.written.push(path);
         summary.scans = model.len();
         last_shot = Instant::now();
@@ -117,26 +165,42 @@ pub fn run(
     Ok(summary)
 }
 
-fn shoot(
-    renderer: &mut Renderer,
+/// Where snapshot `index` is seen from; `None` for an empty model.
+fn snapshot_camera(
     model: &Model,
     options: &SnapshotOptions,
     index: usize,
-    path: &Path,
-) -> anyhow::Result<()> {
+) -> anyhow::Result<Option<VirtualCamera>> {
     let Some(newest) = model.scans().last() else {
-        return Ok(());
+        return Ok(None);
     };
     let fov = options
         .fov_deg
-        .or_else(|| newest.scan.as_deref().and_then(fov_y_deg_of_scan))
+        .or_else(|| {
+            model
+                .resident()
+                .find_map(|(_, scan)| fov_y_deg_of_scan(scan))
+        })
         .unwrap_or(50.0);
     let pose = match options.view {
         SnapshotView::Newest => newest.world_from_scan,
         SnapshotView::Orbit => orbit_pose(model, index).unwrap_or(newest.world_from_scan),
     };
-    let camera = VirtualCamera::new(pose, fov, options.width, options.height)?;
-    let (image, _) = renderer.render_to_image(&camera, &options.settings)?;
+    Ok(Some(VirtualCamera::new(
+        pose,
+        fov,
+        options.width,
+        options.height,
+    )?))
+}
+
+fn shoot(
+    renderer: &mut Renderer,
+    camera: &VirtualCamera,
+    options: &SnapshotOptions,
+    path: &Path,
+) -> anyhow::Result<()> {
+    let (image, _) = renderer.render_to_image(camera, &options.settings)?;
     // Written whole under a temporary name, then renamed: a reader never sees half
     // a PNG.
     let partial = path.with_extension("partial.png");
@@ -154,9 +218,8 @@ pub fn orbit_pose(model: &Model, index: usize) -> Option<Pose> {
     let mut lo = Vector3::repeat(f64::INFINITY);
     let mut hi = Vector3::repeat(f64::NEG_INFINITY);
     for s in model.scans() {
-        let Some((a, b)) = s.scan.as_deref().and_then(texel::TexelScan::bounds) else {
-            continue;
-        };
+        // The listing's box: known whether or not the data is here.
+        let (a, b) = (s.listing.bounds_min_m, s.listing.bounds_max_m);
         for corner in 0..8 {
             let p = Vector3::new(
                 f64::from(if corner & 1 == 0 { a[0] } else { b[0] }),

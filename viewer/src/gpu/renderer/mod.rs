@@ -2,7 +2,7 @@
 //! model sync), the frame uniform and the depth buffer; per frame it culls, writes
 //! the uniforms and hands the frame to one compositing strategy (`painter.rs`,
 //! `kbuffer.rs`, `naive_layers.rs`). Per frame only uniforms are written; scan data
-//! is uploaded once.
+//! is uploaded once and dropped when residency evicts it (`crate::residency`).
 
 mod frame;
 mod kbuffer;
@@ -248,6 +248,26 @@ impl Renderer {
     /// Forgets every scan (the source reset its model; ids will be reused).
     pub fn clear_scans(&mut self) {
         self.scans.clear();
+    }
+
+    /// Drops a scan's GPU data (its buffers and texture are freed when no frame in
+    /// flight uses them any more). Returns the bytes it held, if it was uploaded.
+    pub fn remove_scan(&mut self, id: ScanId) -> Option<u64> {
+        self.scans.remove(&id).map(|p| p.gpu.bytes)
+    }
+
+    pub fn has_scan(&self, id: ScanId) -> bool {
+        self.scans.contains_key(&id)
+    }
+
+    /// The GPU bytes of an uploaded scan (buffers and texture, exactly).
+    pub fn scan_bytes(&self, id: ScanId) -> Option<u64> {
+        self.scans.get(&id).map(|p| p.gpu.bytes)
+    }
+
+    /// The GPU bytes of every uploaded scan.
+    pub fn scans_bytes(&self) -> u64 {
+        self.scans.values().map(|p| p.gpu.bytes).sum()
     }
 
     pub fn scan_count(&self) -> usize {
