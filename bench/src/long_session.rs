@@ -76,7 +76,8 @@ fn rss_mb() -> f64 {
 fn config(args: &Args, loops: u32) -> SessionConfig {
     let mut c = SessionConfig::default();
     c.session.name = "long-session".into();
-    c.session.exit_when_sources_end = true;
+    // Kept serving after the last frame, for the late joiner; the run stops it.
+    c.session.exit_when_sources_end = false;
     c.source.sim = vec![SimConfig {
         name: "sim".into(),
         scene: args.scene.clone(),

@@ -81,6 +81,9 @@ struct Inner {
     lru: BTreeMap<u64, ScanId>,
     tick: u64,
     frame_bytes: u64,
+    /// The index's bytes (entries, retirement's signatures and offers), refreshed
+    /// every `INDEX_REFRESH` scans: walking retirement's index costs a pass over it.
+    index_bytes: u64,
     served: u64,
     store_reads: u64,
     store_errors: u64,
@@ -122,6 +125,12 @@ pub enum FetchError {
     Closed,
 }
 
+/// Scans between refreshes of the index's measured size.
+const INDEX_REFRESH: usize = 256;
+
+/// Bytes of one entry beyond its struct (the map's node overhead).
+const ENTRY_OVERHEAD_BYTES: usize = 48;
+
 /// The shared model and its subscribers.
 pub struct Hub {
     inner: Mutex<Inner>,
@@ -150,6 +159,7 @@ impl Hub {
                 lru: BTreeMap::new(),
                 tick: 0,
                 frame_bytes: 0,
+                index_bytes: 0,
                 served: 0,
                 store_reads: 0,
                 store_errors: 0,
@@ -246,8 +256,17 @@ impl Hub {
             Self::broadcast(&mut inner, &frame);
         }
         self.apply_changes(&mut inner, &changes, Some(id))?;
+        if inner.entries.len() % INDEX_REFRESH == 1 {
+            inner.index_bytes = Self::measure_index(&inner) as u64;
+        }
         self.enforce_budget(&mut inner);
         Ok(())
+    }
+
+    /// The index's bytes: entries, and retirement's signatures, offers and links.
+    fn measure_index(inner: &Inner) -> usize {
+        inner.entries.len() * (std::mem::size_of::<Entry>() + ENTRY_OVERHEAD_BYTES)
+            + inner.retirement.as_ref().map_or(0, Retirement::heap_bytes)
     }
 
     /// Revises a scan's pose (retired scans too: they keep their place in the graph).
@@ -381,9 +400,13 @@ impl Hub {
         inner.lru.insert(tick, id);
     }
 
-    /// Drops the least recently used stored frames until memory is within budget.
+    /// Drops the least recently used stored frames until memory (frames and index)
+    /// is within budget.
     fn enforce_budget(&self, inner: &mut Inner) {
-        let budget = self.options.memory_budget_bytes;
+        let budget = self
+            .options
+            .memory_budget_bytes
+            .saturating_sub(inner.index_bytes);
         let mut kept = Vec::new();
         while inner.frame_bytes > budget {
             let Some((tick, id)) = inner.lru.pop_first() else {
@@ -576,9 +599,7 @@ impl Hub {
     /// coverage signatures).
     pub fn memory_bytes(&self) -> (usize, usize) {
         let inner = self.lock();
-        let index = inner.entries.len() * (std::mem::size_of::<Entry>() + 48)
-            + inner.retirement.as_ref().map_or(0, Retirement::heap_bytes);
-        (index, inner.frame_bytes as usize)
+        (Self::measure_index(&inner), inner.frame_bytes as usize)
     }
 
     /// The model's part of the status.
