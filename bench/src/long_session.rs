@@ -170,29 +170,36 @@ async fn drive(args: &Args, loops: u32) -> Result<(Vec<Sample>, Joiner)> {
         eprintln!("late joiner: {e:#}");
         Joiner::default()
     });
-    samples.push(sample(&session, started));
     shutdown.cancel();
     session.wait().await.context("the session failed")?;
     Ok((samples, joiner))
 }
 
 /// A joiner's times over loopback: connect to the listings, to the first scan of
-/// every region (the coarse view), to the whole served model.
+/// every region (the coarse view), to the whole served model. The joiner drops each
+/// scan's data once it has arrived, so this process's memory stays the daemon's.
 async fn late_joiner(addr: std::net::SocketAddr) -> Result<Joiner> {
     let started = Instant::now();
     let mut client = texel_client::Client::connect(addr, "", "long-session-joiner").await?;
     let mut replica = texel_client::Replica::new();
     let mut j = Joiner::default();
-    let mut listing_order = Vec::new();
+    let mut arrived = 0u64;
     loop {
         let message = tokio::time::timeout(Duration::from_secs(120), client.next_message())
             .await
             .context("the late joiner waited 120 s for a message")??
             .context("the daemon closed the connection")?;
-        if let texel::wire::Message::ScanListed { id, .. } = &message {
-            listing_order.push(*id);
-        }
+        let added = match &message {
+            texel::wire::Message::ScanAdded(w) => Some(w.id),
+            _ => None,
+        };
         replica.apply(message)?;
+        if let Some(id) = added {
+            arrived += 1;
+            let _ = replica
+                .model
+                .apply(texel::model::ModelEvent::ScanEvicted { id });
+        }
         if replica.live && j.to_listing_s == 0.0 {
             j.to_listing_s = started.elapsed().as_secs_f64();
             j.served = replica.model.len() as u64;
@@ -202,8 +209,7 @@ async fn late_joiner(addr: std::net::SocketAddr) -> Result<Joiner> {
             client.request_scan(id).await?;
         }
         if replica.live {
-            let resident = replica.model.resident_len() as u64;
-            if j.to_coarse_s == 0.0 && resident >= j.coarse_scans {
+            if j.to_coarse_s == 0.0 && arrived >= j.coarse_scans {
                 j.to_coarse_s = started.elapsed().as_secs_f64();
             }
             if replica.complete() {

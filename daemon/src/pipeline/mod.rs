@@ -249,6 +249,10 @@ pub fn build_sources_after(
     config: &SessionConfig,
     resume_after_ns: Option<u64>,
 ) -> Vec<Box<dyn Source>> {
+    // Only simulators replay a trajectory from its start; live sources and replays
+    // need no resume point.
+    #[cfg(not(feature = "sim"))]
+    let _ = resume_after_ns;
     let mut sources: Vec<Box<dyn Source>> = Vec::new();
     for c in &config.source.serial {
         sources.push(Box::new(SerialSource {
