@@ -280,6 +280,40 @@ fn residency(
             times.len()
         );
     }
+    // A viewer with a 256 MiB budget on models of 1,000 and 20,000 scans: the frame
+    // (planning, uploads, render) and the GPU memory, against the smaller model's.
+    println!("models of many scans, 256 MiB budget:");
+    let mut first_ms = None;
+    for n in [1_000u32, 20_000] {
+        let mut model = scenes::corridor(sensor, n);
+        let mut residency =
+            Residency::over_model(Residency::budget_bytes_of_mb(256), &mut model);
+        let mut renderer = Renderer::new(gpu);
+        // Settle: the first steps upload what the view needs.
+        for _ in 0..3 {
+            residency.step(&mut model, &mut renderer, camera);
+        }
+        let mut times = Vec::new();
+        let mut last = None;
+        for _ in 0..args.frames.max(1) {
+            let start = Instant::now();
+            let stats = residency.step(&mut model, &mut renderer, camera);
+            measure(gpu, &mut renderer, camera, settings, 1)?;
+            times.push(start.elapsed().as_secs_f64() * 1000.0);
+            last = Some(stats);
+        }
+        times.sort_by(f64::total_cmp);
+        let ms = times[times.len() / 2];
+        let base = *first_ms.get_or_insert(ms);
+        if let Some(stats) = last {
+            println!(
+                "{n:>7} scans: resident {}, GPU {:.1} MiB of 256, frame {ms:.2} ms ({:.2}x the 1,000-scan model's)",
+                stats.resident,
+                mib(stats.used_bytes),
+                ms / base
+            );
+        }
+    }
     Ok(())
 }
 
