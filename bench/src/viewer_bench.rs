@@ -286,8 +286,7 @@ fn residency(
     let mut first_ms = None;
     for n in [1_000u32, 20_000] {
         let mut model = scenes::corridor(sensor, n);
-        let mut residency =
-            Residency::over_model(Residency::budget_bytes_of_mb(256), &mut model);
+        let mut residency = Residency::over_model(Residency::budget_bytes_of_mb(256), &mut model);
         let mut renderer = Renderer::new(gpu);
         // Settle: the first steps upload what the view needs.
         for _ in 0..3 {
