@@ -15,7 +15,7 @@
 //! `texel::coverage`) leave the served model and memory at once, and come back as a
 //! listing when a pose revision makes them useful again.
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 
@@ -576,23 +576,9 @@ impl Hub {
         self.lock().entries.len()
     }
 
-    /// Scans in the served model.
-    pub fn served_count(&self) -> usize {
-        self.lock().served as usize
-    }
-
     /// Whether scan `id` is in the served model.
     pub fn is_served(&self, id: ScanId) -> bool {
         self.lock().entries.get(&id).is_some_and(|e| !e.retired)
-    }
-
-    /// Every scan's current pose and whether it is served, by id.
-    pub fn poses(&self) -> Vec<(ScanId, Pose, bool)> {
-        self.lock()
-            .entries
-            .iter()
-            .map(|(&id, e)| (id, e.world_from_scan, !e.retired))
-            .collect()
     }
 
     /// Bytes the model holds in memory: encoded frames, and the index (entries,
@@ -604,34 +590,28 @@ impl Hub {
 
     /// The model's part of the status.
     pub fn status(&self) -> ModelStatus {
-        let (index, frames) = self.memory_bytes();
         let inner = self.lock();
-        let in_memory = inner
-            .entries
-            .values()
-            .filter(|e| !e.retired && e.frame.is_some())
-            .count() as u64;
+        let (mut in_memory, mut on_disk) = (0u64, 0u64);
+        for e in inner.entries.values() {
+            match (&e.frame, e.retired) {
+                (Some(_), false) => in_memory += 1,
+                (None, _) => on_disk += 1,
+                (Some(_), true) => {}
+            }
+        }
         ModelStatus {
             scans: inner.entries.len() as u64,
             served: inner.served,
             retired: inner.entries.len() as u64 - inner.served,
             in_memory,
-            on_disk: inner.entries.values().filter(|e| e.frame.is_none()).count() as u64,
-            memory_bytes: (index + frames) as u64,
+            on_disk,
+            // The index as last measured: walking retirement's index for every status
+            // would cost a pass over every scan each second.
+            memory_bytes: inner.index_bytes + inner.frame_bytes,
             memory_budget_bytes: self.options.memory_budget_bytes,
             store_bytes: self.options.store.as_ref().map_or(0, |s| s.len_bytes()),
             store_reads: inner.store_reads,
             store_errors: inner.store_errors,
         }
-    }
-
-    /// Listings of the served scans, for in-process readers (benchmarks, exports).
-    pub fn listings(&self) -> HashMap<ScanId, ScanListing> {
-        self.lock()
-            .entries
-            .iter()
-            .filter(|(_, e)| !e.retired)
-            .map(|(&id, e)| (id, e.listing))
-            .collect()
     }
 }

@@ -95,18 +95,45 @@ pub fn write_pareto(
     y_label: &str,
     series: &[Series],
 ) -> Result<(), PlotError> {
+    struct Pareto<'a>(&'a str, &'a str, &'a str, &'a [Series]);
+    impl Chart for Pareto<'_> {
+        fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Result<(), String>
+        where
+            DB::ErrorType: 'static,
+        {
+            draw(root, self.0, self.1, self.2, self.3)
+        }
+    }
+    write_svg_and_png(stem, (1100, 700), &Pareto(title, x_label, y_label, series))
+}
+
+/// A chart that can draw itself on any plotters backend.
+pub(crate) trait Chart {
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Result<(), String>
+    where
+        DB::ErrorType: 'static;
+}
+
+/// Draws `chart` into `stem.svg` and `stem.png`, with the font loaded.
+pub(crate) fn write_svg_and_png(
+    stem: &Path,
+    size: (u32, u32),
+    chart: &impl Chart,
+) -> Result<(), PlotError> {
     ensure_font()?;
     let svg = stem.with_extension("svg");
     let png = stem.with_extension("png");
     {
-        let root = SVGBackend::new(&svg, (1100, 700)).into_drawing_area();
-        draw(&root, title, x_label, y_label, series)
+        let root = SVGBackend::new(&svg, size).into_drawing_area();
+        chart
+            .draw(&root)
             .and_then(|()| root.present().map_err(|e| format!("{e}")))
             .map_err(|message| draw_error(&svg, message))?;
     }
     {
-        let root = BitMapBackend::new(&png, (1100, 700)).into_drawing_area();
-        draw(&root, title, x_label, y_label, series)
+        let root = BitMapBackend::new(&png, size).into_drawing_area();
+        chart
+            .draw(&root)
             .and_then(|()| root.present().map_err(|e| format!("{e}")))
             .map_err(|message| draw_error(&png, message))?;
     }

@@ -6,7 +6,7 @@ use std::path::Path;
 use plotters::coord::Shift;
 use plotters::prelude::*;
 
-use super::{COLOURS, FAMILY, PlotError, draw_error, ensure_font};
+use super::{COLOURS, Chart, FAMILY, PlotError, write_svg_and_png};
 
 /// One line: its name and its `(x, y)` points in order.
 #[derive(Debug, Clone)]
@@ -23,22 +23,16 @@ pub fn write_lines(
     y_label: &str,
     lines: &[Line],
 ) -> Result<(), PlotError> {
-    ensure_font()?;
-    let svg = stem.with_extension("svg");
-    let png = stem.with_extension("png");
-    {
-        let root = SVGBackend::new(&svg, (1100, 600)).into_drawing_area();
-        draw(&root, title, x_label, y_label, lines)
-            .and_then(|()| root.present().map_err(|e| format!("{e}")))
-            .map_err(|message| draw_error(&svg, message))?;
+    struct Lines<'a>(&'a str, &'a str, &'a str, &'a [Line]);
+    impl Chart for Lines<'_> {
+        fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Result<(), String>
+        where
+            DB::ErrorType: 'static,
+        {
+            draw(root, self.0, self.1, self.2, self.3)
+        }
     }
-    {
-        let root = BitMapBackend::new(&png, (1100, 600)).into_drawing_area();
-        draw(&root, title, x_label, y_label, lines)
-            .and_then(|()| root.present().map_err(|e| format!("{e}")))
-            .map_err(|message| draw_error(&png, message))?;
-    }
-    Ok(())
+    write_svg_and_png(stem, (1100, 600), &Lines(title, x_label, y_label, lines))
 }
 
 fn draw<DB: DrawingBackend>(
