@@ -12,6 +12,7 @@ pub mod capture_read;
 pub mod daemon_capture;
 pub mod daemon_sim;
 pub mod long_session;
+pub mod replay_memory;
 pub mod tradeoffs;
 pub mod txl1_decode;
 pub mod viewer_bench;

@@ -46,6 +46,9 @@ enum Command {
     /// memory, the model's memory and budget, registration latency per 1,000 frames, a
     /// late joiner's time to the whole model, `/texel/pose` messages per frame.
     LongSession(texel_bench::long_session::Args),
+    /// Peak resident memory of daemon binaries (this build or an older one) replaying
+    /// captures as fast as they go.
+    ReplayMemory(texel_bench::replay_memory::Args),
     /// Measure the TXL1 decoder on a hostile stream against a clean one.
     Txl1(texel_bench::txl1_decode::Args),
     /// Measure the capture reader against the mcap crate's own reader.
@@ -110,6 +113,7 @@ fn main() -> ExitCode {
         }
         Command::Viewer(args) => ("viewer", texel_bench::viewer_bench::run(&args)),
         Command::LongSession(args) => ("long-session", texel_bench::long_session::run(&args)),
+        Command::ReplayMemory(args) => ("replay-memory", texel_bench::replay_memory::run(&args)),
         Command::Txl1(args) => ("txl1", texel_bench::txl1_decode::run(&args)),
         Command::CaptureRead(args) => ("capture-read", texel_bench::capture_read::run(&args)),
         Command::Tradeoffs(TradeoffsCommand::Registration {

@@ -151,7 +151,13 @@ impl Hub {
     }
 
     pub fn with_model(client_queue: usize, options: ModelOptions) -> Arc<Self> {
-        let retirement = options.coverage.filter(|c| c.enabled).map(Retirement::new);
+        let retirement = options.coverage.filter(|c| c.enabled).map(|c| {
+            // Retired scans' signatures are read back from their frames when needed
+            // (a pose revision), so the index holds offers and links alone for them.
+            let mut r = Retirement::new(c);
+            r.shed_retired_signatures(true);
+            r
+        });
         Arc::new(Self {
             inner: Mutex::new(Inner {
                 entries: BTreeMap::new(),
@@ -291,8 +297,15 @@ impl Hub {
         if !entry.retired {
             Self::broadcast(&mut inner, &frame);
         }
+        let held = inner.entries.get(&id).and_then(|e| e.frame.clone());
+        let store = self.options.store.as_ref();
         let changes = match inner.retirement.as_mut() {
-            Some(r) => r.revise(id, &world_from_scan),
+            Some(r) => {
+                let config = *r.config();
+                r.revise_with(id, &world_from_scan, || {
+                    signature_of(id, held, store, &config)
+                })
+            }
             None => Changes::default(),
         };
         self.apply_changes(&mut inner, &changes, None)?;
@@ -612,6 +625,45 @@ impl Hub {
             store_bytes: self.options.store.as_ref().map_or(0, |s| s.len_bytes()),
             store_reads: inner.store_reads,
             store_errors: inner.store_errors,
+        }
+    }
+}
+
+/// Scan `id`'s coverage signature, from its frame held in memory or read back from
+/// the store (a positional read of one entry). `None`, logged, when neither has it
+/// or it does not decode: retirement then serves the scan again.
+fn signature_of(
+    id: ScanId,
+    held: Option<Bytes>,
+    store: Option<&Arc<Store>>,
+    config: &CoverageConfig,
+) -> Option<ScanCoverage> {
+    let frame = match (held, store) {
+        (Some(frame), _) => frame,
+        (None, Some(store)) => match store.read(id) {
+            Ok(frame) => frame,
+            Err(e) => {
+                tracing::warn!("scan {id}: signature not read back: {e}");
+                return None;
+            }
+        },
+        (None, None) => return None,
+    };
+    match texel::wire::decode_frame(&frame, &texel::wire::Limits::FROM_SERVER) {
+        Ok(Some((Message::ScanAdded(wire), _))) => match wire.into_scan() {
+            Ok((_, scan, _)) => Some(ScanCoverage::of(&scan, config)),
+            Err(e) => {
+                tracing::warn!("scan {id}: signature not rebuilt: {e}");
+                None
+            }
+        },
+        Ok(_) => {
+            tracing::warn!("scan {id}: stored frame is not a whole ScanAdded");
+            None
+        }
+        Err(e) => {
+            tracing::warn!("scan {id}: stored frame does not decode: {e}");
+            None
         }
     }
 }

@@ -146,6 +146,43 @@ fn a_redundant_scan_is_not_served_until_a_revision_makes_it_useful() {
 }
 
 #[test]
+fn a_retired_scans_signature_is_read_back_from_the_store_on_a_revision() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = Arc::new(Store::create(&dir.path().join("m.scans")).unwrap());
+    let config = CoverageConfig::default();
+    let hub = Hub::with_model(
+        64,
+        ModelOptions {
+            memory_budget_bytes: u64::MAX,
+            store: Some(Arc::clone(&store)),
+            coverage: Some(config),
+        },
+    );
+    let s = scan(3);
+    let add = |id: u64, in_store: bool| {
+        let f = frame(id, &s, Pose::identity());
+        if in_store {
+            store.append(id, &f).unwrap();
+        }
+        let coverage = ScanCoverage::of(&s, &config);
+        let listing = ScanListing::of_scan(&s, f.len() as u64, coverage.score() as f32);
+        hub.add_scan(id, listing, Pose::identity(), f, true, Some(coverage))
+            .unwrap();
+    };
+    add(0, true);
+    add(1, true);
+    add(2, false);
+    assert!(hub.is_served(0) && !hub.is_served(1) && !hub.is_served(2));
+    // Revised where they were: scan 1's signature comes back from the store and it
+    // stays redundant; scan 2's frame is in no store, so it cannot be judged and is
+    // served again rather than left out on a guess.
+    hub.revise_pose(1, Pose::identity()).unwrap();
+    assert!(!hub.is_served(1), "scan 1 judged on its stored signature");
+    hub.revise_pose(2, Pose::identity()).unwrap();
+    assert!(hub.is_served(2), "scan 2 served again without its signature");
+}
+
+#[test]
 fn a_fetched_scan_carries_its_current_pose() {
     let hub = Hub::new(16);
     let s = scan(1);

@@ -201,6 +201,82 @@ proptest! {
     }
 }
 
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(32))]
+
+    /// An index that sheds retired scans' signatures and loads them back on a
+    /// revision decides exactly as one that keeps every signature, loads only for
+    /// scans it shed, and holds no retired scan's signature between calls.
+    #[test]
+    fn shedding_signatures_changes_no_decision(
+        poses in prop::collection::vec(arb_pose(), 2..10),
+        duplicates in prop::collection::vec(0usize..10, 0..4),
+        revisions in prop::collection::vec((0usize..14, arb_pose()), 1..8),
+        budget in 1usize..40,
+    ) {
+        let config = CoverageConfig { max_checks_per_call: budget, ..config() };
+        let mut all_poses = poses.clone();
+        all_poses.extend(duplicates.iter().map(|&i| poses[i % poses.len()]));
+        let signatures: Vec<ScanCoverage> = all_poses
+            .iter()
+            .map(|p| ScanCoverage::of(&synthetic_scan(p, 12), &config))
+            .collect();
+        let mut keeping = Retirement::new(config);
+        let mut shedding = Retirement::new(config);
+        shedding.shed_retired_signatures(true);
+        let n = signatures.len() as u64;
+        let check = |keeping: &Retirement, shedding: &Retirement, upto: u64| {
+            for id in 0..upto {
+                prop_assert_eq!(keeping.is_retired(id), shedding.is_retired(id));
+                prop_assert_eq!(keeping.cells_of(id), shedding.cells_of(id));
+                if shedding.is_retired(id) {
+                    prop_assert!(!shedding.holds_signature(id), "scan {} kept its signature", id);
+                }
+            }
+            Ok(())
+        };
+        for (i, (c, p)) in signatures.iter().zip(&all_poses).enumerate() {
+            let id = i as ScanId;
+            prop_assert_eq!(keeping.add(id, c.clone(), p), shedding.add(id, c.clone(), p));
+            check(&keeping, &shedding, id + 1)?;
+        }
+        prop_assert!(keeping.heap_bytes() >= shedding.heap_bytes());
+        for (i, p) in &revisions {
+            let id = *i as u64 % n;
+            let held = shedding.holds_signature(id);
+            let mut loads = 0;
+            let shed_changes = shedding.revise_with(id, p, || {
+                loads += 1;
+                signatures.get(id as usize).cloned()
+            });
+            prop_assert_eq!(loads, usize::from(!held));
+            prop_assert_eq!(keeping.revise(id, p), shed_changes);
+            check(&keeping, &shedding, n)?;
+            check_invariants(&shedding, n);
+        }
+    }
+}
+
+#[test]
+fn a_scan_whose_signature_cannot_be_loaded_is_served_again() {
+    let config = config();
+    let p = pose([0.0, 0.0, 1.5], [2.0, 2.0, 0.5]);
+    let coverage = ScanCoverage::of(&synthetic_scan(&p, 16), &config);
+    let mut index = Retirement::new(config);
+    index.shed_retired_signatures(true);
+    index.add(0, coverage.clone(), &p);
+    assert_eq!(index.add(1, coverage, &p).retired, vec![1]);
+    assert!(!index.holds_signature(1) && index.holds_signature(0));
+    // Revised a few centimetres, scan 1 would still be redundant; with its signature
+    // lost it is served again rather than judged on a guess.
+    let moved = Pose::translation(0.03, 0.0, 0.0) * p;
+    let changes = index.revise_with(1, &moved, || None);
+    assert_eq!(changes.restored, vec![1]);
+    assert!(!index.is_retired(1));
+    assert!(!index.cells_of(1).is_empty(), "moved offers still place it");
+    check_invariants(&index, 2);
+}
+
 #[test]
 fn identical_duplicates_keep_exactly_one() {
     let config = config();

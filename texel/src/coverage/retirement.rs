@@ -2,6 +2,8 @@
 //! updated one `add` or `revise` at a time with a bounded number of redundancy
 //! tests. Invariant: every retired scan has, for each cell it covers, a served
 //! witness whose offer dominates its own there (`docs/model.md`, "Retirement").
+//! With shedding on, a retired scan keeps its offers but not its signature: a pose
+//! revision loads the signature again from wherever its caller keeps the scan.
 
 use std::collections::{HashMap, HashSet};
 
@@ -39,7 +41,10 @@ pub struct Changes {
 
 #[derive(Debug, Clone)]
 struct Entry {
-    coverage: ScanCoverage,
+    /// `None` once shed (a retired scan, with shedding on) until a revision loads it.
+    coverage: Option<ScanCoverage>,
+    /// The pose the offers were computed at.
+    world_from_scan: Pose,
     /// The scan's offers at its current pose, sorted by cell.
     offers: Vec<(CellKey, Offer)>,
     score: f64,
@@ -59,6 +64,8 @@ pub struct Retirement {
     /// Served scans offering each cell.
     cells: HashMap<CellKey, Vec<ScanId>>,
     served: usize,
+    /// Drop the signatures of retired scans (see [`Retirement::shed_retired_signatures`]).
+    shed_retired: bool,
 }
 
 /// The redundancy tests left in one call.
@@ -86,6 +93,30 @@ impl Retirement {
         &self.config
     }
 
+    /// With `on`, a scan keeps its signature only while served: retired scans (most
+    /// of a long session's) hold their offers and links alone, and a revision of a
+    /// scan without its signature asks [`Self::revise_with`]'s loader for it. Off by
+    /// default: [`Self::revise`] has no loader.
+    pub fn shed_retired_signatures(&mut self, on: bool) {
+        self.shed_retired = on;
+        if on {
+            let retired: Vec<ScanId> = self
+                .scans
+                .iter()
+                .filter(|(_, e)| !e.served)
+                .map(|(id, _)| *id)
+                .collect();
+            for id in retired {
+                self.shed(id);
+            }
+        }
+    }
+
+    /// Whether scan `id` holds its signature (false for an unknown id).
+    pub fn holds_signature(&self, id: ScanId) -> bool {
+        self.scans.get(&id).is_some_and(|e| e.coverage.is_some())
+    }
+
     /// Adds scan `id` at `world_from_scan`: it is retired if the served scans make it
     /// redundant (a scan that covers nothing always is); otherwise it is served and
     /// the served scans sharing its cells that it makes redundant are retired,
@@ -100,7 +131,8 @@ impl Retirement {
         self.scans.insert(
             id,
             Entry {
-                coverage,
+                coverage: Some(coverage),
+                world_from_scan: *world_from_scan,
                 offers,
                 score,
                 served: false,
@@ -116,7 +148,10 @@ impl Retirement {
             None
         };
         match witnesses {
-            Some(witnesses) => self.link(id, witnesses),
+            Some(witnesses) => {
+                self.link(id, witnesses);
+                self.shed(id);
+            }
             None => {
                 self.serve(id);
                 self.retire_neighbours(id, &mut budget, &mut log);
@@ -131,19 +166,56 @@ impl Retirement {
     /// served again when it no longer is), then the served scans around it. An
     /// unknown id changes nothing.
     pub fn revise(&mut self, id: ScanId, world_from_scan: &Pose) -> Changes {
+        self.revise_with(id, world_from_scan, || None)
+    }
+
+    /// [`Self::revise`] for an index that sheds signatures: `load` gives scan `id`'s
+    /// signature when the index no longer holds it (it is called at most once, and
+    /// only then). Without one (the scan could not be read back), the offers are
+    /// moved rigidly with the scan and the scan is served again: serving a scan
+    /// that might be redundant costs memory, retiring one that might not costs
+    /// surfaces.
+    pub fn revise_with(
+        &mut self,
+        id: ScanId,
+        world_from_scan: &Pose,
+        load: impl FnOnce() -> Option<ScanCoverage>,
+    ) -> Changes {
         let mut budget = Budget(self.config.max_checks_per_call.max(1));
         let mut log = Log::default();
         let Some(entry) = self.scans.get(&id) else {
             return Changes::default();
         };
-        let offers = self.offers(&entry.coverage, world_from_scan);
         let served = entry.served;
+        let (offers, loaded, exact) = match &entry.coverage {
+            Some(c) => (self.offers(c, world_from_scan), None, true),
+            None => match load() {
+                Some(c) => (self.offers(&c, world_from_scan), Some(c), true),
+                None => (self.moved_offers(entry, world_from_scan), None, false),
+            },
+        };
         log.note(id, served);
         if served {
             self.unindex(id);
         }
         if let Some(e) = self.scans.get_mut(&id) {
             e.offers = offers;
+            e.world_from_scan = *world_from_scan;
+            if loaded.is_some() {
+                e.coverage = loaded;
+            }
+        }
+        if !exact {
+            // Approximate offers retire nothing, this scan least of all.
+            if served {
+                self.index(id);
+                let dependents = self.take_dependents(id);
+                self.recheck_all(&dependents, &mut budget, &mut log);
+            } else {
+                self.unlink(id);
+                self.serve(id);
+            }
+            return log.finish(self);
         }
         if served {
             self.index(id);
@@ -159,6 +231,9 @@ impl Retirement {
             if self.recheck(id, &mut budget, &mut log) {
                 self.retire_neighbours(id, &mut budget, &mut log);
             }
+        }
+        if self.is_retired(id) {
+            self.shed(id);
         }
         log.finish(self)
     }
@@ -200,7 +275,7 @@ impl Retirement {
             .scans
             .values()
             .map(|e| {
-                e.coverage.heap_bytes()
+                e.coverage.as_ref().map_or(0, ScanCoverage::heap_bytes)
                     + e.offers.capacity() * std::mem::size_of::<(CellKey, Offer)>()
                     + e.witnesses.capacity() * std::mem::size_of::<ScanId>()
                     + e.dependents.capacity() * std::mem::size_of::<ScanId>() * 2
@@ -386,7 +461,56 @@ impl Retirement {
         }
         let dependents = self.take_dependents(id);
         self.link(id, witnesses);
+        self.shed(id);
         self.recheck_all(&dependents, budget, log);
+    }
+
+    /// Drops retired scan `id`'s signature when shedding is on.
+    fn shed(&mut self, id: ScanId) {
+        if !self.shed_retired {
+            return;
+        }
+        if let Some(e) = self.scans.get_mut(&id)
+            && !e.served
+        {
+            e.coverage = None;
+        }
+    }
+
+    /// `entry`'s offers carried rigidly to `world_from_scan`: each cell's centre and
+    /// direction moved by the pose change, the most accurate offer kept where two
+    /// land in one cell. An approximation for a scan whose signature is lost.
+    fn moved_offers(&self, entry: &Entry, world_from_scan: &Pose) -> Vec<(CellKey, Offer)> {
+        let cell_m = self.config.cell_size_m();
+        let change = world_from_scan * entry.world_from_scan.inverse();
+        let mut moved: Vec<(CellKey, Offer)> = entry
+            .offers
+            .iter()
+            .filter_map(|(key, offer)| {
+                let centre = Point3::new(
+                    (key[0] as f64 + 0.5) * cell_m,
+                    (key[1] as f64 + 0.5) * cell_m,
+                    (key[2] as f64 + 0.5) * cell_m,
+                );
+                let new_key = cell_of(&(change * centre), cell_m)?;
+                let d = change.rotation
+                    * Vector3::new(
+                        f64::from(offer.direction[0]),
+                        f64::from(offer.direction[1]),
+                        f64::from(offer.direction[2]),
+                    );
+                Some((
+                    new_key,
+                    Offer {
+                        direction: [d.x as f32, d.y as f32, d.z as f32],
+                        ..*offer
+                    },
+                ))
+            })
+            .collect();
+        moved.sort_by(|(a, x), (b, y)| a.cmp(b).then(y.normal_accuracy.total_cmp(&x.normal_accuracy)));
+        moved.dedup_by_key(|(k, _)| *k);
+        moved
     }
 
     /// Tests each retired scan of `ids` again (see [`Self::recheck`]).
