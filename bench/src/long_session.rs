@@ -51,6 +51,7 @@ struct Sample {
     frames: u64,
     rss_mb: f64,
     model_mb: f64,
+    index_mb: f64,
     scans: u64,
     served: u64,
     retired: u64,
@@ -104,6 +105,7 @@ fn sample(session: &Session, started: Instant) -> Sample {
         frames: status.counters.get("paired").copied().unwrap_or(0),
         rss_mb: rss_mb(),
         model_mb: model.memory_bytes as f64 / 1048576.0,
+        index_mb: session.hub.memory_bytes().0 as f64 / 1048576.0,
         scans: model.scans,
         served: model.served,
         retired: model.retired,
@@ -162,6 +164,18 @@ async fn drive(args: &Args, loops: u32) -> Result<(Vec<Sample>, Joiner)> {
         interval.tick().await;
         let s = sample(&session, started);
         samples.push(s);
+        if s.frames / args.every
+            > samples
+                .len()
+                .checked_sub(2)
+                .and_then(|i| samples.get(i))
+                .map_or(0, |p| p.frames / args.every)
+        {
+            eprintln!(
+                "{} frames, {:.0} s: resident {:.0} MiB, model {:.1} MiB",
+                s.frames, s.elapsed_s, s.rss_mb, s.model_mb
+            );
+        }
         if s.frames >= args.frames || session.sources_done.is_cancelled() {
             break;
         }
@@ -260,18 +274,19 @@ fn report(args: &Args, walk: u64, samples: &[Sample], joiner: &Joiner) -> Result
     );
     let _ = writeln!(
         out,
-        "| frames | resident (MiB) | model in memory (MiB) | scans | served | retired | on disk only | register p50 / p99 (ms) | skipped |"
+        "| frames | resident (MiB) | model in memory (MiB) | of which index (MiB) | scans | served | retired | on disk only | register p50 / p99 (ms) | skipped |"
     );
-    let _ = writeln!(out, "|---|---|---|---|---|---|---|---|---|");
+    let _ = writeln!(out, "|---|---|---|---|---|---|---|---|---|---|");
     let mut next = args.every;
     for s in samples {
         if s.frames >= next || std::ptr::eq(s, samples.last().unwrap_or(s)) {
             let _ = writeln!(
                 out,
-                "| {} | {:.0} | {:.1} | {} | {} | {} | {} | {:.1} / {:.1} | {} |",
+                "| {} | {:.0} | {:.1} | {:.1} | {} | {} | {} | {} | {:.1} / {:.1} | {} |",
                 s.frames,
                 s.rss_mb,
                 s.model_mb,
+                s.index_mb,
                 s.scans,
                 s.served,
                 s.retired,
@@ -347,16 +362,17 @@ fn report(args: &Args, walk: u64, samples: &[Sample], joiner: &Joiner) -> Result
 
 fn write_csv(path: &Path, samples: &[Sample]) -> Result<()> {
     let mut csv = String::from(
-        "elapsed_s,frames,rss_mb,model_mb,scans,served,retired,on_disk,register_p50_ms,register_p99_ms,skipped\n",
+        "elapsed_s,frames,rss_mb,model_mb,index_mb,scans,served,retired,on_disk,register_p50_ms,register_p99_ms,skipped\n",
     );
     for s in samples {
         let _ = writeln!(
             csv,
-            "{:.1},{},{:.1},{:.2},{},{},{},{},{:.2},{:.2},{}",
+            "{:.1},{},{:.1},{:.2},{:.2},{},{},{},{},{:.2},{:.2},{}",
             s.elapsed_s,
             s.frames,
             s.rss_mb,
             s.model_mb,
+            s.index_mb,
             s.scans,
             s.served,
             s.retired,

@@ -56,15 +56,20 @@ pub fn run(args: &Args) -> Result<()> {
             let _ = writeln!(
                 out,
                 "| {} | {frames} | {label} | {:.0} | {:.0} | {:.1} | {} |",
-                capture
-                    .file_name()
-                    .map_or_else(|| capture.display().to_string(), |n| n.to_string_lossy().into()),
+                capture.file_name().map_or_else(
+                    || capture.display().to_string(),
+                    |n| n.to_string_lossy().into()
+                ),
                 r.peak_mb,
                 r.final_mb,
                 r.wall_s,
                 if r.exit_ok { "0" } else { "failed" }
             );
-            eprintln!("{label} on {}: peak {:.0} MiB", capture.display(), r.peak_mb);
+            eprintln!(
+                "{label} on {}: peak {:.0} MiB",
+                capture.display(),
+                r.peak_mb
+            );
         }
     }
     print!("{out}");

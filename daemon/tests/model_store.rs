@@ -179,7 +179,10 @@ fn a_retired_scans_signature_is_read_back_from_the_store_on_a_revision() {
     hub.revise_pose(1, Pose::identity()).unwrap();
     assert!(!hub.is_served(1), "scan 1 judged on its stored signature");
     hub.revise_pose(2, Pose::identity()).unwrap();
-    assert!(hub.is_served(2), "scan 2 served again without its signature");
+    assert!(
+        hub.is_served(2),
+        "scan 2 served again without its signature"
+    );
 }
 
 #[test]

@@ -278,6 +278,39 @@ fn a_scan_whose_signature_cannot_be_loaded_is_served_again() {
 }
 
 #[test]
+fn the_strongest_offers_are_the_candidates_when_many_scans_see_a_cell() {
+    // Ten distant views of one patch of floor, then a near view of it, then the near
+    // view again: the copy is redundant (its twin dominates every cell of it) even
+    // though the ten weaker scans offering those cells came first and fill the
+    // candidate cap.
+    let config = CoverageConfig {
+        max_candidates_per_cell: 4,
+        ..config()
+    };
+    let target = [1.5, 2.0, 0.0];
+    let mut index = Retirement::new(config);
+    for i in 0u32..10 {
+        let eye = [-1.5 + 0.35 * f64::from(i), -1.0, 2.2];
+        let p = pose(eye, target);
+        index.add(
+            i.into(),
+            ScanCoverage::of(&synthetic_scan(&p, 16), &config),
+            &p,
+        );
+    }
+    let near = pose([1.5, 1.2, 1.0], target);
+    let coverage = ScanCoverage::of(&synthetic_scan(&near, 16), &config);
+    index.add(10, coverage.clone(), &near);
+    assert!(!index.is_retired(10), "the near view adds detail");
+    let served_before = index.served();
+    assert!(served_before > 5, "most far views stay: {served_before}");
+    let changes = index.add(11, coverage, &near);
+    assert_eq!(changes.retired, vec![11]);
+    assert_eq!(index.witnesses_of_retired(11), vec![10]);
+    check_invariants(&index, 12);
+}
+
+#[test]
 fn identical_duplicates_keep_exactly_one() {
     let config = config();
     let p = pose([0.0, 0.0, 1.5], [2.0, 2.0, 0.5]);

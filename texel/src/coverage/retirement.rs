@@ -61,8 +61,11 @@ struct Entry {
 pub struct Retirement {
     config: CoverageConfig,
     scans: HashMap<ScanId, Entry>,
-    /// Served scans offering each cell.
-    cells: HashMap<CellKey, Vec<ScanId>>,
+    /// Served scans offering each cell with their offer's strength, strongest
+    /// first: a witness is looked for among the first `max_candidates_per_cell`,
+    /// and where hundreds of scans see a cell (a walk straight ahead) the
+    /// strongest are the ones that can stand in for another.
+    cells: HashMap<CellKey, Vec<(ScanId, f32)>>,
     served: usize,
     /// Drop the signatures of retired scans (see [`Retirement::shed_retired_signatures`]).
     shed_retired: bool,
@@ -284,12 +287,12 @@ impl Retirement {
         let cells: usize = self
             .cells
             .values()
-            .map(|v| v.capacity() * std::mem::size_of::<ScanId>())
+            .map(|v| v.capacity() * std::mem::size_of::<(ScanId, f32)>())
             .sum();
         entries
             + self.scans.capacity() * (std::mem::size_of::<(ScanId, Entry)>() + 8)
             + cells
-            + self.cells.capacity() * (std::mem::size_of::<(CellKey, Vec<ScanId>)>() + 8)
+            + self.cells.capacity() * (std::mem::size_of::<(CellKey, Vec<(ScanId, f32)>)>() + 8)
     }
 
     /// The offers of a signature placed at `world_from_scan`, one per cell it
@@ -381,7 +384,7 @@ impl Retirement {
                 .get(key)
                 .into_iter()
                 .flatten()
-                .copied()
+                .map(|&(t, _)| t)
                 .filter(|&t| t != id)
                 .take(self.config.max_candidates_per_cell.max(1));
             let found = known.chain(others).find(|&t| {
@@ -428,7 +431,7 @@ impl Retirement {
             .iter()
             .filter_map(|k| self.cells.get(k))
             .flatten()
-            .copied()
+            .map(|&(n, _)| n)
             .filter(|&n| n != id)
             .collect::<HashSet<_>>()
             .into_iter()
@@ -508,7 +511,10 @@ impl Retirement {
                 ))
             })
             .collect();
-        moved.sort_by(|(a, x), (b, y)| a.cmp(b).then(y.normal_accuracy.total_cmp(&x.normal_accuracy)));
+        moved.sort_by(|(a, x), (b, y)| {
+            a.cmp(b)
+                .then(y.normal_accuracy.total_cmp(&x.normal_accuracy))
+        });
         moved.dedup_by_key(|(k, _)| *k);
         moved
     }
@@ -593,22 +599,41 @@ impl Retirement {
         d
     }
 
-    /// Puts `id` in the cells of its offers.
+    /// Puts `id` in the cells of its offers, each at its strength's place.
     fn index(&mut self, id: ScanId) {
-        let keys = self.cells_of(id);
-        for k in keys {
+        let Some(e) = self.scans.get(&id) else {
+            return;
+        };
+        let placed: Vec<(CellKey, f32)> = e
+            .offers
+            .iter()
+            .map(|(k, o)| (*k, self.strength(o)))
+            .collect();
+        for (k, strength) in placed {
             let list = self.cells.entry(k).or_default();
-            if !list.contains(&id) {
-                list.push(id);
+            if list.iter().any(|&(s, _)| s == id) {
+                continue;
             }
+            // Ties keep arrival order: the earlier scan stays the first candidate.
+            let at = list.partition_point(|&(_, st)| st >= strength);
+            list.insert(at, (id, strength));
         }
+    }
+
+    /// How strongly an offer can stand in for others: its normal accuracy times its
+    /// range confidence at its own range (`r^-gamma`), the two factors of
+    /// [`Self::dominates`] that belong to the witness alone.
+    fn strength(&self, o: &Offer) -> f32 {
+        let range = f64::from(o.range_m).max(MIN_RANGE_M);
+        let s = f64::from(o.normal_accuracy) * range.powf(-self.config.gamma());
+        if s.is_finite() { s as f32 } else { 0.0 }
     }
 
     /// Takes `id` out of the cells of its offers.
     fn unindex(&mut self, id: ScanId) {
         for k in self.cells_of(id) {
             if let Some(list) = self.cells.get_mut(&k) {
-                list.retain(|&s| s != id);
+                list.retain(|&(s, _)| s != id);
                 if list.is_empty() {
                     self.cells.remove(&k);
                 }
