@@ -182,10 +182,12 @@ impl Level {
     }
 }
 
-/// A scan with its range-image pyramid.
+/// A scan's range-image pyramid. It holds what alignment reads and nothing of the
+/// scan itself: a keyframe keeps its pyramid for thousands of frames, and the scan's
+/// mesh and EO texture (two thirds of a pyramid's memory with the scan) are the
+/// model's to keep or drop.
 #[derive(Debug, Clone)]
 pub struct ScanPyramid {
-    pub scan: Arc<TexelScan>,
     pub projector: GridProjector,
     /// Finest first.
     pub levels: Vec<Level>,
@@ -237,7 +239,6 @@ impl ScanPyramid {
             out.push(coarser);
         }
         Self {
-            scan,
             projector,
             levels: out,
         }
@@ -247,8 +248,7 @@ impl ScanPyramid {
         self.levels.len()
     }
 
-    /// Heap bytes this pyramid keeps alive: its levels and its scan (mesh and EO
-    /// texture, which the scan shares with the frame it came from and the model).
+    /// Heap bytes this pyramid keeps alive: its levels.
     pub fn heap_bytes(&self) -> usize {
         use std::mem::size_of;
         let levels: usize = self
@@ -261,17 +261,7 @@ impl ScanPyramid {
                     + l.gradient.capacity() * size_of::<[f32; 3]>()
             })
             .sum();
-        let s = &self.scan;
-        let scan = s.vertices.capacity() * size_of::<[f32; 3]>()
-            + s.tex_coords.capacity() * size_of::<[f32; 2]>()
-            + s.vertex_textured.capacity()
-            + s.vertex_pixel.capacity() * size_of::<u32>()
-            + s.pixel_vertex.capacity() * size_of::<u32>()
-            + s.triangles.capacity() * size_of::<[u32; 3]>()
-            + s.triangle_accuracy.capacity() * size_of::<f32>()
-            + s.triangle_flags.capacity() * size_of::<texel::scan::TriangleFlags>()
-            + s.texture.rgb.capacity();
-        levels + self.levels.capacity() * size_of::<Level>() + scan
+        levels + self.levels.capacity() * size_of::<Level>()
     }
 }
 

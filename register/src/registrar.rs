@@ -40,6 +40,7 @@ struct Keyframe {
 
 /// A scan that failed, waiting for a later keyframe to register against.
 struct Pending {
+    scan: Arc<TexelScan>,
     pyramid: Arc<ScanPyramid>,
     retries: u32,
 }
@@ -232,7 +233,7 @@ impl Registrar {
         let timestamp_ns = scan.timestamp_ns;
         let seq = scan.seq;
         let pyramid = Arc::new(ScanPyramid::build_with(
-            scan,
+            Arc::clone(&scan),
             &lidar,
             PyramidOptions {
                 levels: self.config.align.pyramid_levels,
@@ -240,17 +241,17 @@ impl Registrar {
             },
         ));
         if self.scans.is_empty() {
-            return self.anchor_first(pyramid);
+            return self.anchor_first(scan, pyramid);
         }
         let initial = self.motion.predict(timestamp_ns);
         let alignment = self.align_to_window(&pyramid, &initial);
         self.touch_window();
         if let Err(reason) = &alignment.status {
             self.stats.failed += 1;
-            self.keep_for_retry(Arc::clone(&pyramid));
+            self.keep_for_retry(scan, Arc::clone(&pyramid));
             return failed_result(timestamp_ns, seq, &alignment, reason.clone());
         }
-        let mut result = self.insert(pyramid, &alignment, true);
+        let mut result = self.insert(scan, pyramid, &alignment, true);
         self.stats.registered += 1;
         self.retry_pending();
         result.world_from_scan = result
@@ -291,8 +292,7 @@ impl Registrar {
         }
     }
 
-    fn anchor_first(&mut self, pyramid: Arc<ScanPyramid>) -> RegistrationResult {
-        let scan = Arc::clone(&pyramid.scan);
+    fn anchor_first(&mut self, scan: Arc<TexelScan>, pyramid: Arc<ScanPyramid>) -> RegistrationResult {
         let ordinal = self.graph.add_node(self.anchor);
         let id = self.scans.push(ScanRecord {
             keyframe_from_scan: Pose::identity(),
@@ -363,11 +363,11 @@ impl Registrar {
     /// may re-localise or become keyframes.
     fn insert(
         &mut self,
+        scan: Arc<TexelScan>,
         pyramid: Arc<ScanPyramid>,
         alignment: &Alignment,
         live: bool,
     ) -> RegistrationResult {
-        let scan = Arc::clone(&pyramid.scan);
         let pose = alignment.world_from_source;
         let reference = self.reference_keyframe(alignment);
         let id = self.scans.push(ScanRecord {
@@ -525,11 +525,12 @@ impl Registrar {
         self.evict();
     }
 
-    fn keep_for_retry(&mut self, pyramid: Arc<ScanPyramid>) {
+    fn keep_for_retry(&mut self, scan: Arc<TexelScan>, pyramid: Arc<ScanPyramid>) {
         if self.config.retry.max_pending == 0 || self.config.retry.max_retries == 0 {
             return;
         }
         self.pending.push_back(Pending {
+            scan,
             pyramid,
             retries: 0,
         });
@@ -557,7 +558,7 @@ impl Registrar {
         while let Some(mut p) = self.pending.pop_front() {
             let alignment = self.align_to_window(&p.pyramid, &guess);
             if alignment.is_ok() {
-                let result = self.insert(Arc::clone(&p.pyramid), &alignment, false);
+                let result = self.insert(Arc::clone(&p.scan), Arc::clone(&p.pyramid), &alignment, false);
                 self.stats.recovered += 1;
                 self.recovered.push(result);
             } else {
