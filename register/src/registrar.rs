@@ -292,7 +292,11 @@ impl Registrar {
         }
     }
 
-    fn anchor_first(&mut self, scan: Arc<TexelScan>, pyramid: Arc<ScanPyramid>) -> RegistrationResult {
+    fn anchor_first(
+        &mut self,
+        scan: Arc<TexelScan>,
+        pyramid: Arc<ScanPyramid>,
+    ) -> RegistrationResult {
         let ordinal = self.graph.add_node(self.anchor);
         let id = self.scans.push(ScanRecord {
             keyframe_from_scan: Pose::identity(),
@@ -558,7 +562,12 @@ impl Registrar {
         while let Some(mut p) = self.pending.pop_front() {
             let alignment = self.align_to_window(&p.pyramid, &guess);
             if alignment.is_ok() {
-                let result = self.insert(Arc::clone(&p.scan), Arc::clone(&p.pyramid), &alignment, false);
+                let result = self.insert(
+                    Arc::clone(&p.scan),
+                    Arc::clone(&p.pyramid),
+                    &alignment,
+                    false,
+                );
                 self.stats.recovered += 1;
                 self.recovered.push(result);
             } else {

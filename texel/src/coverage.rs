@@ -41,6 +41,10 @@ pub struct CoverageConfig {
     pub range_gamma: f64,
     /// Served scans examined per cell when looking for a dominating offer.
     pub max_candidates_per_cell: usize,
+    /// Examine a cell's served scans strongest offer first instead of in arrival
+    /// order. Retires far more of a walk straight ahead, far less of a walk looped
+    /// over mapped ground (docs/model.md, "The index and its bounded work").
+    pub strongest_candidates_first: bool,
     /// Redundancy tests per `add` / `revise` call; past it, the safe outcome is
     /// taken (a scan whose witness moved is served again, unexamined neighbours
     /// stay served).
@@ -57,6 +61,7 @@ impl Default for CoverageConfig {
             reliability_margin: 0.1,
             range_gamma: 1.0,
             max_candidates_per_cell: 32,
+            strongest_candidates_first: false,
             max_checks_per_call: 64,
         }
     }

@@ -178,11 +178,13 @@ proptest! {
         angle_deg in 0.0..40.0f64,
         margin in 0.0..0.3f64,
         budget in 1usize..40,
+        strongest in any::<bool>(),
     ) {
         let config = CoverageConfig {
             angle_tolerance_deg: angle_deg,
             reliability_margin: margin,
             max_checks_per_call: budget,
+            strongest_candidates_first: strongest,
             ..config()
         };
         let mut all_poses = poses.clone();
@@ -283,9 +285,13 @@ fn the_strongest_offers_are_the_candidates_when_many_scans_see_a_cell() {
     // view again: the copy is redundant (its twin dominates every cell of it) even
     // though the ten weaker scans offering those cells came first and fill the
     // candidate cap.
-    let config = CoverageConfig {
+    let arrival = CoverageConfig {
         max_candidates_per_cell: 4,
         ..config()
+    };
+    let config = CoverageConfig {
+        strongest_candidates_first: true,
+        ..arrival
     };
     let target = [1.5, 2.0, 0.0];
     let mut index = Retirement::new(config);
@@ -304,9 +310,24 @@ fn the_strongest_offers_are_the_candidates_when_many_scans_see_a_cell() {
     assert!(!index.is_retired(10), "the near view adds detail");
     let served_before = index.served();
     assert!(served_before > 5, "most far views stay: {served_before}");
-    let changes = index.add(11, coverage, &near);
+    let changes = index.add(11, coverage.clone(), &near);
     assert_eq!(changes.retired, vec![11]);
     assert_eq!(index.witnesses_of_retired(11), vec![10]);
+    check_invariants(&index, 12);
+
+    // In arrival order the ten far views fill the cap and the copy stays served.
+    let mut index = Retirement::new(arrival);
+    for i in 0u32..10 {
+        let eye = [-1.5 + 0.35 * f64::from(i), -1.0, 2.2];
+        let p = pose(eye, target);
+        index.add(
+            i.into(),
+            ScanCoverage::of(&synthetic_scan(&p, 16), &arrival),
+            &p,
+        );
+    }
+    index.add(10, coverage.clone(), &near);
+    assert!(index.add(11, coverage, &near).retired.is_empty());
     check_invariants(&index, 12);
 }
 

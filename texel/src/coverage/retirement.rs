@@ -61,10 +61,9 @@ struct Entry {
 pub struct Retirement {
     config: CoverageConfig,
     scans: HashMap<ScanId, Entry>,
-    /// Served scans offering each cell with their offer's strength, strongest
-    /// first: a witness is looked for among the first `max_candidates_per_cell`,
-    /// and where hundreds of scans see a cell (a walk straight ahead) the
-    /// strongest are the ones that can stand in for another.
+    /// Served scans offering each cell with their offer's strength, in arrival
+    /// order or strongest first (`strongest_candidates_first`): a witness is looked
+    /// for among the first `max_candidates_per_cell`.
     cells: HashMap<CellKey, Vec<(ScanId, f32)>>,
     served: usize,
     /// Drop the signatures of retired scans (see [`Retirement::shed_retired_signatures`]).
@@ -615,7 +614,11 @@ impl Retirement {
                 continue;
             }
             // Ties keep arrival order: the earlier scan stays the first candidate.
-            let at = list.partition_point(|&(_, st)| st >= strength);
+            let at = if self.config.strongest_candidates_first {
+                list.partition_point(|&(_, st)| st >= strength)
+            } else {
+                list.len()
+            };
             list.insert(at, (id, strength));
         }
     }
