@@ -42,6 +42,7 @@ fn every_shipped_scene_loads_and_renders() {
             "courtyard",
             "lab",
             "lab-walk",
+            "long-hall",
             "plane"
         ]
     );
