@@ -83,6 +83,7 @@ impl Registration for TruthPlacement {
                         world_from_scan,
                     }],
                     recovered: 0,
+                    anchors: Vec::new(),
                 }
             }
             None => StageOutput {
@@ -92,6 +93,7 @@ impl Registration for TruthPlacement {
                 }),
                 events: Vec::new(),
                 recovered: 0,
+                anchors: Vec::new(),
             },
         }
     }

@@ -36,7 +36,7 @@ pub fn read_capture(path: &Path) -> Result<CalibInput, CalibError> {
                     pair,
                 });
             }
-            Ok(TexelItem::Pose { .. }) => {}
+            Ok(TexelItem::Pose { .. } | TexelItem::Anchor(_)) => {}
             Err(e) => {
                 let fatal = e.is_fatal();
                 // The capture's own extrinsic is not used, so its absence is no news.

@@ -79,7 +79,7 @@ fn read_frame(
                 }
                 frames += 1;
             }
-            Ok(TexelItem::Pose { .. }) => {}
+            Ok(TexelItem::Pose { .. } | TexelItem::Anchor(_)) => {}
         }
     }
     let Some((pair, sensor)) = found else {

@@ -6,7 +6,7 @@ use std::fmt::{self, Write as _};
 use std::path::Path;
 
 use texel::PinholeCamera;
-use texel::capture::{CaptureError, CaptureEvent, CaptureReader, PoseTopic};
+use texel::capture::{CaptureError, CaptureEvent, CaptureReader, PoseTopic, topics};
 use texel::pose::{Pose, pose_to_parts};
 use texel::sensor::SensorInfo;
 
@@ -148,6 +148,9 @@ pub fn summarize(path: &Path) -> Result<CaptureSummary, CaptureError> {
                     PoseTopic::Texel => "/texel/pose",
                 };
                 *summary.poses.entry(name).or_insert(0) += 1;
+            }
+            Ok(CaptureEvent::Anchor(_)) => {
+                *summary.poses.entry(topics::TEXEL_ANCHOR).or_insert(0) += 1;
             }
             Ok(CaptureEvent::Intensity { .. } | CaptureEvent::Other { .. }) => {}
             Err(e) => {

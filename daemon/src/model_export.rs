@@ -62,7 +62,7 @@ pub fn export_model(
         let index = frames;
         frames += 1;
         let timestamp_ns = pair.timestamp_ns();
-        if registered && poses.texel_poses().get(&timestamp_ns).is_none() {
+        if registered && poses.texel_pose(timestamp_ns).is_none() {
             continue;
         }
         let scan = match sensors.fuse(pair, &model, &fuse_config) {
@@ -73,7 +73,7 @@ pub fn export_model(
             }
         };
         if registered {
-            if let Some(&pose) = poses.texel_poses().get(&timestamp_ns) {
+            if let Some(pose) = poses.texel_pose(timestamp_ns) {
                 placed.push((scan, pose));
             }
             continue;
@@ -87,6 +87,8 @@ pub fn export_model(
             Registrar::with_anchor(registration.clone(), anchor)
         });
         registrar.register(scan, &model.lidar);
+        // A whole-capture export records no anchors.
+        registrar.take_anchors();
         for event in registrar.take_events() {
             if let ModelEvent::ScanAdded { scan, .. } = event {
                 scans_by_id.push(scan);

@@ -15,7 +15,7 @@ use std::thread::JoinHandle;
 use std::time::Duration;
 
 use texel::capture::{
-    CaptureError, CaptureWriter, EoEncoding, PoseTopic, RangeEncoding, WriterOptions,
+    CaptureError, CaptureWriter, EoEncoding, PoseAnchor, PoseTopic, RangeEncoding, WriterOptions,
 };
 use texel::{EoFrame, Pose, RangeFrame, SensorModel};
 use tokio::sync::mpsc;
@@ -37,6 +37,9 @@ pub enum RecordItem {
         /// A revision of a pose recorded before (logged at the latest frame time).
         revision: bool,
     },
+    /// `/texel/anchor`: how a registered scan hangs from its keyframe (logged at
+    /// the latest frame time, like a revision).
+    Anchor(PoseAnchor),
     /// Nothing to write; lets an idle recorder flush on time.
     Tick,
 }
@@ -161,6 +164,9 @@ fn write_loop<W: std::io::Write + std::io::Seek>(
                 } else {
                     writer.write_pose(topic, timestamp_ns, &world_from_eo)
                 }
+            }
+            RecordItem::Anchor(anchor) => {
+                writer.write_anchor(&anchor, latest_ns.max(anchor.timestamp_ns))
             }
             RecordItem::Tick => writer.flush_if_due(),
         };

@@ -15,7 +15,8 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use texel::capture::{
-    CaptureError, CaptureEvent, CaptureReader, PoseTopic, SensorCache, TexelItem, open_texel_frames,
+    CaptureError, CaptureEvent, CaptureReader, PoseAnchor, PoseTopic, RegisteredPoses, SensorCache,
+    TexelItem, open_texel_frames, topics,
 };
 use texel::model::ScanId;
 use texel::{FuseConfig, Pose, SensorModel, TexelScan};
@@ -68,13 +69,14 @@ pub fn segments(base: &Path) -> Result<Segments, ResumeError> {
     })
 }
 
-/// The poses a recording holds: ids by first appearance, the last pose of each.
+/// The poses a recording holds: ids by first `/texel/pose`, the registered pose of
+/// each (its last `/texel/pose`, or its keyframe's composed with its `/texel/anchor`).
 #[derive(Debug, Clone, Default)]
 pub struct RecordedPoses {
     /// Frame timestamps in id order.
     pub timestamps: Vec<u64>,
     ids: HashMap<u64, ScanId>,
-    latest: HashMap<u64, Pose>,
+    registered: RegisteredPoses,
 }
 
 impl RecordedPoses {
@@ -84,14 +86,18 @@ impl RecordedPoses {
             self.timestamps.push(timestamp_ns);
             next
         });
-        self.latest.insert(timestamp_ns, world_from_eo);
+        self.registered.insert_pose(timestamp_ns, world_from_eo);
+    }
+
+    fn insert_anchor(&mut self, anchor: PoseAnchor) {
+        self.registered.insert_anchor(anchor);
     }
 
     /// The id and current pose of the scan of frame `timestamp_ns`.
     pub fn get(&self, timestamp_ns: u64) -> Option<(ScanId, Pose)> {
         Some((
             *self.ids.get(&timestamp_ns)?,
-            *self.latest.get(&timestamp_ns)?,
+            self.registered.get(timestamp_ns)?,
         ))
     }
 
@@ -129,8 +135,8 @@ pub struct RestoreSummary {
     pub problems: Vec<String>,
 }
 
-/// Reads every `/texel/pose` of the segments, in recording order (only the pose
-/// topic is decoded).
+/// Reads every `/texel/pose` and `/texel/anchor` of the segments, in recording
+/// order (only those topics are decoded).
 pub fn read_poses(segments: &[PathBuf]) -> Result<RecordedPoses, ResumeError> {
     let mut poses = RecordedPoses::default();
     for path in segments {
@@ -142,16 +148,18 @@ pub fn read_poses(segments: &[PathBuf]) -> Result<RecordedPoses, ResumeError> {
                 Err(e) if !e.is_fatal() => continue,
                 Err(_) => break,
             };
-            if message.channel.topic != PoseTopic::Texel.topic() {
+            let topic = message.channel.topic.as_str();
+            if topic != PoseTopic::Texel.topic() && topic != topics::TEXEL_ANCHOR {
                 continue;
             }
-            if let Ok(CaptureEvent::Pose {
-                topic: PoseTopic::Texel,
-                timestamp_ns,
-                world_from_eo,
-            }) = reader.decode(&message)
-            {
-                poses.insert(timestamp_ns, world_from_eo);
+            match reader.decode(&message) {
+                Ok(CaptureEvent::Pose {
+                    topic: PoseTopic::Texel,
+                    timestamp_ns,
+                    world_from_eo,
+                }) => poses.insert(timestamp_ns, world_from_eo),
+                Ok(CaptureEvent::Anchor(anchor)) => poses.insert_anchor(anchor),
+                _ => {}
             }
         }
     }
@@ -175,7 +183,7 @@ pub fn restore(
         for item in open_texel_frames(path)? {
             let (pair, sensor) = match item {
                 Ok(TexelItem::Pair { pair, sensor }) => (pair, sensor),
-                Ok(TexelItem::Pose { .. }) => continue,
+                Ok(TexelItem::Pose { .. } | TexelItem::Anchor(_)) => continue,
                 Err(e) if e.is_fatal() => {
                     summary.problems.push(e.to_string());
                     break;

@@ -57,6 +57,7 @@ impl Registration for Scripted {
                 }),
                 events: Vec::new(),
                 recovered: 0,
+                anchors: Vec::new(),
             };
         }
         let mut events = Vec::new();
@@ -92,6 +93,7 @@ impl Registration for Scripted {
             },
             events,
             recovered,
+            anchors: Vec::new(),
         }
     }
 }

@@ -12,7 +12,7 @@ use std::process::Command;
 use std::time::Duration;
 
 use texel::Pose;
-use texel::capture::{CaptureEvent, CaptureReader, PoseTopic};
+use texel::capture::{CaptureEvent, CaptureReader, PoseTopic, RegisteredPoses};
 use texel::pose::pose_difference;
 use texel::wire::TextureFormat;
 use texel_client::{Client, Replica};
@@ -69,6 +69,24 @@ fn texel_poses(path: &Path) -> Vec<(u64, Pose)> {
             _ => None,
         })
         .collect()
+}
+
+/// The registered pose of every frame of a capture (`/texel/pose` and
+/// `/texel/anchor`), and how many frames hang from another.
+fn registered_poses(path: &Path) -> RegisteredPoses {
+    let mut poses = RegisteredPoses::default();
+    for e in CaptureReader::open(path).unwrap() {
+        match e.unwrap() {
+            CaptureEvent::Pose {
+                topic: PoseTopic::Texel,
+                timestamp_ns,
+                world_from_eo,
+            } => poses.insert_pose(timestamp_ns, world_from_eo),
+            CaptureEvent::Anchor(anchor) => poses.insert_anchor(anchor),
+            _ => {}
+        }
+    }
+    poses
 }
 
 fn texeld(args: &[&std::ffi::OsStr]) -> String {
@@ -162,16 +180,27 @@ async fn sim_scans_reach_a_client_registered_near_the_truth_and_replay_bit_ident
         }
     }
     assert_eq!((ranges, truths), (FRAMES, FRAMES));
-    // The last recorded pose of each frame is the pose the client holds (to the
-    // rounding of the capture's and the wire's quaternion normalisation).
+    // The registered pose the recording gives each frame is the pose the client
+    // holds: exactly (to the rounding of the capture's and the wire's quaternion
+    // normalisation) for a keyframe, whose every revision is recorded; within the
+    // revision thresholds (2 mm and 0.05 deg, for the frame's own pose and for its
+    // keyframe's, plus that angle over the lever between them) for a frame whose
+    // pose follows its keyframe's.
+    let registered = registered_poses(&live);
+    assert_eq!(registered.len(), FRAMES);
     for s in replica.model.scans() {
-        let last = recorded
-            .iter()
-            .rev()
-            .find(|(t, _)| *t == s.listing.timestamp_ns)
-            .unwrap();
-        let (angle, dist) = pose_difference(&last.1, &s.world_from_scan);
-        assert!(angle < 1e-12 && dist < 1e-12, "{angle} rad, {dist} m");
+        let t = s.listing.timestamp_ns;
+        let got = registered.get(t).unwrap();
+        let (angle, dist) = pose_difference(&got, &s.world_from_scan);
+        let own = recorded.iter().rev().find(|(r, _)| *r == t).unwrap().1;
+        if pose_difference(&own, &got) == (0.0, 0.0) {
+            assert!(angle < 1e-12 && dist < 1e-12, "{angle} rad, {dist} m");
+        } else {
+            assert!(
+                angle < 0.1f64.to_radians() && dist < 0.006,
+                "{angle} rad, {dist} m"
+            );
+        }
     }
 
     // 2. Replay determinism: the same frames in the same order give the same poses,

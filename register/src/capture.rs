@@ -141,7 +141,7 @@ pub fn register_capture(
             }) => {
                 truth.insert(timestamp_ns, world_from_eo);
             }
-            Ok(TexelItem::Pose { .. }) => {}
+            Ok(TexelItem::Pose { .. } | TexelItem::Anchor(_)) => {}
         }
     }
     if frame_count == 0 {
@@ -201,6 +201,7 @@ pub fn register_capture(
             }
         }
         registrar.take_events();
+        registrar.take_anchors();
         frames.push(FrameReport {
             index,
             timestamp_ns,
@@ -306,7 +307,11 @@ fn write_output(
                 break;
             }
         }
-        if message.channel.topic == topics::TEXEL_POSE {
+        // The earlier registration's poses and anchors are replaced as a whole: an
+        // old anchor composed with a new keyframe pose would place a frame wrongly.
+        if message.channel.topic == topics::TEXEL_POSE
+            || message.channel.topic == topics::TEXEL_ANCHOR
+        {
             continue;
         }
         writer.copy_message(&message)?;

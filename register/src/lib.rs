@@ -33,5 +33,5 @@ pub use capture::{RegisterCommandError, RegisterReport, default_anchor, register
 pub use config::{AlignConfig, ConfigError, RegistrationConfig, RobustKernel, Solver};
 pub use normal_eq::DegenerateDirection;
 pub use pyramid::{PyramidOptions, ScanPyramid};
-pub use registrar::{Registrar, RegistrarMemory, RegistrarStats};
+pub use registrar::{Registrar, RegistrarMemory, RegistrarStats, ScanAnchor};
 pub use result::{Alignment, FailureReason, Fitness, RegistrationResult, RegistrationStatus};

@@ -14,11 +14,13 @@ use std::collections::HashMap;
 use std::path::Path;
 use std::sync::Arc;
 
-use texel::capture::{CaptureError, CaptureEvent, CaptureReader, PoseTopic};
+use texel::capture::{
+    CaptureError, CaptureEvent, CaptureReader, PoseTopic, RegisteredPoses, topics,
+};
 use texel::model::{ModelEvent, ScanId};
 use texel::{PinholeCamera, Pose, TexelScan};
 
-use crate::{Registrar, RegistrationConfig, RegistrationStatus};
+use crate::{Registrar, RegistrationConfig, RegistrationStatus, ScanAnchor};
 
 /// What the stage is given with a scan.
 #[derive(Debug, Clone, Copy)]
@@ -59,6 +61,10 @@ pub struct StageOutput {
     pub events: Vec<ModelEvent>,
     /// Earlier failed scans this call placed (their `ScanAdded` are in `events`).
     pub recovered: u32,
+    /// How the scans this call placed or re-hung hang from their keyframes (empty
+    /// for a stage without a pose graph): a scan's revisions follow from its
+    /// keyframe's, so a recording need only record those of keyframes.
+    pub anchors: Vec<ScanAnchor>,
 }
 
 /// A registration stage. Synchronous: the pipeline calls it from its worker thread.
@@ -152,6 +158,7 @@ impl Registration for RegistrarStage {
         let result = registrar.register(Arc::clone(scan), input.lidar);
         let recovered = registrar.take_recovered().len() as u32;
         let events = registrar.take_events();
+        let anchors = registrar.take_anchors();
         let placement = match (&result.status, result.scan_id) {
             (RegistrationStatus::Failed { reason }, _) => Placement::Failed(PlacementFailure {
                 kind: failure_kind(reason),
@@ -170,6 +177,7 @@ impl Registration for RegistrarStage {
             placement,
             events,
             recovered,
+            anchors,
         }
     }
 }
@@ -189,7 +197,7 @@ fn failure_kind(reason: &crate::FailureReason) -> &'static str {
 /// Places scans at the poses a capture carries.
 #[derive(Debug, Clone, Default)]
 pub struct CapturePoses {
-    texel: HashMap<u64, Pose>,
+    texel: RegisteredPoses,
     truth: HashMap<u64, Pose>,
     next_id: ScanId,
 }
@@ -219,16 +227,20 @@ impl CapturePoses {
                 Err(_) => break,
             };
             let topic = message.channel.topic.as_str();
-            if topic != PoseTopic::Texel.topic() && topic != PoseTopic::Truth.topic() {
+            if topic != PoseTopic::Texel.topic()
+                && topic != PoseTopic::Truth.topic()
+                && topic != topics::TEXEL_ANCHOR
+            {
                 continue;
             }
-            if let Ok(CaptureEvent::Pose {
-                topic,
-                timestamp_ns,
-                world_from_eo,
-            }) = reader.decode(&message)
-            {
-                poses.insert(topic, timestamp_ns, world_from_eo);
+            match reader.decode(&message) {
+                Ok(CaptureEvent::Pose {
+                    topic,
+                    timestamp_ns,
+                    world_from_eo,
+                }) => poses.insert(topic, timestamp_ns, world_from_eo),
+                Ok(CaptureEvent::Anchor(anchor)) => poses.texel.insert_anchor(anchor),
+                _ => {}
             }
         }
         Ok(poses)
@@ -237,9 +249,11 @@ impl CapturePoses {
     /// Adds a pose; a later `/texel/pose` at the same timestamp is a revision and wins.
     pub fn insert(&mut self, topic: PoseTopic, timestamp_ns: u64, world_from_eo: Pose) {
         match topic {
-            PoseTopic::Texel => self.texel.insert(timestamp_ns, world_from_eo),
-            PoseTopic::Truth => self.truth.insert(timestamp_ns, world_from_eo),
-        };
+            PoseTopic::Texel => self.texel.insert_pose(timestamp_ns, world_from_eo),
+            PoseTopic::Truth => {
+                self.truth.insert(timestamp_ns, world_from_eo);
+            }
+        }
     }
 
     pub fn len(&self) -> usize {
@@ -265,9 +279,9 @@ impl CapturePoses {
         self.lookup(t)
     }
 
-    /// The `/texel/pose` table alone.
-    pub fn texel_poses(&self) -> &HashMap<u64, Pose> {
-        &self.texel
+    /// The registered pose at a timestamp (`/texel/pose` and `/texel/anchor`).
+    pub fn texel_pose(&self, t: u64) -> Option<Pose> {
+        self.texel.get(t)
     }
 
     /// The `/truth/pose` table alone.
@@ -276,7 +290,7 @@ impl CapturePoses {
     }
 
     fn lookup(&self, t: u64) -> Option<Pose> {
-        self.texel.get(&t).or_else(|| self.truth.get(&t)).copied()
+        self.texel.get(t).or_else(|| self.truth.get(&t).copied())
     }
 }
 
@@ -311,6 +325,7 @@ impl Registration for CapturePoses {
                         world_from_scan,
                     }],
                     recovered: 0,
+                    anchors: Vec::new(),
                 }
             }
             None => StageOutput {
@@ -322,6 +337,7 @@ impl Registration for CapturePoses {
                 }),
                 events: Vec::new(),
                 recovered: 0,
+                anchors: Vec::new(),
             },
         }
     }

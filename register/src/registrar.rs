@@ -27,6 +27,8 @@ const MIN_EDGE_CORRESPONDENCES: usize = 12;
 
 /// A keyframe: a graph node (its ordinal is the node's index).
 struct Keyframe {
+    /// The id of the scan that is the keyframe.
+    scan: u32,
     /// Built once when the scan arrived and kept for the window, loop closure and
     /// re-localisation; dropped when the keyframe has not been used for longest and
     /// more than `keyframes.max_resident` are held.
@@ -43,6 +45,17 @@ struct Pending {
     scan: Arc<TexelScan>,
     pyramid: Arc<ScanPyramid>,
     retries: u32,
+}
+
+/// How a scan hangs in the pose graph: from the keyframe that is scan `keyframe`
+/// (itself, for a keyframe), at `keyframe_from_scan`; its world pose is the
+/// keyframe's times that, `world_from_scan` now.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ScanAnchor {
+    pub id: ScanId,
+    pub keyframe: ScanId,
+    pub keyframe_from_scan: Pose,
+    pub world_from_scan: Pose,
 }
 
 /// Counters of what the registrar has done.
@@ -90,6 +103,8 @@ pub struct Registrar {
     motion: MotionModel,
     pending: VecDeque<Pending>,
     events: Vec<ModelEvent>,
+    /// Scans placed or re-hung since the last [`Registrar::take_anchors`].
+    rehung: Vec<u32>,
     recovered: Vec<RegistrationResult>,
     stats: RegistrarStats,
     /// Keyframe ordinal of the last accepted loop closure.
@@ -119,6 +134,7 @@ impl Registrar {
             motion: MotionModel::new(),
             pending: VecDeque::new(),
             events: Vec::new(),
+            rehung: Vec::new(),
             recovered: Vec::new(),
             stats: RegistrarStats::default(),
             last_loop_keyframe: None,
@@ -209,6 +225,28 @@ impl Registrar {
     /// the pose last sent for it.
     pub fn take_events(&mut self) -> Vec<ModelEvent> {
         std::mem::take(&mut self.events)
+    }
+
+    /// The scans placed or re-hung from another keyframe since the last call (each
+    /// once, as it hangs now), in id order: what a recording needs to derive every
+    /// scan's pose from its keyframe's, so that a revision of a keyframe need not be
+    /// followed by one for every scan hanging from it.
+    pub fn take_anchors(&mut self) -> Vec<ScanAnchor> {
+        let mut ids = std::mem::take(&mut self.rehung);
+        ids.sort_unstable();
+        ids.dedup();
+        ids.into_iter()
+            .filter_map(|id| {
+                let record = self.scans.get(id as usize)?;
+                let keyframe = self.keyframes.get(record.keyframe as usize)?;
+                Some(ScanAnchor {
+                    id: ScanId::from(id),
+                    keyframe: ScanId::from(keyframe.scan),
+                    keyframe_from_scan: record.keyframe_from_scan,
+                    world_from_scan: self.derived_pose(record)?,
+                })
+            })
+            .collect()
     }
 
     /// Results of earlier failed scans that a later retry registered.
@@ -305,10 +343,12 @@ impl Registrar {
             keyframe: 0,
         });
         self.keyframes.push(Keyframe {
+            scan: id as u32,
             pyramid: Some(pyramid),
             last_used: self.tick,
             members: vec![id as u32],
         });
+        self.rehung.push(id as u32);
         self.resident += 1;
         self.window.push_back(ordinal);
         self.motion.update(scan.timestamp_ns, self.anchor);
@@ -383,6 +423,7 @@ impl Registrar {
         if let Some(k) = self.keyframes.get_mut(reference) {
             k.members.push(id as u32);
         }
+        self.rehung.push(id as u32);
         self.events.push(ModelEvent::ScanAdded {
             id: id as ScanId,
             scan: Arc::clone(&scan),
@@ -505,10 +546,12 @@ impl Registrar {
             r.keyframe_from_scan = Pose::identity();
         }
         self.keyframes.push(Keyframe {
+            scan: id as u32,
             pyramid: Some(pyramid),
             last_used: self.tick,
             members: vec![id as u32],
         });
+        self.rehung.push(id as u32);
         self.resident += 1;
         self.enter_window(ordinal);
         self.stats.keyframes += 1;

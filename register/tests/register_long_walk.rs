@@ -14,7 +14,7 @@ use register_support::*;
 use texel::Pose;
 use texel::model::ModelEvent;
 use texel::pose::pose_difference;
-use texel_register::{Registrar, RegistrationConfig};
+use texel_register::{Registrar, RegistrationConfig, ScanAnchor};
 
 const FRAMES_PER_LAP: usize = 72;
 const LAPS: usize = 3;
@@ -53,6 +53,8 @@ struct Walk {
     nodes_after_lap: Vec<usize>,
     /// Per scan: its keyframe and its pose relative to it right after it was placed.
     placed: Vec<(usize, Pose)>,
+    /// Every anchor reported, in order.
+    anchors: Vec<ScanAnchor>,
 }
 
 fn walk(config: RegistrationConfig, laps_walked: usize) -> Walk {
@@ -63,6 +65,7 @@ fn walk(config: RegistrationConfig, laps_walked: usize) -> Walk {
     let mut events = Vec::new();
     let mut nodes_after_lap = Vec::new();
     let mut placed = Vec::new();
+    let mut anchors = Vec::new();
     for (k, t) in truth.iter().enumerate() {
         let r = reg.register(frame(&scene, &s, t, k), &s.model.lidar);
         assert!(r.status.is_registered(), "frame {k}: {:?}", r.status);
@@ -73,6 +76,7 @@ fn walk(config: RegistrationConfig, laps_walked: usize) -> Walk {
             reg.graph().poses()[kf].inverse() * reg.pose(id).unwrap(),
         ));
         events.extend(reg.take_events());
+        anchors.extend(reg.take_anchors());
         if (k + 1) % FRAMES_PER_LAP == 0 {
             nodes_after_lap.push(reg.graph().poses().len());
         }
@@ -83,6 +87,7 @@ fn walk(config: RegistrationConfig, laps_walked: usize) -> Walk {
         events,
         nodes_after_lap,
         placed,
+        anchors,
     }
 }
 
@@ -213,6 +218,35 @@ fn revisions_are_sent_only_beyond_the_thresholds_and_derived_poses_follow_keyfra
         followed > 0,
         "no keyframe moved after its scans were placed"
     );
+
+    // The anchors say how every scan hangs now: one per scan (re-localisation hangs
+    // a scan from another keyframe in the call that places it, and the anchor is
+    // reported as it hangs at the end of the call), composing its keyframe's pose
+    // into its own; keyframes hang from themselves.
+    let mut last: HashMap<u64, ScanAnchor> = HashMap::new();
+    for a in &w.anchors {
+        assert!(
+            last.insert(a.id, *a).is_none(),
+            "scan {} reported twice",
+            a.id
+        );
+    }
+    assert_eq!(last.len(), w.truth.len(), "every scan has an anchor");
+    let mut keyframes = 0;
+    for (id, a) in &last {
+        let derived = w.reg.pose(*id).unwrap();
+        let keyframe = w.reg.pose(a.keyframe).unwrap();
+        let (angle, dist) = pose_difference(&(keyframe * a.keyframe_from_scan), &derived);
+        assert!(
+            angle < 1e-9 && dist < 1e-9,
+            "scan {id}: {angle} rad {dist} m"
+        );
+        if a.keyframe == *id {
+            keyframes += 1;
+            assert_eq!(a.keyframe_from_scan, Pose::identity());
+        }
+    }
+    assert_eq!(keyframes as u64, w.reg.stats().keyframes);
 }
 
 impl Walk {

@@ -78,6 +78,18 @@ fn a_restored_registrar_goes_on_like_the_uninterrupted_one() {
         let (angle, dist) = pose_difference(&resumed.pose(id as u64).unwrap(), p);
         assert!(angle < 1e-9 && dist < 1e-9, "scan {id}: {dist} m");
     }
+    // The restored graph is this run's own: every restored scan is reported as it
+    // now hangs, for the recording to derive its pose from its new keyframe's.
+    let anchors = resumed.take_anchors();
+    assert_eq!(anchors.len(), CUT);
+    for a in &anchors {
+        let keyframe = resumed.pose(a.keyframe).unwrap();
+        let (angle, dist) =
+            pose_difference(&(keyframe * a.keyframe_from_scan), &placed[a.id as usize]);
+        assert!(angle < 1e-9 && dist < 1e-9, "scan {}: {dist} m", a.id);
+        assert_eq!(a.world_from_scan, resumed.pose(a.id).unwrap());
+    }
+    assert!(resumed.take_anchors().is_empty(), "taken once");
     assert!(resumed.stats().keyframes >= 2, "{:?}", resumed.stats());
     for (k, f) in frames.iter().enumerate().skip(CUT) {
         let r = resumed.register(Arc::clone(f), &s.model.lidar);

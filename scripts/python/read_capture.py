@@ -35,6 +35,11 @@ def main():
             if topic == "/texel/sensor":
                 out["sensor"] = json.loads(message.data)
                 continue
+            if topic == "/texel/anchor":
+                anchor = json.loads(message.data)
+                anchor["log_time"] = message.log_time
+                out.setdefault("anchors", []).append(anchor)
+                continue
             if channel.message_encoding != "protobuf":
                 continue
             decoded = factory.decoder_for(channel.message_encoding, schema)(message.data)

@@ -8,7 +8,7 @@ use std::ffi::OsStr;
 
 use serde_json::Value;
 use texel::capture::{
-    CaptureWriter, EoEncoding, PoseTopic, RangeEncoding, TexelItem, WriterOptions,
+    CaptureWriter, EoEncoding, PoseAnchor, PoseTopic, RangeEncoding, TexelItem, WriterOptions,
     open_texel_frames,
 };
 use texel::pose::{pose_from_parts, pose_to_parts};
@@ -58,6 +58,7 @@ fn python_written_captures_read_back_identically() {
                     assert_eq!(topic, PoseTopic::Truth);
                     poses.push((timestamp_ns, world_from_eo));
                 }
+                TexelItem::Anchor(a) => panic!("the Python capture has no anchors: {a:?}"),
             }
         }
         let sensor = sensor.expect("a sensor model");
@@ -182,6 +183,7 @@ fn captures_written_here_decode_in_python() {
     w.write_sensor(&model, t0).unwrap();
     let mut ranges = Vec::new();
     let mut rgbs = Vec::new();
+    let mut anchors = Vec::new();
     for (i, eo_encoding) in EoEncoding::ALL.iter().enumerate() {
         let t = t0 + (i as u64 + 1) * 50_000_000;
         let mut r = RangeFrame::empty(10, 4, t, i as u32);
@@ -210,6 +212,14 @@ fn captures_written_here_decode_in_python() {
             &pose_from_parts([i as f64, 1.0, 2.0], [0.0, 0.0, 0.0, 1.0]).unwrap(),
         )
         .unwrap();
+        // Every frame hangs from the first (itself, for the first).
+        let anchor = PoseAnchor {
+            timestamp_ns: t,
+            keyframe_timestamp_ns: t0,
+            keyframe_from_eo: pose_from_parts([i as f64, 0.0, 0.0], [0.0, 0.0, 0.6, 0.8]).unwrap(),
+        };
+        w.write_anchor(&anchor, t).unwrap();
+        anchors.push(anchor);
         ranges.push((r, encoding));
         rgbs.push((e, *eo_encoding));
     }
@@ -222,6 +232,33 @@ fn captures_written_here_decode_in_python() {
     assert_eq!(got["topics"]["/lidar/intensity"], 5);
     assert_eq!(got["topics"]["/eo/image"], 5);
     assert_eq!(got["topics"]["/texel/pose"], 5);
+    assert_eq!(
+        got["schemas"]["/texel/anchor"],
+        serde_json::json!(["texel.Anchor", "jsonschema", "json"])
+    );
+    for (a, g) in anchors.iter().zip(got["anchors"].as_array().unwrap()) {
+        let ns =
+            |v: &Value| v["sec"].as_u64().unwrap() * 1_000_000_000 + v["nsec"].as_u64().unwrap();
+        assert_eq!(ns(&g["timestamp"]), a.timestamp_ns);
+        assert_eq!(ns(&g["keyframe"]), a.keyframe_timestamp_ns);
+        assert_eq!(g["log_time"].as_u64().unwrap(), a.timestamp_ns);
+        let (t, q) = pose_to_parts(&a.keyframe_from_eo);
+        let r = &g["rotation"];
+        assert_eq!(
+            [
+                &g["translation"]["x"],
+                &g["translation"]["y"],
+                &g["translation"]["z"]
+            ]
+            .map(|v| v.as_f64().unwrap()),
+            t
+        );
+        assert_eq!(
+            [&r["x"], &r["y"], &r["z"], &r["w"]].map(|v| v.as_f64().unwrap()),
+            q
+        );
+    }
+    assert_eq!(got["anchors"].as_array().unwrap().len(), 5);
     assert_eq!(got["schemas"]["/lidar/range"][0], "foxglove.RawImage");
     assert_eq!(
         got["schemas"]["/texel/sensor"],

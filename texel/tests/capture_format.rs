@@ -9,8 +9,8 @@ use std::rc::Rc;
 use std::time::Duration;
 
 use texel::capture::{
-    CaptureError, CaptureEvent, CaptureReader, CaptureWriter, EoEncoding, PoseTopic, RangeEncoding,
-    TexelItem, WriterOptions, open_texel_frames,
+    CaptureError, CaptureEvent, CaptureReader, CaptureWriter, EoEncoding, PoseAnchor, PoseTopic,
+    RangeEncoding, TexelItem, WriterOptions, open_texel_frames,
 };
 use texel::pose::pose_from_parts;
 use texel::{Distortion, EoFrame, PinholeCamera, PlumbBob, RangeFrame, RangeNoise, SensorModel};
@@ -125,6 +125,7 @@ fn every_encoding_round_trips() {
     let mut w = CaptureWriter::create(&path, WriterOptions::default()).unwrap();
     w.write_sensor(&model, 1).unwrap();
     let mut expected = Vec::new();
+    let mut anchors = Vec::new();
     for (i, eo_enc) in EoEncoding::ALL.iter().enumerate() {
         let i = i as u32;
         let r = range_frame(i);
@@ -142,6 +143,16 @@ fn every_encoding_round_trips() {
             &pose_from_parts([i as f64, 0.0, 1.0], [0.0, 0.0, 0.0, 1.0]).unwrap(),
         )
         .unwrap();
+        // Each frame hangs from the first, logged later than the frame (as a
+        // re-hung one is).
+        let anchor = PoseAnchor {
+            timestamp_ns: r.timestamp_ns,
+            keyframe_timestamp_ns: range_frame(0).timestamp_ns,
+            keyframe_from_eo: pose_from_parts([0.5, -0.25, i as f64], [0.1, 0.2, 0.3, 0.9])
+                .unwrap(),
+        };
+        w.write_anchor(&anchor, r.timestamp_ns + 1).unwrap();
+        anchors.push(anchor);
         expected.push((r, range_enc, e, *eo_enc));
     }
     // A compressed EO frame too.
@@ -155,6 +166,7 @@ fn every_encoding_round_trips() {
 
     let mut pairs = Vec::new();
     let mut truth = 0;
+    let mut read_anchors = Vec::new();
     let mut last_sensor = None;
     for item in open_texel_frames(&path).unwrap() {
         match item.unwrap() {
@@ -166,9 +178,19 @@ fn every_encoding_round_trips() {
                 assert_eq!(topic, PoseTopic::Truth);
                 truth += 1;
             }
+            TexelItem::Anchor(a) => read_anchors.push(a),
         }
     }
     assert_eq!(truth, 5);
+    assert_eq!(read_anchors.len(), anchors.len());
+    for (got, want) in read_anchors.iter().zip(&anchors) {
+        assert_eq!(got.timestamp_ns, want.timestamp_ns);
+        assert_eq!(got.keyframe_timestamp_ns, want.keyframe_timestamp_ns);
+        assert_eq!(
+            got.keyframe_from_eo.to_homogeneous(),
+            want.keyframe_from_eo.to_homogeneous()
+        );
+    }
     assert_eq!(
         *last_sensor.unwrap(),
         model,

@@ -6,7 +6,9 @@ use std::collections::BTreeMap;
 use std::path::Path;
 use std::sync::Arc;
 
-use texel::capture::{CaptureError, PoseTopic, SensorCache, TexelItem, open_texel_frames};
+use texel::capture::{
+    CaptureError, PoseTopic, RegisteredPoses, SensorCache, TexelItem, open_texel_frames,
+};
 use texel::model::{Model, ModelEvent};
 use texel::{FuseConfig, PinholeCamera, Pose, TexelScan};
 
@@ -59,7 +61,7 @@ pub fn load_capture(path: &Path) -> Result<LoadedCapture, LoadError> {
     let mut sensors = SensorCache::new();
     let mut scans: Vec<TexelScan> = Vec::new();
     let mut eo_camera = None;
-    let mut registered: BTreeMap<u64, Pose> = BTreeMap::new();
+    let mut registered = RegisteredPoses::default();
     let mut truth: BTreeMap<u64, Pose> = BTreeMap::new();
     let mut warnings = Vec::new();
     let config = FuseConfig::default();
@@ -79,13 +81,13 @@ pub fn load_capture(path: &Path) -> Result<LoadedCapture, LoadError> {
                 topic,
                 timestamp_ns,
                 world_from_eo,
-            }) => {
-                let table = match topic {
-                    PoseTopic::Texel => &mut registered,
-                    PoseTopic::Truth => &mut truth,
-                };
-                table.insert(timestamp_ns, world_from_eo);
-            }
+            }) => match topic {
+                PoseTopic::Texel => registered.insert_pose(timestamp_ns, world_from_eo),
+                PoseTopic::Truth => {
+                    truth.insert(timestamp_ns, world_from_eo);
+                }
+            },
+            Ok(TexelItem::Anchor(anchor)) => registered.insert_anchor(anchor),
             // A damaged message or file: keep what was read, say what happened.
             Err(e) => warnings.push(e.to_string()),
         }
@@ -94,7 +96,7 @@ pub fn load_capture(path: &Path) -> Result<LoadedCapture, LoadError> {
         return Err(LoadError::NoFrames { path: display });
     };
     let (pose_source, table) = if !registered.is_empty() {
-        (PoseSource::Registered, registered)
+        (PoseSource::Registered, registered.iter().collect())
     } else if !truth.is_empty() {
         (PoseSource::Truth, truth)
     } else {

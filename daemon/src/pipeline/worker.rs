@@ -1,7 +1,9 @@
 //! The worker thread: fuses each texel frame into a scan (`texel::fuse`), hands it to
-//! the registration stage, records every pose the stage decides (`/texel/pose`, a
-//! revision as a later message at the same frame timestamp) and passes the model
-//! changes, in order, to the encode stage. Synchronous, on its own thread, so the
+//! the registration stage, records the poses the stage decides (`/texel/pose` when a
+//! scan is placed, `/texel/anchor` for the keyframe it hangs from, and a revision, as
+//! a later `/texel/pose` at the same frame timestamp, only for a scan that hangs from
+//! no other: the others follow their keyframe) and passes the model changes, in
+//! order, to the encode stage. Synchronous, on its own thread, so the
 //! async runtime never waits on computation; wire encoding happens on the encode
 //! thread, so registration latency is not serialised behind JPEG compression.
 //!
@@ -11,7 +13,7 @@
 use std::sync::Arc;
 use std::time::Instant;
 
-use texel::capture::PoseTopic;
+use texel::capture::{PoseAnchor, PoseTopic};
 use texel::model::{ModelEvent, ScanId};
 use texel::{FuseConfig, Pose, Sensor, SensorModel, TexelScan, fuse};
 use tokio::sync::mpsc;
@@ -21,6 +23,7 @@ use super::ingest::PairJob;
 use super::placement::{Placement, Registration, ScanInput};
 use crate::record::RecordItem;
 use crate::status::{Counter, Metrics, Stage};
+use texel_register::ScanAnchor;
 
 pub struct Worker {
     pub jobs: mpsc::Receiver<PairJob>,
@@ -40,7 +43,10 @@ impl Worker {
         // The ray table is built once per sensor model, not per frame.
         let mut sensor: Option<(Arc<SensorModel>, Sensor)> = None;
         // Timestamps of the scans in the model by id, to record pose revisions.
-        let mut timestamps: Vec<u64> = std::mem::take(&mut self.timestamps);
+        let mut recorded = Recorded {
+            timestamps: std::mem::take(&mut self.timestamps),
+            hanging: Vec::new(),
+        };
         while let Some(job) = self.jobs.blocking_recv() {
             if sensor.as_ref().is_none_or(|(m, _)| **m != *job.sensor) {
                 sensor = Some((Arc::clone(&job.sensor), Sensor::new((*job.sensor).clone())));
@@ -48,7 +54,7 @@ impl Worker {
             let Some((_, s)) = &sensor else {
                 continue;
             };
-            if !self.process(job, s, &mut timestamps) {
+            if !self.process(job, s, &mut recorded) {
                 // The encode stage has stopped: nothing more can be published.
                 break;
             }
@@ -65,7 +71,7 @@ impl Worker {
 
     /// Fuses and registers one texel frame and publishes what changed; false when the
     /// encode stage is gone.
-    fn process(&mut self, job: PairJob, sensor: &Sensor, timestamps: &mut Vec<u64>) -> bool {
+    fn process(&mut self, job: PairJob, sensor: &Sensor, recorded: &mut Recorded) -> bool {
         let timestamp_ns = job.pair.timestamp_ns();
         let started = Instant::now();
         // The scan shares the EO frame as its texture (the recorder may still hold it).
@@ -118,19 +124,33 @@ impl Worker {
             Placement::Placed { id, .. } => Some(id),
             Placement::Failed(_) => None,
         };
+        // How scans hang decides which revisions are recorded; the anchors are
+        // recorded after the poses of the scans they concern.
+        for anchor in &output.anchors {
+            recorded.set_hanging(anchor.id, anchor.keyframe != anchor.id);
+        }
+        let added: Vec<ScanId> = output
+            .events
+            .iter()
+            .filter_map(|e| match e {
+                ModelEvent::ScanAdded { id, .. } => Some(*id),
+                _ => None,
+            })
+            .collect();
+        let anchors = output.anchors;
         for event in output.events {
             let item = match event {
                 ModelEvent::ScanAdded {
                     id,
                     scan,
                     world_from_scan,
-                } => self.added(id, scan, world_from_scan, timestamps, |id| {
+                } => self.added(id, scan, world_from_scan, recorded, |id| {
                     (Some(id) == this_id).then_some(job.received)
                 }),
                 ModelEvent::PoseRevised {
                     id,
                     world_from_scan,
-                } => self.revised(id, world_from_scan, timestamps),
+                } => self.revised(id, world_from_scan, recorded),
                 // Registration only adds and moves scans.
                 _ => None,
             };
@@ -141,7 +161,39 @@ impl Worker {
                 return false;
             }
         }
+        for anchor in anchors {
+            self.record_anchor(&anchor, &added, recorded);
+        }
         true
+    }
+
+    /// Records how a scan hangs. A scan that became a keyframe outside a placement
+    /// (a resumed session's, hung anew) gets its current pose recorded too: the
+    /// scans hanging from it follow that pose.
+    fn record_anchor(&self, anchor: &ScanAnchor, added: &[ScanId], recorded: &Recorded) {
+        let (Some(timestamp_ns), Some(keyframe_timestamp_ns)) =
+            (recorded.of(anchor.id), recorded.of(anchor.keyframe))
+        else {
+            tracing::warn!(
+                "anchor of scan {} on scan {}: unknown scan; not recorded",
+                anchor.id,
+                anchor.keyframe
+            );
+            return;
+        };
+        if anchor.keyframe == anchor.id && !added.contains(&anchor.id) {
+            self.record(RecordItem::Pose {
+                topic: PoseTopic::Texel,
+                timestamp_ns,
+                world_from_eo: anchor.world_from_scan,
+                revision: true,
+            });
+        }
+        self.record(RecordItem::Anchor(PoseAnchor {
+            timestamp_ns,
+            keyframe_timestamp_ns,
+            keyframe_from_eo: anchor.keyframe_from_scan,
+        }));
     }
 
     /// A scan joined the model: record its pose, publish it.
@@ -150,18 +202,18 @@ impl Worker {
         id: ScanId,
         scan: Arc<TexelScan>,
         world_from_scan: Pose,
-        timestamps: &mut Vec<u64>,
+        recorded: &mut Recorded,
         received: impl Fn(ScanId) -> Option<Instant>,
     ) -> Option<Publish> {
-        if id != timestamps.len() as ScanId {
+        if id != recorded.timestamps.len() as ScanId {
             // The stage broke its contract; the model would refuse the scan.
             tracing::error!(
                 "registration gave id {id}, expected {}; scan dropped",
-                timestamps.len()
+                recorded.timestamps.len()
             );
             return None;
         }
-        timestamps.push(scan.timestamp_ns);
+        recorded.timestamps.push(scan.timestamp_ns);
         self.record(RecordItem::Pose {
             topic: PoseTopic::Texel,
             timestamp_ns: scan.timestamp_ns,
@@ -176,22 +228,71 @@ impl Worker {
         })
     }
 
-    /// A pose moved: record the revision, publish it.
-    fn revised(&self, id: ScanId, world_from_scan: Pose, timestamps: &[u64]) -> Option<Publish> {
-        let Some(&timestamp_ns) = usize::try_from(id).ok().and_then(|i| timestamps.get(i)) else {
+    /// A pose moved: record the revision (unless the scan's recorded pose follows
+    /// its keyframe's), publish it.
+    fn revised(&self, id: ScanId, world_from_scan: Pose, recorded: &Recorded) -> Option<Publish> {
+        let Some(timestamp_ns) = recorded.of(id) else {
             tracing::warn!("pose revision of unknown scan {id} ignored");
             return None;
         };
         // A later /texel/pose at the same frame timestamp supersedes the earlier one.
-        self.record(RecordItem::Pose {
-            topic: PoseTopic::Texel,
-            timestamp_ns,
-            world_from_eo: world_from_scan,
-            revision: true,
-        });
+        if !recorded.is_hanging(id) {
+            self.record(RecordItem::Pose {
+                topic: PoseTopic::Texel,
+                timestamp_ns,
+                world_from_eo: world_from_scan,
+                revision: true,
+            });
+        }
         Some(Publish::Revision {
             id,
             world_from_scan,
         })
+    }
+}
+
+/// What the worker knows of the recorded scans: their frame timestamps by id, and
+/// which hang from another scan (one bit each: the recording derives their pose
+/// from their keyframe's).
+struct Recorded {
+    timestamps: Vec<u64>,
+    hanging: Vec<u64>,
+}
+
+impl Recorded {
+    fn of(&self, id: ScanId) -> Option<u64> {
+        usize::try_from(id)
+            .ok()
+            .and_then(|i| self.timestamps.get(i))
+            .copied()
+    }
+
+    fn is_hanging(&self, id: ScanId) -> bool {
+        let Ok(i) = usize::try_from(id) else {
+            return false;
+        };
+        self.hanging
+            .get(i / 64)
+            .is_some_and(|word| word & (1 << (i % 64)) != 0)
+    }
+
+    fn set_hanging(&mut self, id: ScanId, hanging: bool) {
+        // Only scans the model has (or is about to have): bounded by the ids given.
+        let Ok(i) = usize::try_from(id) else {
+            return;
+        };
+        if i > self.timestamps.len() + (1 << 20) {
+            return;
+        }
+        if self.hanging.len() <= i / 64 {
+            self.hanging.resize(i / 64 + 1, 0);
+        }
+        if let Some(word) = self.hanging.get_mut(i / 64) {
+            if hanging {
+                *word |= 1 << (i % 64);
+            } else {
+                *word &= !(1 << (i % 64));
+            }
+        }
     }
 }

@@ -272,7 +272,8 @@ impl ReplaySource {
                     timestamp_ns,
                     world_from_eo,
                 }),
-                CaptureEvent::Other { .. } => true,
+                // The session records its own registration.
+                CaptureEvent::Anchor(_) | CaptureEvent::Other { .. } => true,
             };
             if !keep_going {
                 break;

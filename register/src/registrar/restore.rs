@@ -43,6 +43,7 @@ impl Registrar {
             self.graph.add_node(world_from_scan);
             let pyramid = self.pyramid_of(scan, lidar);
             self.keyframes.push(Keyframe {
+                scan: id as u32,
                 pyramid: Some(pyramid),
                 last_used: self.tick,
                 members: Vec::new(),
@@ -70,6 +71,7 @@ impl Registrar {
             });
             let pyramid = self.pyramid_of(scan, lidar);
             self.keyframes.push(Keyframe {
+                scan: id as u32,
                 pyramid: Some(pyramid),
                 last_used: self.tick,
                 members: Vec::new(),
@@ -121,6 +123,9 @@ impl Registrar {
         if let Some(k) = self.keyframes.get_mut(reference) {
             k.members.push(id as u32);
         }
+        // This run's keyframes may not be the earlier run's: the recording learns
+        // how the scan hangs now.
+        self.rehung.push(id as u32);
         self.stats.registered += 1;
     }
 }

@@ -230,6 +230,7 @@ impl Registrar {
             r.keyframe = to as u32;
             r.keyframe_from_scan = keyframe_from_scan;
         }
+        self.rehung.push(id as u32);
     }
 
     /// Global refinement of the keyframes in `loop_range` (the newest

@@ -6,7 +6,7 @@ use std::collections::VecDeque;
 use std::io::Read;
 
 use super::reader::{CaptureEvent, CaptureReader};
-use super::{CaptureError, PoseTopic};
+use super::{CaptureError, PoseAnchor, PoseTopic};
 use crate::camera::PinholeCamera;
 use crate::frames::{FramePair, RangeFrame};
 use crate::pose::Pose;
@@ -30,6 +30,8 @@ pub enum TexelItem {
         timestamp_ns: u64,
         world_from_eo: Pose,
     },
+    /// `/texel/anchor`: a registered frame hangs from a keyframe.
+    Anchor(PoseAnchor),
 }
 
 /// Texel frames from a capture.
@@ -193,6 +195,7 @@ impl<R: Read> TexelFrameReader<R> {
                 timestamp_ns,
                 world_from_eo,
             })),
+            CaptureEvent::Anchor(anchor) => self.ready.push_back(Ok(TexelItem::Anchor(anchor))),
             CaptureEvent::Other { .. } => {}
         }
     }

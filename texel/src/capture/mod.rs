@@ -2,6 +2,7 @@
 //! conversions, a streaming reader that enforces the reading rules, and a writer
 //! that flushes often enough that a crash loses at most a second.
 
+mod anchors;
 mod convert;
 mod frames;
 mod fused;
@@ -11,6 +12,9 @@ mod records;
 mod summary;
 mod writer;
 
+pub use anchors::{
+    ANCHOR_JSON_SCHEMA, ANCHOR_SCHEMA_NAME, AnchorError, PoseAnchor, RegisteredPoses,
+};
 pub use convert::{
     calibration_from_camera, camera_from_calibration, nanos_from_timestamp, pose_from_transform,
     timestamp_from_nanos, transform_from_pose,
@@ -49,9 +53,11 @@ pub mod topics {
     pub const TEXEL_SENSOR: &str = "/texel/sensor";
     pub const TRUTH_POSE: &str = "/truth/pose";
     pub const TEXEL_POSE: &str = "/texel/pose";
+    /// The project's extension: the keyframe a registered frame hangs from.
+    pub const TEXEL_ANCHOR: &str = "/texel/anchor";
 
     /// Every topic the format defines.
-    pub const ALL: [&str; 10] = [
+    pub const ALL: [&str; 11] = [
         LIDAR_RANGE,
         LIDAR_INTENSITY,
         LIDAR_CALIBRATION,
@@ -62,6 +68,7 @@ pub mod topics {
         TEXEL_SENSOR,
         TRUTH_POSE,
         TEXEL_POSE,
+        TEXEL_ANCHOR,
     ];
 }
 

@@ -16,7 +16,7 @@ use super::convert::{camera_from_calibration, nanos_from_timestamp, pose_from_tr
 use super::images::{decode_compressed, decode_eo, decode_intensity, decode_range};
 use super::records::{RecordReader, Step};
 use super::summary::SummaryIndex;
-use super::{CaptureError, PoseTopic, frame_ids, topics};
+use super::{CaptureError, PoseAnchor, PoseTopic, frame_ids, topics};
 use crate::camera::PinholeCamera;
 use crate::frames::{EoFrame, RangeFrame};
 use crate::pose::Pose;
@@ -63,6 +63,8 @@ pub enum CaptureEvent {
         timestamp_ns: u64,
         world_from_eo: Pose,
     },
+    /// `/texel/anchor`: a registered frame hangs from a keyframe.
+    Anchor(PoseAnchor),
     /// A topic the format does not define; readers skip it.
     Other {
         topic: String,
@@ -322,6 +324,14 @@ impl<R: Read> CaptureReader<R> {
                 info.validate()
                     .map_err(|e| self.spec_error(message, e.to_string()))?;
                 Ok(CaptureEvent::Sensor { log_time_ns, info })
+            }
+            topics::TEXEL_ANCHOR => {
+                if message.channel.message_encoding != "json" {
+                    return Err(self.spec_error(message, "message encoding must be json"));
+                }
+                let anchor = PoseAnchor::from_json(&message.data)
+                    .map_err(|e| self.spec_error(message, e.to_string()))?;
+                Ok(CaptureEvent::Anchor(anchor))
             }
             topics::LIDAR_RANGE => {
                 let msg: RawImage = self.decode_protobuf(message, "foxglove.RawImage")?;

@@ -14,7 +14,8 @@ use foxglove::messages::{CompressedImage, RawImage};
 use super::convert::{calibration_from_camera, timestamp_from_nanos, transform_from_pose};
 use super::images::{EoEncoding, RangeEncoding, encode_eo, encode_intensity, encode_range};
 use super::{
-    CameraRole, CaptureError, PoseTopic, SENSOR_JSON_SCHEMA, SENSOR_SCHEMA_NAME, frame_ids, topics,
+    ANCHOR_JSON_SCHEMA, ANCHOR_SCHEMA_NAME, CameraRole, CaptureError, PoseAnchor, PoseTopic,
+    SENSOR_JSON_SCHEMA, SENSOR_SCHEMA_NAME, frame_ids, topics,
 };
 use crate::camera::PinholeCamera;
 use crate::frames::{EoFrame, RangeFrame};
@@ -347,6 +348,26 @@ impl<W: Write + Seek> CaptureWriter<W> {
     ) -> Result<(), CaptureError> {
         let msg = transform_from_pose(frame_ids::WORLD, frame_ids::EO, world_from_eo, timestamp_ns);
         self.write_foxglove(topic.topic(), timestamp_ns, &msg)
+    }
+
+    /// `/texel/anchor`: the frame at `anchor.timestamp_ns` hangs from a keyframe,
+    /// logged at `log_time_ns` (the frame's time, or later when it is re-hung).
+    pub fn write_anchor(
+        &mut self,
+        anchor: &PoseAnchor,
+        log_time_ns: u64,
+    ) -> Result<(), CaptureError> {
+        let id = self.channel(
+            topics::TEXEL_ANCHOR,
+            Some((
+                ANCHOR_SCHEMA_NAME,
+                "jsonschema",
+                ANCHOR_JSON_SCHEMA.as_bytes(),
+            )),
+            "json",
+        )?;
+        let json = anchor.to_json().map_err(|e| self.write_error(e))?;
+        self.write_on(id, log_time_ns, &json)
     }
 
     /// Copies a message read from another capture as it is (same topic, schema,

@@ -107,7 +107,7 @@ fn run(
         }
         let (pair, model) = match item {
             Ok(TexelItem::Pair { pair, sensor }) => (pair, sensor),
-            Ok(TexelItem::Pose { .. }) => continue,
+            Ok(TexelItem::Pose { .. } | TexelItem::Anchor(_)) => continue,
             // What was read before the damage stays in the model.
             Err(e) if e.is_fatal() => {
                 return Ok(format!(

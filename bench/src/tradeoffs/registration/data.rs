@@ -110,7 +110,7 @@ pub fn read_sequence(capture: &Path, scene: &str) -> Result<Sequence> {
             }) => {
                 truth_by_time.insert(timestamp_ns, world_from_eo);
             }
-            Ok(TexelItem::Pose { .. }) => {}
+            Ok(TexelItem::Pose { .. } | TexelItem::Anchor(_)) => {}
         }
     }
     let Some((_, first_model)) = pairs.first() else {

@@ -123,6 +123,7 @@ pub fn run(sequence: &Sequence, setting: &Setting) -> RunMetrics {
             }
         }
         registrar.take_events();
+        registrar.take_anchors();
     }
     // Final poses by frame (after all refinement).
     let mut estimate: BTreeMap<usize, Pose> = BTreeMap::new();
