@@ -11,6 +11,7 @@ pub mod calibration;
 pub mod capture_read;
 pub mod daemon_capture;
 pub mod daemon_sim;
+pub mod live_viewer;
 pub mod long_session;
 pub mod replay_memory;
 pub mod tradeoffs;

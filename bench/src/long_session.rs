@@ -7,8 +7,9 @@
 //! p99 over its recent window); written: the samples as CSV and a plot of resident
 //! memory over frames. At the end, a late joiner connects over loopback and the
 //! time until it has the coarse view (one scan per region) and the whole served
-//! model is measured. With `--record`, the recording's `/texel/pose` messages per
-//! frame are counted.
+//! model is measured; with `--viewer-budget-mb`, a viewer under that GPU budget
+//! fetches the served model and renders it (`live_viewer`). With `--record`, the
+//! recording's `/texel/pose` and `/texel/anchor` messages per frame are counted.
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -39,6 +40,13 @@ pub struct Args {
     /// Record the session here (to count `/texel/pose` messages per frame).
     #[arg(long)]
     pub record: Option<PathBuf>,
+    /// At the end, a viewer with this GPU budget fetches the served model and renders
+    /// it (an overview and the newest scan's view): frame time and GPU memory.
+    #[arg(long, value_name = "MB")]
+    pub viewer_budget_mb: Option<u64>,
+    /// Timed frames per view of `--viewer-budget-mb` (the median is reported).
+    #[arg(long, default_value_t = 5)]
+    pub viewer_frames: u32,
     /// Where the CSV and the plot go.
     #[arg(long, default_value = "target/long-session")]
     pub out: PathBuf,
@@ -135,8 +143,8 @@ pub fn run(args: &Args) -> Result<()> {
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()?;
-    let (samples, joiner) = runtime.block_on(drive(args, loops))?;
-    report(args, walk, &samples, &joiner)
+    let (samples, joiner, viewer) = runtime.block_on(drive(args, loops))?;
+    report(args, walk, &samples, &joiner, &viewer)
 }
 
 /// What a late joiner measured.
@@ -149,7 +157,10 @@ struct Joiner {
     to_all_s: f64,
 }
 
-async fn drive(args: &Args, loops: u32) -> Result<(Vec<Sample>, Joiner)> {
+async fn drive(
+    args: &Args,
+    loops: u32,
+) -> Result<(Vec<Sample>, Joiner, Vec<crate::live_viewer::ViewFigures>)> {
     let shutdown = CancellationToken::new();
     let session = Session::start(config(args, loops), shutdown.clone())
         .await
@@ -184,9 +195,22 @@ async fn drive(args: &Args, loops: u32) -> Result<(Vec<Sample>, Joiner)> {
         eprintln!("late joiner: {e:#}");
         Joiner::default()
     });
+    let mut viewer = Vec::new();
+    if let Some(budget_mb) = args.viewer_budget_mb {
+        let frames = args.viewer_frames;
+        viewer = tokio::task::spawn_blocking(move || {
+            crate::live_viewer::measure_on_daemon(addr, budget_mb, frames)
+        })
+        .await
+        .context("the viewer thread")?
+        .unwrap_or_else(|e| {
+            eprintln!("viewer: {e:#}");
+            Vec::new()
+        });
+    }
     shutdown.cancel();
     session.wait().await.context("the session failed")?;
-    Ok((samples, joiner))
+    Ok((samples, joiner, viewer))
 }
 
 /// A joiner's times over loopback: connect to the listings, to the first scan of
@@ -260,7 +284,13 @@ fn coarse_count(replica: &texel_client::Replica) -> u64 {
     regions.len() as u64
 }
 
-fn report(args: &Args, walk: u64, samples: &[Sample], joiner: &Joiner) -> Result<()> {
+fn report(
+    args: &Args,
+    walk: u64,
+    samples: &[Sample],
+    joiner: &Joiner,
+    viewer: &[crate::live_viewer::ViewFigures],
+) -> Result<()> {
     let mut out = String::new();
     let last = samples.last().copied().unwrap_or_default();
     let _ = writeln!(
@@ -312,13 +342,40 @@ fn report(args: &Args, walk: u64, samples: &[Sample], joiner: &Joiner) -> Result
         joiner.to_coarse_s,
         joiner.to_all_s
     );
-    if let Some(path) = &args.record {
-        let (frames, poses) = count_poses(path)?;
+    for v in viewer {
         let _ = writeln!(
             out,
-            "recording: {frames} texel frames, {poses} /texel/pose messages ({:.2} per frame)",
-            poses as f64 / frames.max(1) as f64
+            "viewer, {}: {} scans known, {} needed, {} resident, {} left out; GPU {:.1} of {:.0} MiB; {} drawn; frame {:.0} ms ({}x{}, blended, median of {})",
+            v.view,
+            v.known,
+            v.needed,
+            v.resident,
+            v.left_out,
+            v.used_mib,
+            v.budget_mib,
+            v.drawn,
+            v.frame_ms,
+            crate::live_viewer::WIDTH,
+            crate::live_viewer::HEIGHT,
+            args.viewer_frames
         );
+    }
+    if let Some(path) = &args.record {
+        let _ = writeln!(
+            out,
+            "recording, by the frames recorded so far: /texel/pose and /texel/anchor messages"
+        );
+        for c in count_poses(path)? {
+            let _ = writeln!(
+                out,
+                "  {:>6} frames: {:>7} /texel/pose ({:.2} per frame), {:>7} /texel/anchor ({:.2} per frame)",
+                c.frames,
+                c.poses,
+                c.poses as f64 / c.frames.max(1) as f64,
+                c.anchors,
+                c.anchors as f64 / c.frames.max(1) as f64
+            );
+        }
     }
     print!("{out}");
     write_csv(&args.out.join("samples.csv"), samples)?;
@@ -385,17 +442,37 @@ fn write_csv(path: &Path, samples: &[Sample]) -> Result<()> {
     std::fs::write(path, csv).with_context(|| format!("writing {}", path.display()))
 }
 
-/// Texel frames (range frames) and `/texel/pose` messages in a recording.
-fn count_poses(path: &Path) -> Result<(u64, u64)> {
+/// Pose messages recorded up to a point of a recording.
+#[derive(Debug, Clone, Copy, Default)]
+struct PoseCount {
+    /// Range frames recorded so far.
+    frames: u64,
+    poses: u64,
+    anchors: u64,
+}
+
+/// `/texel/pose` and `/texel/anchor` messages in a recording, counted in file order
+/// up to 1,000, 5,000, 10,000 and 20,000 range frames and at the end: whether the
+/// rate per frame grows with the session.
+fn count_poses(path: &Path) -> Result<Vec<PoseCount>> {
+    const AT: [u64; 4] = [1_000, 5_000, 10_000, 20_000];
     let mut reader = texel::capture::CaptureReader::open(path)?;
-    let (mut frames, mut poses) = (0u64, 0u64);
+    let mut count = PoseCount::default();
+    let mut counts = Vec::new();
     while let Some(next) = reader.next_message() {
         let Ok(message) = next else { continue };
         match message.channel.topic.as_str() {
-            texel::capture::topics::LIDAR_RANGE => frames += 1,
-            texel::capture::topics::TEXEL_POSE => poses += 1,
+            texel::capture::topics::LIDAR_RANGE => {
+                if AT.contains(&count.frames) {
+                    counts.push(count);
+                }
+                count.frames += 1;
+            }
+            texel::capture::topics::TEXEL_POSE => count.poses += 1,
+            texel::capture::topics::TEXEL_ANCHOR => count.anchors += 1,
             _ => {}
         }
     }
-    Ok((frames, poses))
+    counts.push(count);
+    Ok(counts)
 }

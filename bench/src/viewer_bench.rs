@@ -38,7 +38,9 @@ pub struct Measurement {
     pub target_bytes: u64,
 }
 
-fn measure(
+/// The median render time of `frames` frames after two warm-up renders, the scans
+/// drawn and the render targets' bytes.
+pub(crate) fn measure(
     gpu: &GpuContext,
     renderer: &mut Renderer,
     camera: &VirtualCamera,
