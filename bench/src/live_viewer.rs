@@ -8,7 +8,7 @@ use std::net::SocketAddr;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
-use texel::Pose;
+use texel::model::Model;
 use texel_viewer::camera::VirtualCamera;
 use texel_viewer::composite::Mode;
 use texel_viewer::gpu::{GpuContext, RenderSettings, Renderer};
@@ -63,60 +63,74 @@ pub fn measure_on_daemon(
         .last()
         .map(|s| s.world_from_scan)
         .context("the model has no scans")?;
+    // One viewer moving from one view to the other (its residency owns the scans'
+    // data from here on, as a capture's viewer's does).
     let gpu = GpuContext::headless()?;
     let settings = RenderSettings::with_mode(Mode::Blended);
+    let mut residency = Residency::over_model(Residency::budget_bytes_of_mb(budget_mb), &mut model);
+    let mut renderer = Renderer::new(&gpu);
     let mut figures = Vec::new();
     for (view, pose) in [("overview", overview), ("newest scan", newest)] {
-        figures.push(view_figures(
-            &gpu, &mut model, view, pose, &settings, budget_mb, frames,
-        )?);
+        let camera = VirtualCamera::new(pose, FOV_Y_DEG, WIDTH, HEIGHT)?;
+        let mut viewer = Viewer {
+            gpu: &gpu,
+            model: &mut model,
+            residency: &mut residency,
+            renderer: &mut renderer,
+        };
+        figures.push(viewer.figures(view, &camera, &settings, frames)?);
     }
     Ok(figures)
 }
 
-/// 3. Residency settles on the view, then each timed frame is a residency step and a
-///    render (as in the window).
-fn view_figures(
-    gpu: &GpuContext,
-    model: &mut texel::model::Model,
-    view: &'static str,
-    pose: Pose,
-    settings: &RenderSettings,
-    budget_mb: u64,
-    frames: u32,
-) -> Result<ViewFigures> {
-    let camera = VirtualCamera::new(pose, FOV_Y_DEG, WIDTH, HEIGHT)?;
-    let mut residency = Residency::over_model(Residency::budget_bytes_of_mb(budget_mb), model);
-    let mut renderer = Renderer::new(gpu);
-    for _ in 0..MAX_SETTLE_STEPS {
-        let stats = residency.step(model, &mut renderer, &camera);
-        if stats.pending == 0 && stats.in_flight == 0 {
-            break;
+/// A viewer's parts, as the window holds them.
+struct Viewer<'a> {
+    gpu: &'a GpuContext,
+    model: &'a mut Model,
+    residency: &'a mut Residency,
+    renderer: &'a mut Renderer,
+}
+
+impl Viewer<'_> {
+    /// 3. Residency settles on the view, then each timed frame is a residency step
+    ///    and a render (as in the window).
+    fn figures(
+        &mut self,
+        view: &'static str,
+        camera: &VirtualCamera,
+        settings: &RenderSettings,
+        frames: u32,
+    ) -> Result<ViewFigures> {
+        for _ in 0..MAX_SETTLE_STEPS {
+            let stats = self.residency.step(self.model, self.renderer, camera);
+            if stats.pending == 0 && stats.in_flight == 0 {
+                break;
+            }
         }
+        let mut times = Vec::new();
+        let mut last = None;
+        for _ in 0..frames.max(1) {
+            let start = Instant::now();
+            let stats = self.residency.step(self.model, self.renderer, camera);
+            let step_ms = start.elapsed().as_secs_f64() * 1000.0;
+            // The render after two warm-up renders of the same frame.
+            let (render_ms, drawn, _) = measure(self.gpu, self.renderer, camera, settings, 1)?;
+            times.push(step_ms + render_ms);
+            last = Some((stats, drawn));
+        }
+        times.sort_by(f64::total_cmp);
+        let (stats, drawn) = last.context("no frame was measured")?;
+        let mib = |b: u64| b as f64 / (1024.0 * 1024.0);
+        Ok(ViewFigures {
+            view,
+            known: stats.known,
+            needed: stats.needed,
+            resident: stats.resident,
+            left_out: stats.left_out,
+            used_mib: mib(stats.used_bytes),
+            budget_mib: mib(stats.budget_bytes),
+            drawn,
+            frame_ms: times.get(times.len() / 2).copied().unwrap_or(f64::NAN),
+        })
     }
-    let mut times = Vec::new();
-    let mut last = None;
-    for _ in 0..frames.max(1) {
-        let start = Instant::now();
-        let stats = residency.step(model, &mut renderer, &camera);
-        let step_ms = start.elapsed().as_secs_f64() * 1000.0;
-        // The render after two warm-up renders of the same frame.
-        let (render_ms, drawn, _) = measure(gpu, &mut renderer, &camera, settings, 1)?;
-        times.push(step_ms + render_ms);
-        last = Some((stats, drawn));
-    }
-    times.sort_by(f64::total_cmp);
-    let (stats, drawn) = last.context("no frame was measured")?;
-    let mib = |b: u64| b as f64 / (1024.0 * 1024.0);
-    Ok(ViewFigures {
-        view,
-        known: stats.known,
-        needed: stats.needed,
-        resident: stats.resident,
-        left_out: stats.left_out,
-        used_mib: mib(stats.used_bytes),
-        budget_mib: mib(stats.budget_bytes),
-        drawn,
-        frame_ms: times.get(times.len() / 2).copied().unwrap_or(f64::NAN),
-    })
 }

@@ -16,6 +16,7 @@ use std::time::Instant;
 use texel::capture::{PoseAnchor, PoseTopic};
 use texel::model::{ModelEvent, ScanId};
 use texel::{FuseConfig, Pose, Sensor, SensorModel, TexelScan, fuse};
+use texel_register::ScanAnchor;
 use tokio::sync::mpsc;
 
 use super::encode::Publish;
@@ -23,7 +24,6 @@ use super::ingest::PairJob;
 use super::placement::{Placement, Registration, ScanInput};
 use crate::record::RecordItem;
 use crate::status::{Counter, Metrics, Stage};
-use texel_register::ScanAnchor;
 
 pub struct Worker {
     pub jobs: mpsc::Receiver<PairJob>,
