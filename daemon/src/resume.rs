@@ -14,10 +14,7 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use texel::capture::{
-    CaptureError, CaptureEvent, CaptureReader, PoseAnchor, PoseTopic, RegisteredPoses, SensorCache,
-    TexelItem, open_texel_frames, topics,
-};
+use texel::capture::{CaptureError, RegisteredPoses, SensorCache, TexelItem, open_texel_frames};
 use texel::model::ScanId;
 use texel::{FuseConfig, Pose, SensorModel, TexelScan};
 
@@ -73,24 +70,24 @@ pub fn segments(base: &Path) -> Result<Segments, ResumeError> {
 /// each (its last `/texel/pose`, or its keyframe's composed with its `/texel/anchor`).
 #[derive(Debug, Clone, Default)]
 pub struct RecordedPoses {
-    /// Frame timestamps in id order.
-    pub timestamps: Vec<u64>,
-    ids: HashMap<u64, ScanId>,
     registered: RegisteredPoses,
+    ids: HashMap<u64, ScanId>,
 }
 
 impl RecordedPoses {
-    fn insert(&mut self, timestamp_ns: u64, world_from_eo: Pose) {
-        let next = self.timestamps.len() as ScanId;
-        self.ids.entry(timestamp_ns).or_insert_with(|| {
-            self.timestamps.push(timestamp_ns);
-            next
-        });
-        self.registered.insert_pose(timestamp_ns, world_from_eo);
+    pub fn new(registered: RegisteredPoses) -> Self {
+        let ids = registered
+            .timestamps()
+            .iter()
+            .enumerate()
+            .map(|(id, &t)| (t, id as ScanId))
+            .collect();
+        Self { registered, ids }
     }
 
-    fn insert_anchor(&mut self, anchor: PoseAnchor) {
-        self.registered.insert_anchor(anchor);
+    /// Frame timestamps in id order.
+    pub fn timestamps(&self) -> &[u64] {
+        self.registered.timestamps()
     }
 
     /// The id and current pose of the scan of frame `timestamp_ns`.
@@ -102,11 +99,11 @@ impl RecordedPoses {
     }
 
     pub fn len(&self) -> usize {
-        self.timestamps.len()
+        self.registered.len()
     }
 
     pub fn is_empty(&self) -> bool {
-        self.timestamps.is_empty()
+        self.registered.is_empty()
     }
 }
 
@@ -138,32 +135,11 @@ pub struct RestoreSummary {
 /// Reads every `/texel/pose` and `/texel/anchor` of the segments, in recording
 /// order (only those topics are decoded).
 pub fn read_poses(segments: &[PathBuf]) -> Result<RecordedPoses, ResumeError> {
-    let mut poses = RecordedPoses::default();
+    let mut registered = RegisteredPoses::default();
     for path in segments {
-        let mut reader = CaptureReader::open(path)?;
-        while let Some(next) = reader.next_message() {
-            let message = match next {
-                Ok(m) => m,
-                // Poses after a damaged stretch still count.
-                Err(e) if !e.is_fatal() => continue,
-                Err(_) => break,
-            };
-            let topic = message.channel.topic.as_str();
-            if topic != PoseTopic::Texel.topic() && topic != topics::TEXEL_ANCHOR {
-                continue;
-            }
-            match reader.decode(&message) {
-                Ok(CaptureEvent::Pose {
-                    topic: PoseTopic::Texel,
-                    timestamp_ns,
-                    world_from_eo,
-                }) => poses.insert(timestamp_ns, world_from_eo),
-                Ok(CaptureEvent::Anchor(anchor)) => poses.insert_anchor(anchor),
-                _ => {}
-            }
-        }
+        registered.read_capture(path)?;
     }
-    Ok(poses)
+    Ok(RecordedPoses::new(registered))
 }
 
 /// Rebuilds every scan with a recorded pose, in recording order, handing each to
@@ -250,13 +226,14 @@ mod tests {
 
     #[test]
     fn ids_follow_first_poses_and_revisions_win() {
-        let mut p = RecordedPoses::default();
+        let mut r = RegisteredPoses::default();
         let x = |v: f64| Pose::translation(v, 0.0, 0.0);
-        p.insert(30, x(0.0));
-        p.insert(10, x(1.0)); // a recovered scan: registered after 30
-        p.insert(20, x(2.0));
-        p.insert(30, x(3.0)); // a revision
-        assert_eq!(p.timestamps, vec![30, 10, 20]);
+        r.insert_pose(30, x(0.0));
+        r.insert_pose(10, x(1.0)); // a recovered scan: registered after 30
+        r.insert_pose(20, x(2.0));
+        r.insert_pose(30, x(3.0)); // a revision
+        let p = RecordedPoses::new(r);
+        assert_eq!(p.timestamps(), &[30, 10, 20]);
         assert_eq!(p.get(30), Some((0, x(3.0))));
         assert_eq!(p.get(10), Some((1, x(1.0))));
         assert_eq!(p.get(40), None);

@@ -76,21 +76,19 @@ async fn revisions_are_recorded_for_keyframes_and_the_rest_follow_their_anchors(
     let mut pose_messages: HashMap<u64, usize> = HashMap::new();
     let mut anchors: HashMap<u64, u64> = HashMap::new();
     for e in CaptureReader::open(&recording).unwrap() {
-        match e.unwrap() {
+        let event = e.unwrap();
+        match &event {
             CaptureEvent::Pose {
                 topic: PoseTopic::Texel,
                 timestamp_ns,
-                world_from_eo,
-            } => {
-                *pose_messages.entry(timestamp_ns).or_default() += 1;
-                registered.insert_pose(timestamp_ns, world_from_eo);
-            }
+                ..
+            } => *pose_messages.entry(*timestamp_ns).or_default() += 1,
             CaptureEvent::Anchor(anchor) => {
                 anchors.insert(anchor.timestamp_ns, anchor.keyframe_timestamp_ns);
-                registered.insert_anchor(anchor);
             }
             _ => {}
         }
+        registered.take_event(&event);
     }
     assert_eq!(registered.len(), replica.model.len());
     let is_keyframe = |t: u64| anchors.get(&t) == Some(&t);

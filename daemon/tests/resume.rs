@@ -14,7 +14,7 @@ use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
 use texel::Pose;
-use texel::capture::{CaptureEvent, CaptureReader, PoseTopic, RegisteredPoses};
+use texel::capture::RegisteredPoses;
 use texel_client::{BlockingClient, Replica};
 
 const FRAMES: usize = 50;
@@ -107,17 +107,7 @@ fn wait_line(rx: &mpsc::Receiver<String>, needle: &str, log: &mut Vec<String>) -
 fn recorded_poses(segments: &[PathBuf]) -> (Vec<u64>, BTreeMap<u64, Pose>) {
     let mut poses = RegisteredPoses::default();
     for path in segments {
-        for event in CaptureReader::open(path).unwrap() {
-            match event {
-                Ok(CaptureEvent::Pose {
-                    topic: PoseTopic::Texel,
-                    timestamp_ns,
-                    world_from_eo,
-                }) => poses.insert_pose(timestamp_ns, world_from_eo),
-                Ok(CaptureEvent::Anchor(anchor)) => poses.insert_anchor(anchor),
-                _ => {}
-            }
-        }
+        poses.read_capture(path).unwrap();
     }
     (poses.timestamps().to_vec(), poses.iter().collect())
 }

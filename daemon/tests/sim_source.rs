@@ -72,20 +72,10 @@ fn texel_poses(path: &Path) -> Vec<(u64, Pose)> {
 }
 
 /// The registered pose of every frame of a capture (`/texel/pose` and
-/// `/texel/anchor`), and how many frames hang from another.
+/// `/texel/anchor`).
 fn registered_poses(path: &Path) -> RegisteredPoses {
     let mut poses = RegisteredPoses::default();
-    for e in CaptureReader::open(path).unwrap() {
-        match e.unwrap() {
-            CaptureEvent::Pose {
-                topic: PoseTopic::Texel,
-                timestamp_ns,
-                world_from_eo,
-            } => poses.insert_pose(timestamp_ns, world_from_eo),
-            CaptureEvent::Anchor(anchor) => poses.insert_anchor(anchor),
-            _ => {}
-        }
-    }
+    poses.read_capture(path).unwrap();
     poses
 }
 

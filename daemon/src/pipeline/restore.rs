@@ -77,7 +77,7 @@ pub async fn restore_session(
             .is_ok()
         })?;
         drop(tx);
-        Ok::<_, SessionError>((registration, poses.timestamps, summary))
+        Ok::<_, SessionError>((registration, poses.timestamps().to_vec(), summary))
     });
     let result = work
         .await

@@ -6,8 +6,11 @@
 //! the frames and not with their square; a capture without anchors reads as before.
 
 use std::collections::HashMap;
+use std::path::Path;
 
 use serde::{Deserialize, Serialize};
+
+use super::{CaptureError, CaptureEvent, CaptureReader, PoseTopic, topics};
 
 use crate::pose::{Pose, PoseError, pose_from_parts, pose_to_parts};
 
@@ -205,9 +208,39 @@ impl RegisteredPoses {
         self.order.is_empty()
     }
 
-    /// How many frames hang from another frame.
-    pub fn anchored(&self) -> usize {
-        self.anchors.iter().filter(|(t, (k, _))| t != &k).count()
+    /// Takes a capture's event if it is a `/texel/pose` or a `/texel/anchor`.
+    pub fn take_event(&mut self, event: &CaptureEvent) {
+        match event {
+            CaptureEvent::Pose {
+                topic: PoseTopic::Texel,
+                timestamp_ns,
+                world_from_eo,
+            } => self.insert_pose(*timestamp_ns, *world_from_eo),
+            CaptureEvent::Anchor(anchor) => self.insert_anchor(*anchor),
+            _ => {}
+        }
+    }
+
+    /// Reads a capture's `/texel/pose` and `/texel/anchor` messages into the table
+    /// (only those topics are decoded). Those after a damaged stretch still count; a
+    /// fatal error ends the read with what came before it kept.
+    pub fn read_capture(&mut self, path: &Path) -> Result<(), CaptureError> {
+        let mut reader = CaptureReader::open(path)?;
+        while let Some(next) = reader.next_message() {
+            let message = match next {
+                Ok(m) => m,
+                Err(e) if !e.is_fatal() => continue,
+                Err(_) => break,
+            };
+            let topic = message.channel.topic.as_str();
+            if topic != topics::TEXEL_POSE && topic != topics::TEXEL_ANCHOR {
+                continue;
+            }
+            if let Ok(event) = reader.decode(&message) {
+                self.take_event(&event);
+            }
+        }
+        Ok(())
     }
 }
 
