@@ -453,3 +453,34 @@ fn the_default_signature_fits_in_four_kilobytes() {
     assert_eq!(parsed.sample_stride_px, config.sample_stride_px);
     assert!(toml::from_str::<CoverageConfig>("cell_size = 1.0").is_err());
 }
+
+#[test]
+fn a_retired_scan_keeps_its_offers_packed_and_its_links_alone() {
+    let config = CoverageConfig::default();
+    let p = pose([0.0, 0.0, 1.5], [2.0, 2.0, 0.5]);
+    let coverage = ScanCoverage::of(&synthetic_scan(&p, 128), &config);
+    let mut index = Retirement::new(config);
+    index.shed_retired_signatures(true);
+    index.add(0, coverage.clone(), &p);
+    let cells = index.cells_of(0).len();
+    assert!(cells > 20, "{cells} cells");
+    let one = index.heap_bytes();
+    let retired = 1000;
+    for id in 1..=retired {
+        index.add(id, coverage.clone(), &p);
+    }
+    assert_eq!(index.retired(), retired as usize);
+    assert!(!index.holds_signature(1));
+    assert_eq!(
+        index.cells_of(1),
+        index.cells_of(0),
+        "packing keeps every cell"
+    );
+    let per_retired = (index.heap_bytes() - one) / retired as usize;
+    // Open offers take 32 bytes a cell; packed ones about 11. The rest is the
+    // entry (with the map's spare capacity) and one link each way.
+    assert!(
+        per_retired <= cells * 12 + 512,
+        "{per_retired} bytes a retired scan of {cells} cells"
+    );
+}

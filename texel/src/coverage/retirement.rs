@@ -2,33 +2,16 @@
 //! updated one `add` or `revise` at a time with a bounded number of redundancy
 //! tests. Invariant: every retired scan has, for each cell it covers, a served
 //! witness whose offer dominates its own there (`docs/model.md`, "Retirement").
-//! With shedding on, a retired scan keeps its offers but not its signature: a pose
-//! revision loads the signature again from wherever its caller keeps the scan.
+//! A retired scan keeps its offers packed (`offers.rs`), and with shedding on not
+//! its signature: a pose revision loads the signature again from wherever its
+//! caller keeps the scan.
 
 use std::collections::{HashMap, HashSet};
 
-use nalgebra::{Point3, Vector3};
-
+use super::offers::{CellKey, Offer, Offers, moved_offers, offers_of};
 use super::{CoverageConfig, MIN_RANGE_M, ScanCoverage};
 use crate::model::ScanId;
 use crate::pose::Pose;
-
-/// A world surface cell: the integer coordinates of a cube of edge `cell_m`.
-type CellKey = [i64; 3];
-
-/// Cell coordinates beyond this are clamped (a point 1e15 cells away is not a
-/// surface anyone renders; the clamp keeps the cast defined).
-const MAX_CELL_INDEX: f64 = 1.0e15;
-
-/// What a scan offers one cell: the mean acquisition direction of its samples there
-/// (unit, from the surface towards the centre of projection), their mean normal
-/// accuracy and mean acquisition range.
-#[derive(Debug, Clone, Copy, PartialEq)]
-struct Offer {
-    direction: [f32; 3],
-    normal_accuracy: f32,
-    range_m: f32,
-}
 
 /// Which scans an `add` or `revise` call retired and which it served again.
 /// A scan added and retired in the same call is in `retired`; a scan added and
@@ -39,20 +22,22 @@ pub struct Changes {
     pub restored: Vec<ScanId>,
 }
 
+/// What the index keeps of one scan: about 100 bytes and its packed offers while
+/// retired, its open offers and signature while served.
 #[derive(Debug, Clone)]
 struct Entry {
     /// `None` once shed (a retired scan, with shedding on) until a revision loads it.
-    coverage: Option<ScanCoverage>,
+    coverage: Option<Box<ScanCoverage>>,
     /// The pose the offers were computed at.
     world_from_scan: Pose,
-    /// The scan's offers at its current pose, sorted by cell.
-    offers: Vec<(CellKey, Offer)>,
+    /// The scan's offers at its current pose, sorted by cell: packed while retired.
+    offers: Offers,
     score: f64,
     served: bool,
     /// Retired: the served scans whose offers dominate this one's.
-    witnesses: Vec<ScanId>,
-    /// Served: the retired scans that name this one as a witness.
-    dependents: HashSet<ScanId>,
+    witnesses: Box<[ScanId]>,
+    /// Served: the retired scans that name this one as a witness, sorted.
+    dependents: Vec<ScanId>,
 }
 
 /// The incremental retirement index. Holds only ids, poses' effects (offers) and
@@ -133,13 +118,13 @@ impl Retirement {
         self.scans.insert(
             id,
             Entry {
-                coverage: Some(coverage),
+                coverage: Some(Box::new(coverage)),
                 world_from_scan: *world_from_scan,
-                offers,
+                offers: Offers::Open(offers),
                 score,
                 served: false,
-                witnesses: Vec::new(),
-                dependents: HashSet::new(),
+                witnesses: Box::default(),
+                dependents: Vec::new(),
             },
         );
         let mut log = Log::default();
@@ -192,8 +177,17 @@ impl Retirement {
         let (offers, loaded, exact) = match &entry.coverage {
             Some(c) => (self.offers(c, world_from_scan), None, true),
             None => match load() {
-                Some(c) => (self.offers(&c, world_from_scan), Some(c), true),
-                None => (self.moved_offers(entry, world_from_scan), None, false),
+                Some(c) => (self.offers(&c, world_from_scan), Some(Box::new(c)), true),
+                None => (
+                    moved_offers(
+                        &entry.offers.to_vec(),
+                        &entry.world_from_scan,
+                        world_from_scan,
+                        self.config.cell_size_m(),
+                    ),
+                    None,
+                    false,
+                ),
             },
         };
         log.note(id, served);
@@ -201,7 +195,7 @@ impl Retirement {
             self.unindex(id);
         }
         if let Some(e) = self.scans.get_mut(&id) {
-            e.offers = offers;
+            e.offers = Offers::Open(offers);
             e.world_from_scan = *world_from_scan;
             if loaded.is_some() {
                 e.coverage = loaded;
@@ -259,7 +253,7 @@ impl Retirement {
     pub fn cells_of(&self, id: ScanId) -> Vec<[i64; 3]> {
         self.scans
             .get(&id)
-            .map(|e| e.offers.iter().map(|(k, _)| *k).collect())
+            .map(|e| e.offers.to_vec().into_iter().map(|(k, _)| k).collect())
             .unwrap_or_default()
     }
 
@@ -267,7 +261,7 @@ impl Retirement {
     pub fn witnesses_of_retired(&self, id: ScanId) -> Vec<ScanId> {
         self.scans
             .get(&id)
-            .map(|e| e.witnesses.clone())
+            .map(|e| e.witnesses.to_vec())
             .unwrap_or_default()
     }
 
@@ -277,10 +271,12 @@ impl Retirement {
             .scans
             .values()
             .map(|e| {
-                e.coverage.as_ref().map_or(0, ScanCoverage::heap_bytes)
-                    + e.offers.capacity() * std::mem::size_of::<(CellKey, Offer)>()
-                    + e.witnesses.capacity() * std::mem::size_of::<ScanId>()
-                    + e.dependents.capacity() * std::mem::size_of::<ScanId>() * 2
+                e.coverage
+                    .as_ref()
+                    .map_or(0, |c| std::mem::size_of::<ScanCoverage>() + c.heap_bytes())
+                    + e.offers.heap_bytes()
+                    + e.witnesses.len() * std::mem::size_of::<ScanId>()
+                    + e.dependents.capacity() * std::mem::size_of::<ScanId>()
             })
             .sum();
         let cells: usize = self
@@ -297,74 +293,19 @@ impl Retirement {
     /// The offers of a signature placed at `world_from_scan`, one per cell it
     /// reaches, sorted by cell.
     fn offers(&self, coverage: &ScanCoverage, world_from_scan: &Pose) -> Vec<(CellKey, Offer)> {
-        let cell_m = self.config.cell_size_m();
-        let cop = world_from_scan * Point3::from(coverage.cop_m);
-        // Per cell: direction sum, accuracy sum, range sum, count.
-        let mut sums: HashMap<CellKey, (Vector3<f64>, f64, f64, u32)> = HashMap::new();
-        for s in &coverage.samples {
-            let local = Point3::new(
-                f64::from(s.point_m[0]),
-                f64::from(s.point_m[1]),
-                f64::from(s.point_m[2]),
-            );
-            let p = world_from_scan * local;
-            let to_cop = cop - p;
-            let range_m = to_cop.norm();
-            let accuracy = f64::from(s.normal_accuracy);
-            if !range_m.is_finite() || range_m < MIN_RANGE_M || !accuracy.is_finite() {
-                continue;
-            }
-            let Some(key) = cell_of(&p, cell_m) else {
-                continue;
-            };
-            let e = sums.entry(key).or_insert((Vector3::zeros(), 0.0, 0.0, 0));
-            e.0 += to_cop / range_m;
-            e.1 += accuracy.clamp(0.0, 1.0);
-            e.2 += range_m;
-            e.3 += 1;
-        }
-        let mut offers: Vec<(CellKey, Offer)> = sums
-            .into_iter()
-            .filter_map(|(key, (dir, acc, range, n))| {
-                let len = dir.norm();
-                // Opposite directions in one cell (both faces of a thin wall) cancel:
-                // no single direction stands for them, so the cell is left out.
-                if n == 0 || len < 1.0e-6 {
-                    return None;
-                }
-                let n = f64::from(n);
-                let d = dir / len;
-                Some((
-                    key,
-                    Offer {
-                        direction: [d.x as f32, d.y as f32, d.z as f32],
-                        normal_accuracy: (acc / n) as f32,
-                        range_m: (range / n) as f32,
-                    },
-                ))
-            })
-            .collect();
-        offers.sort_by_key(|(k, _)| *k);
-        offers
+        offers_of(coverage, world_from_scan, self.config.cell_size_m())
     }
 
     /// Whether offer `t` stands in for offer `s`: acquisition directions within the
     /// angular tolerance, and `t`'s normal accuracy times its worst range factor
     /// against `s` (`min(1, r_s / r_t)^gamma`) within the margin of `s`'s accuracy.
     fn dominates(&self, t: &Offer, s: &Offer) -> bool {
-        let cos = t
-            .direction
-            .iter()
-            .zip(&s.direction)
-            .map(|(a, b)| f64::from(*a) * f64::from(*b))
-            .sum::<f64>();
-        if cos < self.config.cos_tolerance() {
+        if t.direction().dot(&s.direction()) < self.config.cos_tolerance() {
             return false;
         }
-        let ratio = f64::from(s.range_m) / f64::from(t.range_m).max(MIN_RANGE_M);
+        let ratio = s.range_m() / t.range_m().max(MIN_RANGE_M);
         let range_factor = ratio.clamp(0.0, 1.0).powf(self.config.gamma());
-        f64::from(t.normal_accuracy) * range_factor
-            >= f64::from(s.normal_accuracy) - self.config.margin()
+        t.normal_accuracy() * range_factor >= s.normal_accuracy() - self.config.margin()
     }
 
     /// The served scans (other than `id`) whose offers dominate every offer of
@@ -376,7 +317,7 @@ impl Retirement {
             return None;
         }
         let mut witnesses: Vec<ScanId> = Vec::new();
-        for (key, offer) in &entry.offers {
+        for (key, offer) in &entry.offers.to_vec() {
             let known = witnesses.iter().copied();
             let others = self
                 .cells
@@ -414,9 +355,7 @@ impl Retirement {
 
     /// The offer of served scan `t` at `key`.
     fn offer_of(&self, t: ScanId, key: &CellKey) -> Option<Offer> {
-        let e = self.scans.get(&t).filter(|e| e.served)?;
-        let i = e.offers.binary_search_by_key(key, |(k, _)| *k).ok()?;
-        e.offers.get(i).map(|(_, o)| *o)
+        self.scans.get(&t).filter(|e| e.served)?.offers.get(key)
     }
 
     /// Retires the served scans sharing `id`'s cells that are now redundant, least
@@ -467,55 +406,17 @@ impl Retirement {
         self.recheck_all(&dependents, budget, log);
     }
 
-    /// Drops retired scan `id`'s signature when shedding is on.
+    /// Packs retired scan `id`'s offers, and drops its signature when shedding is on.
     fn shed(&mut self, id: ScanId) {
-        if !self.shed_retired {
-            return;
-        }
+        let shed_signature = self.shed_retired;
         if let Some(e) = self.scans.get_mut(&id)
             && !e.served
         {
-            e.coverage = None;
+            e.offers.pack();
+            if shed_signature {
+                e.coverage = None;
+            }
         }
-    }
-
-    /// `entry`'s offers carried rigidly to `world_from_scan`: each cell's centre and
-    /// direction moved by the pose change, the most accurate offer kept where two
-    /// land in one cell. An approximation for a scan whose signature is lost.
-    fn moved_offers(&self, entry: &Entry, world_from_scan: &Pose) -> Vec<(CellKey, Offer)> {
-        let cell_m = self.config.cell_size_m();
-        let change = world_from_scan * entry.world_from_scan.inverse();
-        let mut moved: Vec<(CellKey, Offer)> = entry
-            .offers
-            .iter()
-            .filter_map(|(key, offer)| {
-                let centre = Point3::new(
-                    (key[0] as f64 + 0.5) * cell_m,
-                    (key[1] as f64 + 0.5) * cell_m,
-                    (key[2] as f64 + 0.5) * cell_m,
-                );
-                let new_key = cell_of(&(change * centre), cell_m)?;
-                let d = change.rotation
-                    * Vector3::new(
-                        f64::from(offer.direction[0]),
-                        f64::from(offer.direction[1]),
-                        f64::from(offer.direction[2]),
-                    );
-                Some((
-                    new_key,
-                    Offer {
-                        direction: [d.x as f32, d.y as f32, d.z as f32],
-                        ..*offer
-                    },
-                ))
-            })
-            .collect();
-        moved.sort_by(|(a, x), (b, y)| {
-            a.cmp(b)
-                .then(y.normal_accuracy.total_cmp(&x.normal_accuracy))
-        });
-        moved.dedup_by_key(|(k, _)| *k);
-        moved
     }
 
     /// Tests each retired scan of `ids` again (see [`Self::recheck`]).
@@ -556,7 +457,8 @@ impl Retirement {
                 e.served = true;
                 self.served += 1;
             }
-            e.witnesses.clear();
+            e.offers.open();
+            e.witnesses = Box::default();
         }
         self.index(id);
     }
@@ -564,12 +466,14 @@ impl Retirement {
     /// Records `witnesses` as those of retired scan `id`, both ways.
     fn link(&mut self, id: ScanId, witnesses: Vec<ScanId>) {
         for w in &witnesses {
-            if let Some(e) = self.scans.get_mut(w) {
-                e.dependents.insert(id);
+            if let Some(e) = self.scans.get_mut(w)
+                && let Err(at) = e.dependents.binary_search(&id)
+            {
+                e.dependents.insert(at, id);
             }
         }
         if let Some(e) = self.scans.get_mut(&id) {
-            e.witnesses = witnesses;
+            e.witnesses = witnesses.into_boxed_slice();
         }
     }
 
@@ -581,8 +485,10 @@ impl Retirement {
             .map(|e| std::mem::take(&mut e.witnesses))
             .unwrap_or_default();
         for w in witnesses {
-            if let Some(e) = self.scans.get_mut(&w) {
-                e.dependents.remove(&id);
+            if let Some(e) = self.scans.get_mut(&w)
+                && let Ok(at) = e.dependents.binary_search(&id)
+            {
+                e.dependents.remove(at);
             }
         }
     }
@@ -592,7 +498,7 @@ impl Retirement {
         let mut d: Vec<ScanId> = self
             .scans
             .get_mut(&id)
-            .map(|e| std::mem::take(&mut e.dependents).into_iter().collect())
+            .map(|e| std::mem::take(&mut e.dependents))
             .unwrap_or_default();
         d.sort_unstable();
         d
@@ -605,6 +511,7 @@ impl Retirement {
         };
         let placed: Vec<(CellKey, f32)> = e
             .offers
+            .to_vec()
             .iter()
             .map(|(k, o)| (*k, self.strength(o)))
             .collect();
@@ -627,8 +534,8 @@ impl Retirement {
     /// range confidence at its own range (`r^-gamma`), the two factors of
     /// [`Self::dominates`] that belong to the witness alone.
     fn strength(&self, o: &Offer) -> f32 {
-        let range = f64::from(o.range_m).max(MIN_RANGE_M);
-        let s = f64::from(o.normal_accuracy) * range.powf(-self.config.gamma());
+        let range = o.range_m().max(MIN_RANGE_M);
+        let s = o.normal_accuracy() * range.powf(-self.config.gamma());
         if s.is_finite() { s as f32 } else { 0.0 }
     }
 
@@ -643,19 +550,6 @@ impl Retirement {
             }
         }
     }
-}
-
-/// The cell of world point `p`, `None` when a coordinate is not finite.
-fn cell_of(p: &Point3<f64>, cell_m: f64) -> Option<CellKey> {
-    let mut key = [0i64; 3];
-    for (k, c) in key.iter_mut().zip(p.iter()) {
-        let i = (c / cell_m).floor();
-        if !i.is_finite() {
-            return None;
-        }
-        *k = i.clamp(-MAX_CELL_INDEX, MAX_CELL_INDEX) as i64;
-    }
-    Some(key)
 }
 
 /// The served state of every scan a call touched, before the call (`true`: served;
