@@ -37,6 +37,10 @@ pub struct Args {
     /// Keep every scan served (`model.retirement.enabled = false`): the baseline.
     #[arg(long)]
     pub no_retirement: bool,
+    /// Retirement settings overriding the defaults, as TOML (`docs/model.md`,
+    /// "Settings"), for example `--retirement 'max_checks_per_call = 256'`.
+    #[arg(long, value_name = "TOML")]
+    pub retirement: Option<String>,
     /// Record the session here (to count `/texel/pose` messages per frame).
     #[arg(long)]
     pub record: Option<PathBuf>,
@@ -82,7 +86,7 @@ fn rss_mb() -> f64 {
         .map_or(0.0, |kb| kb / 1024.0)
 }
 
-fn config(args: &Args, loops: u32) -> SessionConfig {
+fn config(args: &Args, loops: u32) -> Result<SessionConfig> {
     let mut c = SessionConfig::default();
     c.session.name = "long-session".into();
     // Kept serving after the last frame, for the late joiner; the run stops it.
@@ -100,8 +104,11 @@ fn config(args: &Args, loops: u32) -> SessionConfig {
     c.record.path = args.record.clone();
     c.status.log = false;
     c.model.memory_budget_mb = args.budget_mb;
+    if let Some(text) = &args.retirement {
+        c.model.retirement = toml::from_str(text).context("--retirement")?;
+    }
     c.model.retirement.enabled = !args.no_retirement;
-    c
+    Ok(c)
 }
 
 fn sample(session: &Session, started: Instant) -> Sample {
@@ -162,7 +169,7 @@ async fn drive(
     loops: u32,
 ) -> Result<(Vec<Sample>, Joiner, Vec<crate::live_viewer::ViewFigures>)> {
     let shutdown = CancellationToken::new();
-    let session = Session::start(config(args, loops), shutdown.clone())
+    let session = Session::start(config(args, loops)?, shutdown.clone())
         .await
         .context("starting the session")?;
     let addr = session
@@ -190,6 +197,27 @@ async fn drive(
         if s.frames >= args.frames || session.sources_done.is_cancelled() {
             break;
         }
+    }
+    if let Some(c) = session.hub.retirement_counts() {
+        eprintln!(
+            "retirement: {} new scans served, {} retired on arrival, {} retired later; \
+             served again: {} after a test, {} untested (budget spent), {} on approximate offers; \
+             {} kept by their own witnesses after a revision",
+            c.added_served,
+            c.added_retired,
+            c.retired_later,
+            c.restored_tested,
+            c.restored_unexamined,
+            c.restored_approximate,
+            c.revalidated
+        );
+        let w = session.hub.retirement_work();
+        eprintln!(
+            "retirement work: {} calls, mean {:.1} us, longest {:.1} ms",
+            w.calls,
+            w.mean_s() * 1.0e6,
+            w.max_s * 1.0e3
+        );
     }
     let joiner = late_joiner(addr).await.unwrap_or_else(|e| {
         eprintln!("late joiner: {e:#}");
@@ -300,7 +328,11 @@ fn report(
         last.frames,
         last.elapsed_s,
         args.budget_mb,
-        if args.no_retirement { "off" } else { "on" }
+        match (&args.retirement, args.no_retirement) {
+            (_, true) => "off".to_string(),
+            (Some(text), false) => format!("on ({})", text.trim()),
+            (None, false) => "on".to_string(),
+        }
     );
     let _ = writeln!(
         out,

@@ -87,6 +87,7 @@ struct Inner {
     served: u64,
     store_reads: u64,
     store_errors: u64,
+    retirement_work: RetirementWork,
     clients: Vec<ClientSlot>,
     next_client_id: u64,
     /// Set once the hub is closed: the reason clients are told.
@@ -123,6 +124,33 @@ pub enum FetchError {
     Failed { id: ScanId, message: String },
     #[error("the hub is closed")]
     Closed,
+}
+
+/// Time the hub spent in retirement's `add` and `revise` calls: the work a scan's
+/// arrival or a pose revision costs the publishing thread.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct RetirementWork {
+    pub calls: u64,
+    pub total_s: f64,
+    pub max_s: f64,
+}
+
+impl RetirementWork {
+    fn note(&mut self, took: std::time::Duration) {
+        let s = took.as_secs_f64();
+        self.calls += 1;
+        self.total_s += s;
+        self.max_s = self.max_s.max(s);
+    }
+
+    /// Mean seconds a call (0 before the first).
+    pub fn mean_s(&self) -> f64 {
+        if self.calls == 0 {
+            0.0
+        } else {
+            self.total_s / self.calls as f64
+        }
+    }
 }
 
 /// Scans between refreshes of the index's measured size.
@@ -169,6 +197,7 @@ impl Hub {
                 served: 0,
                 store_reads: 0,
                 store_errors: 0,
+                retirement_work: RetirementWork::default(),
                 clients: Vec::new(),
                 next_client_id: 0,
                 closed: None,
@@ -243,10 +272,12 @@ impl Hub {
             },
         );
         inner.served += 1;
+        let started = std::time::Instant::now();
         let changes = match (inner.retirement.as_mut(), coverage) {
             (Some(r), Some(c)) => r.add(id, c, &world_from_scan),
             _ => Changes::default(),
         };
+        inner.retirement_work.note(started.elapsed());
         let retired_now = changes.retired.contains(&id);
         if retired_now {
             inner.served -= 1;
@@ -299,6 +330,7 @@ impl Hub {
         }
         let held = inner.entries.get(&id).and_then(|e| e.frame.clone());
         let store = self.options.store.as_ref();
+        let started = std::time::Instant::now();
         let changes = match inner.retirement.as_mut() {
             Some(r) => {
                 let config = *r.config();
@@ -308,6 +340,7 @@ impl Hub {
             }
             None => Changes::default(),
         };
+        inner.retirement_work.note(started.elapsed());
         self.apply_changes(&mut inner, &changes, None)?;
         Ok(())
     }
@@ -599,6 +632,16 @@ impl Hub {
     pub fn memory_bytes(&self) -> (usize, usize) {
         let inner = self.lock();
         (Self::measure_index(&inner), inner.frame_bytes as usize)
+    }
+
+    /// Retirement's decisions so far by cause (`None` without retirement).
+    pub fn retirement_counts(&self) -> Option<texel::coverage::RetirementCounts> {
+        self.lock().retirement.as_ref().map(Retirement::counts)
+    }
+
+    /// Time spent in retirement's calls so far (signature reads included).
+    pub fn retirement_work(&self) -> RetirementWork {
+        self.lock().retirement_work
     }
 
     /// The model's part of the status.

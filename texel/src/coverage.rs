@@ -11,7 +11,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::scan::{NO_VERTEX, TexelScan};
 
-pub use retirement::{Changes, Retirement};
+pub use retirement::{Changes, Retirement, RetirementCounts};
 
 /// The most samples one signature holds, whatever the lidar grid: the stride grows
 /// for grids so large that the configured one would exceed it.
@@ -40,11 +40,15 @@ pub struct CoverageConfig {
     pub reliability_margin: f64,
     /// The range confidence exponent the viewer renders with (`range_gamma`).
     pub range_gamma: f64,
-    /// Served scans examined per cell when looking for a dominating offer.
+    /// Served scans examined per cell when looking for a dominating offer: a bound
+    /// on one test's work, set well above the served scans a cell of a session
+    /// gathers (a lower one misses witnesses and serves scans that are redundant;
+    /// docs/model.md, "The index and its bounded work").
     pub max_candidates_per_cell: usize,
     /// Examine a cell's served scans strongest offer first instead of in arrival
-    /// order. Retires far more of a walk straight ahead, far less of a walk looped
-    /// over mapped ground (docs/model.md, "The index and its bounded work").
+    /// order. It decides which witness is found first; it decides whether one is
+    /// found only in cells with more served scans than `max_candidates_per_cell`
+    /// (docs/model.md, "The index and its bounded work").
     pub strongest_candidates_first: bool,
     /// Redundancy tests per `add` / `revise` call; past it, the safe outcome is
     /// taken (a scan whose witness moved is served again, unexamined neighbours
@@ -61,7 +65,7 @@ impl Default for CoverageConfig {
             angle_tolerance_deg: 20.0,
             reliability_margin: 0.1,
             range_gamma: 1.0,
-            max_candidates_per_cell: 32,
+            max_candidates_per_cell: 1024,
             strongest_candidates_first: false,
             max_checks_per_call: 64,
         }

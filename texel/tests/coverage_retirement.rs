@@ -484,3 +484,41 @@ fn a_retired_scan_keeps_its_offers_packed_and_its_links_alone() {
         "{per_retired} bytes a retired scan of {cells} cells"
     );
 }
+
+#[test]
+fn a_witness_revised_in_place_keeps_more_dependents_than_one_call_can_test() {
+    // Cells of 0.7 m: no wall lies on a cell boundary, where any motion at all
+    // moves samples from cell to cell.
+    let config = CoverageConfig {
+        max_checks_per_call: 4,
+        cell_m: 0.7,
+        ..config()
+    };
+    let p = pose([0.0, 0.0, 1.5], [2.0, 2.0, 0.5]);
+    let coverage = ScanCoverage::of(&synthetic_scan(&p, 16), &config);
+    let mut index = Retirement::new(config);
+    for id in 0..20 {
+        index.add(id, coverage.clone(), &p);
+    }
+    assert_eq!(index.served(), 1);
+    // A loop closure revises the witness by a tenth of a millimetre: its offers
+    // still dominate its 19 dependents, more than the call's 4 tests could examine.
+    let mut moved = p;
+    moved.translation.vector.x += 1.0e-4;
+    let changes = index.revise(0, &moved);
+    assert!(changes.restored.is_empty(), "{changes:?}");
+    assert_eq!(index.served(), 1);
+    check_invariants(&index, 20);
+    // A retired scan revised where its witness still stands in for it stays retired.
+    assert_eq!(index.revise(7, &moved), Default::default());
+    assert!(index.is_retired(7));
+    check_invariants(&index, 20);
+    // Moved away, the witness no longer stands in for them: the first is tested
+    // and served, the next three are tested and witnessed by it, and the rest,
+    // past the call's 4 tests, are served again unexamined (the safe outcome).
+    let far = pose([40.0, 0.0, 1.5], [42.0, 2.0, 0.5]);
+    let changes = index.revise(0, &far);
+    assert_eq!(changes.restored.len(), 16, "{changes:?}");
+    assert_eq!(index.witnesses_of_retired(2), vec![1]);
+    check_invariants(&index, 20);
+}

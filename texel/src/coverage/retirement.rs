@@ -40,6 +40,26 @@ struct Entry {
     dependents: Vec<ScanId>,
 }
 
+/// What the index has decided since it was made, by cause: where a long session's
+/// served set grows from.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct RetirementCounts {
+    /// New scans served: some cell had no dominating served offer among its candidates.
+    pub added_served: u64,
+    /// New scans retired on arrival.
+    pub added_retired: u64,
+    /// Served scans retired later, made redundant by newer ones.
+    pub retired_later: u64,
+    /// Retired scans served again after a test found no witness for some cell.
+    pub restored_tested: u64,
+    /// Retired scans served again untested: the call's tests were spent.
+    pub restored_unexamined: u64,
+    /// Retired scans served again because a revision's offers were approximate.
+    pub restored_approximate: u64,
+    /// Retired scans kept retired by their own witnesses after a revision.
+    pub revalidated: u64,
+}
+
 /// The incremental retirement index. Holds only ids, poses' effects (offers) and
 /// coverage signatures; never a scan.
 #[derive(Debug, Clone, Default)]
@@ -51,19 +71,45 @@ pub struct Retirement {
     /// for among the first `max_candidates_per_cell`.
     cells: HashMap<CellKey, Vec<(ScanId, f32)>>,
     served: usize,
+    counts: RetirementCounts,
     /// Drop the signatures of retired scans (see [`Retirement::shed_retired_signatures`]).
     shed_retired: bool,
 }
 
 /// The redundancy tests left in one call.
-struct Budget(usize);
+/// The work left in one call: redundancy tests (a search among a cell's candidates
+/// for each cell) and revalidations (a scan's own witnesses only, at most a
+/// `max_candidates_per_cell`-th of a test's comparisons).
+struct Budget {
+    tests: usize,
+    revalidations: usize,
+}
+
+/// Revalidations a call may make per redundancy test it may make.
+const REVALIDATIONS_PER_TEST: usize = 16;
 
 impl Budget {
+    fn new(config: &CoverageConfig) -> Self {
+        let tests = config.max_checks_per_call.max(1);
+        Self {
+            tests,
+            revalidations: tests.saturating_mul(REVALIDATIONS_PER_TEST),
+        }
+    }
+
     fn take(&mut self) -> bool {
-        if self.0 == 0 {
+        if self.tests == 0 {
             return false;
         }
-        self.0 -= 1;
+        self.tests -= 1;
+        true
+    }
+
+    fn take_revalidation(&mut self) -> bool {
+        if self.revalidations == 0 {
+            return false;
+        }
+        self.revalidations -= 1;
         true
     }
 }
@@ -112,7 +158,7 @@ impl Retirement {
         if self.scans.contains_key(&id) {
             return self.revise(id, world_from_scan);
         }
-        let mut budget = Budget(self.config.max_checks_per_call.max(1));
+        let mut budget = Budget::new(&self.config);
         let offers = self.offers(&coverage, world_from_scan);
         let score = coverage.score();
         self.scans.insert(
@@ -136,10 +182,12 @@ impl Retirement {
         };
         match witnesses {
             Some(witnesses) => {
+                self.counts.added_retired += 1;
                 self.link(id, witnesses);
                 self.shed(id);
             }
             None => {
+                self.counts.added_served += 1;
                 self.serve(id);
                 self.retire_neighbours(id, &mut budget, &mut log);
             }
@@ -148,10 +196,12 @@ impl Retirement {
     }
 
     /// Moves scan `id` to `world_from_scan`: the scans that named it as a witness
-    /// are tested again (served again when no longer redundant, or when the budget
-    /// runs out), then the scan itself (retired when redundant at its new place,
-    /// served again when it no longer is), then the served scans around it. An
-    /// unknown id changes nothing.
+    /// keep their witnesses where those still dominate them at their current offers,
+    /// and are tested again otherwise (served again when no longer redundant, or
+    /// when the budget runs out); then the scan itself (a retired one first against
+    /// its own witnesses; retired when redundant at its new place, served again when
+    /// it no longer is), then the served scans around it. An unknown id changes
+    /// nothing.
     pub fn revise(&mut self, id: ScanId, world_from_scan: &Pose) -> Changes {
         self.revise_with(id, world_from_scan, || None)
     }
@@ -168,7 +218,7 @@ impl Retirement {
         world_from_scan: &Pose,
         load: impl FnOnce() -> Option<ScanCoverage>,
     ) -> Changes {
-        let mut budget = Budget(self.config.max_checks_per_call.max(1));
+        let mut budget = Budget::new(&self.config);
         let mut log = Log::default();
         let Some(entry) = self.scans.get(&id) else {
             return Changes::default();
@@ -208,6 +258,7 @@ impl Retirement {
                 let dependents = self.take_dependents(id);
                 self.recheck_all(&dependents, &mut budget, &mut log);
             } else {
+                self.counts.restored_approximate += 1;
                 self.unlink(id);
                 self.serve(id);
             }
@@ -216,12 +267,17 @@ impl Retirement {
         if served {
             self.index(id);
             let dependents = self.take_dependents(id);
-            self.recheck_all(&dependents, &mut budget, &mut log);
+            self.revalidate_all(&dependents, &mut budget, &mut log);
             if let Some(witnesses) = self.redundant_served(id, &mut budget) {
                 self.retire(id, witnesses, &mut budget, &mut log);
             } else {
                 self.retire_neighbours(id, &mut budget, &mut log);
             }
+        } else if let Some(witnesses) = self.still_witnessed(id, &mut budget) {
+            // Its witnesses still stand in for it where it moved to.
+            self.counts.revalidated += 1;
+            self.unlink(id);
+            self.link(id, witnesses);
         } else {
             self.unlink(id);
             if self.recheck(id, &mut budget, &mut log) {
@@ -237,6 +293,11 @@ impl Retirement {
     /// Whether scan `id` is retired (false for an unknown id).
     pub fn is_retired(&self, id: ScanId) -> bool {
         self.scans.get(&id).is_some_and(|e| !e.served)
+    }
+
+    /// What the index decided so far, by cause.
+    pub fn counts(&self) -> RetirementCounts {
+        self.counts
     }
 
     /// The number of served scans.
@@ -347,7 +408,7 @@ impl Retirement {
             return None;
         }
         let dependents = self.scans.get(&id).map_or(0, |e| e.dependents.len());
-        if dependents >= budget.0 {
+        if dependents >= budget.tests {
             return None;
         }
         self.witnesses_of(id, budget)
@@ -377,7 +438,7 @@ impl Retirement {
         let score = |n: &ScanId| self.scans.get(n).map_or(0.0, |e| e.score);
         neighbours.sort_by(|a, b| score(a).total_cmp(&score(b)).then(a.cmp(b)));
         for n in neighbours {
-            if budget.0 == 0 {
+            if budget.tests == 0 {
                 break;
             }
             if !self.scans.get(&n).is_some_and(|e| e.served) {
@@ -399,6 +460,7 @@ impl Retirement {
         {
             e.served = false;
             self.served = self.served.saturating_sub(1);
+            self.counts.retired_later += 1;
         }
         let dependents = self.take_dependents(id);
         self.link(id, witnesses);
@@ -428,10 +490,54 @@ impl Retirement {
         }
     }
 
+    /// The dependents of a served scan whose offers changed (`ids`, taken from it):
+    /// each keeps its witnesses when they, at their current offers, still dominate
+    /// every cell of it (a revalidation: a pose revision mostly moves a witness by
+    /// millimetres); the others are tested again (see [`Self::recheck_all`]).
+    /// Without this, a revision of a scan with more dependents than one call's
+    /// tests would serve the rest again unexamined, and a looped walk, revised at
+    /// every loop closure, would keep growing its served set.
+    fn revalidate_all(&mut self, ids: &[ScanId], budget: &mut Budget, log: &mut Log) {
+        let mut retest = Vec::new();
+        for &r in ids {
+            match self.still_witnessed(r, budget) {
+                Some(witnesses) => {
+                    self.counts.revalidated += 1;
+                    self.unlink(r);
+                    self.link(r, witnesses);
+                }
+                None => retest.push(r),
+            }
+        }
+        self.recheck_all(&retest, budget, log);
+    }
+
+    /// The served witnesses of retired scan `id` that still dominate each of its
+    /// cells, or `None` when some cell has none among them (or the revalidation
+    /// budget is spent).
+    fn still_witnessed(&self, id: ScanId, budget: &mut Budget) -> Option<Vec<ScanId>> {
+        let entry = self.scans.get(&id).filter(|e| !e.served)?;
+        if entry.witnesses.is_empty() || !budget.take_revalidation() {
+            return None;
+        }
+        let mut used: Vec<ScanId> = Vec::new();
+        for (key, offer) in &entry.offers.to_vec() {
+            let t = entry.witnesses.iter().copied().find(|&t| {
+                self.offer_of(t, key)
+                    .is_some_and(|o| self.dominates(&o, offer))
+            })?;
+            if !used.contains(&t) {
+                used.push(t);
+            }
+        }
+        Some(used)
+    }
+
     /// Tests retired, unlinked scan `id`: linked to new witnesses when still
     /// redundant, else (or when the budget is spent) served again. True when it was
     /// served again.
     fn recheck(&mut self, id: ScanId, budget: &mut Budget, log: &mut Log) -> bool {
+        let unexamined = budget.tests == 0;
         let witnesses = if self.config.enabled {
             self.witnesses_of(id, budget)
         } else {
@@ -443,6 +549,11 @@ impl Retirement {
                 false
             }
             None => {
+                if unexamined {
+                    self.counts.restored_unexamined += 1;
+                } else {
+                    self.counts.restored_tested += 1;
+                }
                 log.note(id, false);
                 self.serve(id);
                 true
