@@ -693,13 +693,11 @@ fn signature_of(
         (None, None) => return None,
     };
     match texel::wire::decode_frame(&frame, &texel::wire::Limits::FROM_SERVER) {
-        Ok(Some((Message::ScanAdded(wire), _))) => match wire.into_scan() {
-            Ok((_, scan, _)) => Some(ScanCoverage::of(&scan, config)),
-            Err(e) => {
-                tracing::warn!("scan {id}: signature not rebuilt: {e}");
-                None
-            }
-        },
+        Ok(Some((Message::ScanAdded(wire), _))) => {
+            // The signature is geometric: the texture stays encoded.
+            let (_, scan, _) = wire.into_geometry();
+            Some(ScanCoverage::of(&scan, config))
+        }
         Ok(_) => {
             tracing::warn!("scan {id}: stored frame is not a whole ScanAdded");
             None

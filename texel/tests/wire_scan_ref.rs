@@ -524,3 +524,24 @@ proptest! {
         }
     }
 }
+
+#[test]
+fn the_geometry_of_a_scan_decodes_without_its_texture() {
+    let scan = fused_scan();
+    let world = Pose::translation(1.0, 2.0, 3.0);
+    let texture = texture_of(&scan, TextureFormat::Jpeg);
+    let wire = WireScan::with_texture(9, &scan, world, texture).unwrap();
+    let (id, full, pose) = wire.clone().into_scan().unwrap();
+    let (geometry_id, geometry, geometry_pose) = wire.into_geometry();
+    assert_eq!((geometry_id, geometry_pose), (id, pose));
+    assert_eq!((geometry.texture.width, geometry.texture.height), (0, 0));
+    let mut untextured = full.clone();
+    untextured.texture = geometry.texture.clone();
+    assert_eq!(geometry, untextured, "everything but the texture");
+    // The coverage signature is geometric: the same from either.
+    let config = texel::coverage::CoverageConfig::default();
+    assert_eq!(
+        texel::coverage::ScanCoverage::of(&geometry, &config),
+        texel::coverage::ScanCoverage::of(&full, &config)
+    );
+}

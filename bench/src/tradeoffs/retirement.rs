@@ -387,9 +387,15 @@ fn markdown(results: &[SceneResult], adapter: &str) -> String {
          pose, then averaged; `coverage` is the share of the image a setting covers. `scan memory \
          held` is the sum of the served scans' `TexelScan::heap_bytes` (what the daemon would keep); \
          `index` is the index's own heap bytes (signatures included); `add` is the mean CPU time of \
-         one `add` with the scan's coverage signature, in this (unoptimised) build. The criterion \
+         one `add` with the scan's coverage signature, in this ({}) build. The criterion \
          is in `docs/model.md` (\"Retirement\"); the other settings are the defaults (one sample per \
-         8x8 lidar pixels, range gamma 1).\n"
+         8x8 lidar pixels, range gamma 1, {} candidates a cell, revalidation).\n",
+        if cfg!(debug_assertions) {
+            "unoptimised"
+        } else {
+            "optimised"
+        },
+        CoverageConfig::default().max_candidates_per_cell
     );
     let _ = writeln!(
         s,

@@ -574,6 +574,23 @@ impl WireScan {
     /// rebuilt), with its id and pose.
     pub fn into_scan(self) -> Result<(ScanId, TexelScan, Pose), WireError> {
         let texture = self.texture.decode()?;
+        Ok(self.assemble(texture))
+    }
+
+    /// The scan's geometry alone: [`Self::into_scan`] with an empty (0 x 0) texture,
+    /// the encoded one left undecoded. For what needs the mesh only (coverage
+    /// signatures), without the cost of decoding an image.
+    pub fn into_geometry(self) -> (ScanId, TexelScan, Pose) {
+        let texture = EoFrame {
+            width: 0,
+            height: 0,
+            rgb: Vec::new(),
+            timestamp_ns: self.timestamp_ns,
+        };
+        self.assemble(texture)
+    }
+
+    fn assemble(self, texture: EoFrame) -> (ScanId, TexelScan, Pose) {
         let pixels = self.grid_width as usize * self.grid_height as usize;
         let mut pixel_vertex = vec![NO_VERTEX; pixels];
         for (v, &p) in self.vertex_pixel.iter().enumerate() {
@@ -600,7 +617,7 @@ impl WireScan {
             scan_from_lidar: self.scan_from_lidar,
             range_noise: self.range_noise,
         };
-        Ok((self.id, scan, self.world_from_scan))
+        (self.id, scan, self.world_from_scan)
     }
 
     /// The message borrowed, as the encoder writes it.
