@@ -175,6 +175,7 @@ proptest! {
         poses in prop::collection::vec(arb_pose(), 2..12),
         duplicates in prop::collection::vec(0usize..12, 0..4),
         revisions in prop::collection::vec((0usize..16, arb_pose()), 0..6),
+        nudges in prop::collection::vec((0usize..16, -0.003..0.003f64, -0.003..0.003f64), 0..8),
         angle_deg in 0.0..40.0f64,
         margin in 0.0..0.3f64,
         budget in 1usize..40,
@@ -198,6 +199,18 @@ proptest! {
         let n = scans.len() as u64;
         for (i, p) in &revisions {
             index.revise(*i as u64 % n, p);
+            all_poses[*i % scans.len()] = *p;
+            check_invariants(&index, n);
+        }
+        // Millimetre revisions, as a loop closure makes: revalidation keeps most
+        // retired scans' witnesses, and must never keep one that no longer holds.
+        for (i, dx, dz) in &nudges {
+            let k = *i % scans.len();
+            let mut p = all_poses[k];
+            p.translation.vector.x += dx;
+            p.translation.vector.z += dz;
+            index.revise(k as u64, &p);
+            all_poses[k] = p;
             check_invariants(&index, n);
         }
     }
