@@ -219,30 +219,20 @@ impl CapturePoses {
     pub fn from_capture(path: &Path) -> Result<Self, CaptureError> {
         let mut reader = CaptureReader::open(path)?;
         let mut poses = Self::default();
-        while let Some(next) = reader.next_message() {
-            let message = match next {
-                Ok(m) => m,
-                // A damaged stretch was read around: the poses after it still count.
-                Err(e) if !e.is_fatal() => continue,
-                Err(_) => break,
-            };
-            let topic = message.channel.topic.as_str();
-            if topic != PoseTopic::Texel.topic()
-                && topic != PoseTopic::Truth.topic()
-                && topic != topics::TEXEL_ANCHOR
-            {
-                continue;
-            }
-            match reader.decode(&message) {
-                Ok(CaptureEvent::Pose {
-                    topic,
-                    timestamp_ns,
-                    world_from_eo,
-                }) => poses.insert(topic, timestamp_ns, world_from_eo),
-                Ok(CaptureEvent::Anchor(anchor)) => poses.texel.insert_anchor(anchor),
-                _ => {}
-            }
-        }
+        let wanted = [
+            PoseTopic::Texel.topic(),
+            PoseTopic::Truth.topic(),
+            topics::TEXEL_ANCHOR,
+        ];
+        reader.for_each_event(&wanted, |event| match event {
+            CaptureEvent::Pose {
+                topic,
+                timestamp_ns,
+                world_from_eo,
+            } => poses.insert(topic, timestamp_ns, world_from_eo),
+            CaptureEvent::Anchor(anchor) => poses.texel.insert_anchor(anchor),
+            _ => {}
+        });
         Ok(poses)
     }
 

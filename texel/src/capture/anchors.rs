@@ -226,20 +226,9 @@ impl RegisteredPoses {
     /// fatal error ends the read with what came before it kept.
     pub fn read_capture(&mut self, path: &Path) -> Result<(), CaptureError> {
         let mut reader = CaptureReader::open(path)?;
-        while let Some(next) = reader.next_message() {
-            let message = match next {
-                Ok(m) => m,
-                Err(e) if !e.is_fatal() => continue,
-                Err(_) => break,
-            };
-            let topic = message.channel.topic.as_str();
-            if topic != topics::TEXEL_POSE && topic != topics::TEXEL_ANCHOR {
-                continue;
-            }
-            if let Ok(event) = reader.decode(&message) {
-                self.take_event(&event);
-            }
-        }
+        reader.for_each_event(&[topics::TEXEL_POSE, topics::TEXEL_ANCHOR], |event| {
+            self.take_event(&event);
+        });
         Ok(())
     }
 }

@@ -273,6 +273,26 @@ impl<R: Read> CaptureReader<R> {
             .map_err(|e| self.spec_error(message, format!("cannot decode {schema_name}: {e}")))
     }
 
+    /// Decodes, in log order, the messages on `topics` (the others are not decoded)
+    /// and hands each event to `on_event`. A damaged stretch is read around and a
+    /// message that does not decode is skipped, so what comes after still counts; a
+    /// fatal error ends the read with what came before it kept.
+    pub fn for_each_event(&mut self, topics: &[&str], mut on_event: impl FnMut(CaptureEvent)) {
+        while let Some(next) = self.next_message() {
+            let message = match next {
+                Ok(m) => m,
+                Err(e) if !e.is_fatal() => continue,
+                Err(_) => break,
+            };
+            if !topics.contains(&message.channel.topic.as_str()) {
+                continue;
+            }
+            if let Ok(event) = self.decode(&message) {
+                on_event(event);
+            }
+        }
+    }
+
     /// Decodes one message into an event, updating the calibration state the
     /// reading rules need.
     pub fn decode(&mut self, message: &mcap::Message<'_>) -> Result<CaptureEvent, CaptureError> {

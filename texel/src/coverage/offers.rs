@@ -3,6 +3,7 @@
 //! of 32): most scans of a long session are retired, so their offers are most of
 //! what the retirement index holds.
 
+use std::borrow::Cow;
 use std::collections::HashMap;
 
 use nalgebra::{Point3, Vector3};
@@ -248,11 +249,11 @@ impl Default for Offers {
 }
 
 impl Offers {
-    /// The offers, decoded when packed.
-    pub(super) fn to_vec(&self) -> Vec<(CellKey, Offer)> {
+    /// The offers: borrowed when open, decoded when packed.
+    pub(super) fn view(&self) -> Cow<'_, [(CellKey, Offer)]> {
         match self {
-            Self::Open(v) => v.clone(),
-            Self::Packed(bytes) => unpack(bytes),
+            Self::Open(v) => Cow::Borrowed(v),
+            Self::Packed(bytes) => Cow::Owned(unpack(bytes)),
         }
     }
 

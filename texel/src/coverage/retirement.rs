@@ -230,7 +230,7 @@ impl Retirement {
                 Some(c) => (self.offers(&c, world_from_scan), Some(Box::new(c)), true),
                 None => (
                     moved_offers(
-                        &entry.offers.to_vec(),
+                        &entry.offers.view(),
                         &entry.world_from_scan,
                         world_from_scan,
                         self.config.cell_size_m(),
@@ -314,7 +314,7 @@ impl Retirement {
     pub fn cells_of(&self, id: ScanId) -> Vec<[i64; 3]> {
         self.scans
             .get(&id)
-            .map(|e| e.offers.to_vec().into_iter().map(|(k, _)| k).collect())
+            .map(|e| e.offers.view().iter().map(|(k, _)| *k).collect())
             .unwrap_or_default()
     }
 
@@ -378,7 +378,7 @@ impl Retirement {
             return None;
         }
         let mut witnesses: Vec<ScanId> = Vec::new();
-        for (key, offer) in &entry.offers.to_vec() {
+        for (key, offer) in entry.offers.view().iter() {
             let known = witnesses.iter().copied();
             let others = self
                 .cells
@@ -521,7 +521,7 @@ impl Retirement {
             return None;
         }
         let mut used: Vec<ScanId> = Vec::new();
-        for (key, offer) in &entry.offers.to_vec() {
+        for (key, offer) in entry.offers.view().iter() {
             let t = entry.witnesses.iter().copied().find(|&t| {
                 self.offer_of(t, key)
                     .is_some_and(|o| self.dominates(&o, offer))
@@ -622,7 +622,7 @@ impl Retirement {
         };
         let placed: Vec<(CellKey, f32)> = e
             .offers
-            .to_vec()
+            .view()
             .iter()
             .map(|(k, o)| (*k, self.strength(o)))
             .collect();
