@@ -13,7 +13,9 @@
 //! stage before it reaches the hub), so going over the budget drops the frames
 //! requested least recently; a request reads them back. Retired scans (redundant,
 //! `texel::coverage`) leave the served model and memory at once, and come back as a
-//! listing when a pose revision makes them useful again.
+//! listing when a pose revision makes them useful again. With a shelf (`shelf.rs`)
+//! what the hub and retirement know of retired scans waits on disk too, so memory
+//! holds the served model whatever the session's length.
 
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -21,12 +23,13 @@ use std::sync::{Arc, Mutex, MutexGuard};
 
 use bytes::Bytes;
 use texel::Pose;
-use texel::coverage::{Changes, CoverageConfig, Retirement, ScanCoverage};
+use texel::coverage::{Changes, CoverageConfig, Retirement, ScanCoverage, Shelf};
 use texel::model::{ScanId, ScanListing};
 use texel::wire::{Message, ModelStatus, WireError};
 use tokio::sync::mpsc;
 
 use crate::serve_order::{REGION_M, Served, coarse_first};
+use crate::shelf::{DiskShelf, HUB_TABLE, RETIREMENT_TABLE, ShelfDb, ShelvedListing};
 use crate::store::{Store, StoreError};
 
 /// One client's live feed.
@@ -60,6 +63,8 @@ struct Entry {
     stored: bool,
     /// When it was last added or requested (an LRU tick).
     used: u64,
+    /// Also on the shelf (a retired scan loaded back for a change).
+    on_shelf: bool,
 }
 
 /// How the hub keeps its model.
@@ -72,10 +77,17 @@ pub struct ModelOptions {
     pub store: Option<Arc<Store>>,
     /// Retirement of redundant scans; `None` (or disabled) keeps every scan served.
     pub coverage: Option<CoverageConfig>,
+    /// Where retired scans' entries wait (the hub's and retirement's); `None` keeps
+    /// them in memory.
+    pub shelf: Option<Arc<ShelfDb>>,
 }
 
 struct Inner {
+    /// Served scans, and retired ones not on the shelf.
     entries: BTreeMap<ScanId, Entry>,
+    shelf: Option<DiskShelf>,
+    /// Retired scans whose entry is on the shelf.
+    shelved: u64,
     retirement: Option<Retirement>,
     /// In-memory frames by last use: the eviction order.
     lru: BTreeMap<u64, ScanId>,
@@ -184,11 +196,20 @@ impl Hub {
             // (a pose revision), so the index holds offers and links alone for them.
             let mut r = Retirement::new(c);
             r.shed_retired_signatures(true);
+            if let Some(db) = &options.shelf {
+                r.set_shelf(Box::new(DiskShelf::new(Arc::clone(db), RETIREMENT_TABLE)));
+            }
             r
         });
+        let shelf = options
+            .shelf
+            .as_ref()
+            .map(|db| DiskShelf::new(Arc::clone(db), HUB_TABLE));
         Arc::new(Self {
             inner: Mutex::new(Inner {
                 entries: BTreeMap::new(),
+                shelf,
+                shelved: 0,
                 retirement,
                 lru: BTreeMap::new(),
                 tick: 0,
@@ -254,7 +275,7 @@ impl Hub {
         if inner.closed.is_some() {
             return Err(HubError::Closed);
         }
-        if inner.entries.contains_key(&id) {
+        if Self::retired_state(&inner, id).is_some() {
             return Err(HubError::Duplicate(id));
         }
         inner.tick += 1;
@@ -269,6 +290,7 @@ impl Hub {
                 frame: None,
                 stored,
                 used,
+                on_shelf: false,
             },
         );
         inner.served += 1;
@@ -284,7 +306,9 @@ impl Hub {
             if let Some(e) = inner.entries.get_mut(&id) {
                 e.retired = true;
             }
-            if !stored {
+            if stored {
+                Self::shelve(&mut inner, id);
+            } else {
                 // Without a store a retired frame could never come back: keep it.
                 Self::hold_frame(&mut inner, id, frame);
             }
@@ -304,6 +328,121 @@ impl Hub {
     fn measure_index(inner: &Inner) -> usize {
         inner.entries.len() * (std::mem::size_of::<Entry>() + ENTRY_OVERHEAD_BYTES)
             + inner.retirement.as_ref().map_or(0, Retirement::heap_bytes)
+            + inner.shelf.as_ref().map_or(0, Shelf::heap_bytes)
+    }
+
+    /// Whether scan `id` is known, and if so whether it is retired (`Some(true)`),
+    /// in memory or on the shelf.
+    fn retired_state(inner: &Inner, id: ScanId) -> Option<bool> {
+        if let Some(e) = inner.entries.get(&id) {
+            return Some(e.retired);
+        }
+        let shelf = inner.shelf.as_ref()?;
+        match shelf.get(&[id]) {
+            Ok(found) => found.into_iter().next().flatten().map(|_| true),
+            Err(_) => None,
+        }
+    }
+
+    /// Moves retired scan `id`'s entry to the shelf (its frame is in the store). On a
+    /// shelf error the entry stays in memory: nothing is lost.
+    fn shelve(inner: &mut Inner, id: ScanId) {
+        let Some(shelf) = inner.shelf.as_mut() else {
+            return;
+        };
+        let Some(e) = inner.entries.get(&id) else {
+            return;
+        };
+        if !e.retired || !e.stored || e.frame.is_some() {
+            return;
+        }
+        let bytes = ShelvedListing {
+            listing: e.listing,
+            world_from_scan: e.world_from_scan,
+            revised: e.revised,
+        }
+        .to_bytes();
+        let was_on_shelf = e.on_shelf;
+        match shelf.commit(&[(id, bytes)], &[]) {
+            Ok(()) => {
+                inner.entries.remove(&id);
+                if !was_on_shelf {
+                    inner.shelved += 1;
+                }
+            }
+            Err(e) => Self::shelf_failed(inner, &e.to_string()),
+        }
+    }
+
+    /// Brings shelved scan `id`'s entry into memory (it stays on the shelf until it
+    /// is served again). False when the shelf does not hold it or cannot give it back.
+    fn unshelve(inner: &mut Inner, id: ScanId) -> bool {
+        if inner.entries.contains_key(&id) {
+            return true;
+        }
+        let Some(shelf) = inner.shelf.as_ref() else {
+            return false;
+        };
+        let found = match shelf.get(&[id]) {
+            Ok(found) => found.into_iter().next().flatten(),
+            Err(e) => {
+                Self::shelf_failed(inner, &e.to_string());
+                return false;
+            }
+        };
+        let Some(bytes) = found else {
+            return false;
+        };
+        match ShelvedListing::from_bytes(&bytes) {
+            Ok(s) => {
+                inner.tick += 1;
+                let used = inner.tick;
+                inner.entries.insert(
+                    id,
+                    Entry {
+                        listing: s.listing,
+                        world_from_scan: s.world_from_scan,
+                        revised: s.revised,
+                        retired: true,
+                        frame: None,
+                        stored: true,
+                        used,
+                        on_shelf: true,
+                    },
+                );
+                true
+            }
+            Err(message) => {
+                Self::shelf_failed(inner, &format!("scan {id}: {message}"));
+                false
+            }
+        }
+    }
+
+    /// Takes scan `id` (served again, in memory) off the shelf.
+    fn unshelf_served(inner: &mut Inner, id: ScanId) {
+        let Some(shelf) = inner.shelf.as_mut() else {
+            return;
+        };
+        if !inner.entries.get(&id).is_some_and(|e| e.on_shelf) {
+            return;
+        }
+        match shelf.commit(&[], &[id]) {
+            Ok(()) => {
+                inner.shelved = inner.shelved.saturating_sub(1);
+                if let Some(e) = inner.entries.get_mut(&id) {
+                    e.on_shelf = false;
+                }
+            }
+            Err(e) => Self::shelf_failed(inner, &e.to_string()),
+        }
+    }
+
+    fn shelf_failed(inner: &mut Inner, message: &str) {
+        inner.store_errors += 1;
+        if inner.store_errors == 1 {
+            tracing::error!("model shelf: {message}");
+        }
     }
 
     /// Revises a scan's pose (retired scans too: they keep their place in the graph).
@@ -319,6 +458,7 @@ impl Hub {
         if inner.closed.is_some() {
             return Err(HubError::Closed);
         }
+        Self::unshelve(&mut inner, id);
         let entry = inner
             .entries
             .get_mut(&id)
@@ -342,6 +482,7 @@ impl Hub {
         };
         inner.retirement_work.note(started.elapsed());
         self.apply_changes(&mut inner, &changes, None)?;
+        Self::shelve(&mut inner, id);
         Ok(())
     }
 
@@ -369,7 +510,7 @@ impl Hub {
         if inner.closed.is_some() {
             return Err(HubError::Closed);
         }
-        if !inner.entries.get(&id).is_some_and(|e| e.retired) {
+        if Self::retired_state(&inner, id) != Some(true) {
             return Err(HubError::UnknownScan(id));
         }
         let changes = Changes {
@@ -405,8 +546,11 @@ impl Hub {
             inner.served -= 1;
             let frame = Bytes::from(Message::ScanWithdrawn { id }.encode()?);
             Self::broadcast(inner, &frame);
+            Self::shelve(inner, id);
         }
         for &id in &changes.restored {
+            Self::unshelve(inner, id);
+            Self::unshelf_served(inner, id);
             let Some(e) = inner.entries.get_mut(&id) else {
                 continue;
             };
@@ -482,7 +626,9 @@ impl Hub {
             if inner.closed.is_some() {
                 return Err(FetchError::Closed);
             }
-            let e = inner.entries.get(&id).ok_or(FetchError::Unknown(id))?;
+            let Some(e) = inner.entries.get(&id) else {
+                return Err(Self::absent(&inner, id));
+            };
             if e.retired {
                 return Err(FetchError::Withdrawn(id));
             }
@@ -521,7 +667,9 @@ impl Hub {
         if inner.closed.is_some() {
             return Err(FetchError::Closed);
         }
-        let e = inner.entries.get(&id).ok_or(FetchError::Unknown(id))?;
+        let Some(e) = inner.entries.get(&id) else {
+            return Err(Self::absent(&inner, id));
+        };
         if e.retired {
             return Err(FetchError::Withdrawn(id));
         }
@@ -536,6 +684,15 @@ impl Hub {
             frames.push(Bytes::from(pose));
         }
         Ok(frames)
+    }
+
+    /// Why scan `id`, not in memory, cannot be fetched: retired (on the shelf) or
+    /// never seen.
+    fn absent(inner: &Inner, id: ScanId) -> FetchError {
+        match Self::retired_state(inner, id) {
+            Some(_) => FetchError::Withdrawn(id),
+            None => FetchError::Unknown(id),
+        }
     }
 
     /// Offers a status frame; a client with a full queue simply misses it (statuses
@@ -619,7 +776,15 @@ impl Hub {
 
     /// Every scan added this session (served or retired).
     pub fn scan_count(&self) -> usize {
-        self.lock().entries.len()
+        let inner = self.lock();
+        inner.entries.len() + inner.shelved as usize
+    }
+
+    /// Retired scans whose entries are on the shelf, the hub's and retirement's.
+    pub fn shelved(&self) -> (u64, u64) {
+        let inner = self.lock();
+        let retirement = inner.retirement.as_ref().map_or(0, |r| r.shelved() as u64);
+        (inner.shelved, retirement)
     }
 
     /// Whether scan `id` is in the served model.
@@ -647,7 +812,7 @@ impl Hub {
     /// The model's part of the status.
     pub fn status(&self) -> ModelStatus {
         let inner = self.lock();
-        let (mut in_memory, mut on_disk) = (0u64, 0u64);
+        let (mut in_memory, mut on_disk) = (0u64, inner.shelved);
         for e in inner.entries.values() {
             match (&e.frame, e.retired) {
                 (Some(_), false) => in_memory += 1,
@@ -655,10 +820,11 @@ impl Hub {
                 (Some(_), true) => {}
             }
         }
+        let scans = inner.entries.len() as u64 + inner.shelved;
         ModelStatus {
-            scans: inner.entries.len() as u64,
+            scans,
             served: inner.served,
-            retired: inner.entries.len() as u64 - inner.served,
+            retired: scans - inner.served,
             in_memory,
             on_disk,
             // The index as last measured: walking retirement's index for every status

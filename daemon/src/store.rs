@@ -28,6 +28,9 @@ use std::sync::Mutex;
 
 use bytes::Bytes;
 use texel::model::ScanId;
+use texel::paged::{PAGE_RECORDS, PagedTable, Record};
+
+use crate::pages::FilePages;
 
 const MAGIC: [u8; 4] = *b"TXSE";
 const VERSION: u16 = 1;
@@ -65,6 +68,86 @@ struct Slot {
     crc: u32,
 }
 
+impl Slot {
+    /// No entry (a gap in the ids): no frame is this long.
+    const ABSENT: Self = Self {
+        offset: 0,
+        len: u32::MAX,
+        crc: 0,
+    };
+}
+
+impl Record for Slot {
+    const LEN: usize = 16;
+    fn encode(&self, out: &mut [u8]) {
+        out[0..8].copy_from_slice(&self.offset.to_le_bytes());
+        out[8..12].copy_from_slice(&self.len.to_le_bytes());
+        out[12..16].copy_from_slice(&self.crc.to_le_bytes());
+    }
+    fn decode(bytes: &[u8]) -> Option<Self> {
+        Some(Self {
+            offset: u64::from_le_bytes(bytes.get(0..8)?.try_into().ok()?),
+            len: u32::from_le_bytes(bytes.get(8..12)?.try_into().ok()?),
+            crc: u32::from_le_bytes(bytes.get(12..16)?.try_into().ok()?),
+        })
+    }
+}
+
+/// Ids further than this beyond the highest so far go to the sparse map, so that a
+/// stray id never fills the dense table with gaps.
+const MAX_ID_GAP: u64 = 1 << 16;
+
+/// Pages of slots (1,024 scans, 16 bytes each, a page) kept in memory.
+const RESIDENT_SLOT_PAGES: usize = 4;
+
+/// Where each scan's entry lies: a session's ids count from 0, so by id in a paged
+/// table whose pages beyond a few wait in an unlinked file beside the store (its
+/// memory does not grow with the session); ids far beyond the others in a map.
+struct SlotIndex {
+    dense: PagedTable<Slot>,
+    sparse: HashMap<ScanId, Slot>,
+}
+
+impl SlotIndex {
+    fn new(dir: &Path) -> std::io::Result<Self> {
+        let pages = FilePages::create_in(dir, "store-slots", PAGE_RECORDS * Slot::LEN)?;
+        Ok(Self {
+            dense: PagedTable::paged(Box::new(pages), RESIDENT_SLOT_PAGES),
+            sparse: HashMap::new(),
+        })
+    }
+
+    fn insert(&mut self, id: ScanId, slot: Slot) {
+        let len = self.dense.len() as u64;
+        if id < len {
+            self.dense.update(id as usize, |s| *s = slot);
+        } else if id - len <= MAX_ID_GAP {
+            while (self.dense.len() as u64) < id {
+                self.dense.push(Slot::ABSENT);
+            }
+            self.dense.push(slot);
+        } else {
+            self.sparse.insert(id, slot);
+        }
+    }
+
+    fn get(&self, id: ScanId) -> Option<Slot> {
+        match usize::try_from(id).ok().and_then(|i| self.dense.get(i)) {
+            Some(slot) => (slot != Slot::ABSENT).then_some(slot),
+            None => self.sparse.get(&id).copied(),
+        }
+    }
+}
+
+impl std::fmt::Debug for SlotIndex {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SlotIndex")
+            .field("dense", &self.dense.len())
+            .field("sparse", &self.sparse.len())
+            .finish()
+    }
+}
+
 /// The damaged tail an existing store was cut back from.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct DamagedTail {
@@ -90,7 +173,7 @@ pub struct Store {
     file: File,
     /// Appends are serialised; reads go straight to the file.
     end: Mutex<u64>,
-    slots: Mutex<HashMap<ScanId, Slot>>,
+    slots: Mutex<SlotIndex>,
 }
 
 fn header(id: ScanId, frame: &[u8], crc: u32) -> [u8; HEADER_LEN as usize] {
@@ -136,7 +219,7 @@ impl Store {
             .truncate(true)
             .open(path)
             .map_err(|source| io_error(path, source))?;
-        Ok(Self::with(path, file, 0, HashMap::new()))
+        Self::with(path, file, 0, Vec::new())
     }
 
     /// Creates a store in the system's temporary folder whose file is unlinked at
@@ -164,14 +247,14 @@ impl Store {
             .metadata()
             .map_err(|source| io_error(path, source))?
             .len();
-        let mut slots = HashMap::new();
+        let mut slots = Vec::new();
         let mut scan = StoreScan::default();
         let mut offset = 0u64;
         let mut reader = std::io::BufReader::new(&mut file);
         while offset < file_len {
             match read_entry_at(&mut reader, offset, file_len) {
                 Ok((id, slot)) => {
-                    slots.insert(id, slot);
+                    slots.push((id, slot));
                     scan.ids.push(id);
                     offset = slot.offset + HEADER_LEN + u64::from(slot.len);
                 }
@@ -186,16 +269,29 @@ impl Store {
             file.set_len(offset)
                 .map_err(|source| io_error(path, source))?;
         }
-        Ok((Self::with(path, file, offset, slots), scan))
+        Ok((Self::with(path, file, offset, slots)?, scan))
     }
 
-    fn with(path: &Path, file: File, end: u64, slots: HashMap<ScanId, Slot>) -> Self {
-        Self {
+    fn with(
+        path: &Path,
+        file: File,
+        end: u64,
+        slots: Vec<(ScanId, Slot)>,
+    ) -> Result<Self, StoreError> {
+        let dir = path
+            .parent()
+            .filter(|d| !d.as_os_str().is_empty())
+            .unwrap_or(Path::new("."));
+        let mut index = SlotIndex::new(dir).map_err(|source| io_error(path, source))?;
+        for (id, slot) in slots {
+            index.insert(id, slot);
+        }
+        Ok(Self {
             path: path.to_path_buf(),
             file,
             end: Mutex::new(end),
-            slots: Mutex::new(slots),
-        }
+            slots: Mutex::new(index),
+        })
     }
 
     pub fn path(&self) -> &Path {
@@ -215,7 +311,8 @@ impl Store {
         self.slots
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner)
-            .contains_key(&id)
+            .get(id)
+            .is_some()
     }
 
     /// Appends scan `id`'s frame; a later entry for the same id supersedes it.
@@ -259,8 +356,7 @@ impl Store {
             .slots
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner)
-            .get(&id)
-            .copied()
+            .get(id)
             .ok_or_else(|| StoreError::Missing {
                 path: self.path.display().to_string(),
                 id,

@@ -11,8 +11,9 @@ use texel::coverage::{CoverageConfig, ScanCoverage};
 use texel::model::ScanListing;
 use texel::wire::{Limits, Message, decode_frame};
 use texel::{FuseConfig, Pose, Sensor, TexelScan, fuse};
-use texel_daemon::hub::{FetchError, Hub, ModelOptions};
+use texel_daemon::hub::{FetchError, Hub, HubError, ModelOptions};
 use texel_daemon::pipeline::encode::encode_scan;
+use texel_daemon::shelf::ShelfDb;
 use texel_daemon::store::Store;
 use texel_e2e::captures;
 
@@ -45,6 +46,7 @@ fn memory_stays_within_the_budget_and_evicted_frames_read_back_byte_for_byte() {
             memory_budget_bytes: 3 * one + one / 2,
             store: Some(Arc::clone(&store)),
             coverage: None,
+            shelf: None,
         },
     );
     let mut frames = Vec::new();
@@ -93,8 +95,19 @@ fn memory_stays_within_the_budget_and_evicted_frames_read_back_byte_for_byte() {
     assert!(matches!(hub.fetch_scan(99), Err(FetchError::Unknown(99))));
 }
 
+/// A shelf for retired scans' entries in `dir`, when `on`.
+fn shelf(dir: &std::path::Path, on: bool) -> Option<Arc<ShelfDb>> {
+    on.then(|| ShelfDb::create_in(dir).unwrap())
+}
+
 #[test]
 fn a_redundant_scan_is_not_served_until_a_revision_makes_it_useful() {
+    for shelved in [false, true] {
+        redundant_scan_returns(shelved);
+    }
+}
+
+fn redundant_scan_returns(shelved: bool) {
     let dir = tempfile::tempdir().unwrap();
     let store = Arc::new(Store::create(&dir.path().join("m.scans")).unwrap());
     let config = CoverageConfig::default();
@@ -104,6 +117,7 @@ fn a_redundant_scan_is_not_served_until_a_revision_makes_it_useful() {
             memory_budget_bytes: u64::MAX,
             store: Some(Arc::clone(&store)),
             coverage: Some(config),
+            shelf: shelf(dir.path(), shelved),
         },
     );
     let mut sub = hub.subscribe().unwrap();
@@ -122,6 +136,18 @@ fn a_redundant_scan_is_not_served_until_a_revision_makes_it_useful() {
     assert!(hub.is_served(0) && !hub.is_served(1));
     let status = hub.status();
     assert_eq!((status.served, status.retired), (1, 1));
+    assert_eq!(hub.shelved(), if shelved { (1, 1) } else { (0, 0) });
+    assert!(matches!(
+        hub.add_scan(
+            1,
+            ScanListing::of_scan(&s, 1, 1.0),
+            Pose::identity(),
+            Bytes::new(),
+            true,
+            None
+        ),
+        Err(HubError::Duplicate(1))
+    ));
     // Viewers saw scan 0 only; a request for scan 1 is refused.
     assert!(matches!(decode(&sub.live.try_recv().unwrap()), Message::ScanAdded(w) if w.id == 0));
     assert!(sub.live.try_recv().is_err());
@@ -140,6 +166,11 @@ fn a_redundant_scan_is_not_served_until_a_revision_makes_it_useful() {
     }
     assert!(listed, "scan 1 was listed again");
     assert!(hub.is_served(1));
+    assert_eq!(
+        hub.shelved(),
+        (0, 0),
+        "a scan served again leaves the shelf"
+    );
     // It is served from the store, then with its pose.
     let fetched = hub.fetch_scan(1).unwrap();
     assert_eq!(fetched, frame(1, &s, Pose::identity()));
@@ -147,6 +178,12 @@ fn a_redundant_scan_is_not_served_until_a_revision_makes_it_useful() {
 
 #[test]
 fn a_retired_scans_signature_is_read_back_from_the_store_on_a_revision() {
+    for shelved in [false, true] {
+        signature_read_back(shelved);
+    }
+}
+
+fn signature_read_back(shelved: bool) {
     let dir = tempfile::tempdir().unwrap();
     let store = Arc::new(Store::create(&dir.path().join("m.scans")).unwrap());
     let config = CoverageConfig::default();
@@ -156,6 +193,7 @@ fn a_retired_scans_signature_is_read_back_from_the_store_on_a_revision() {
             memory_budget_bytes: u64::MAX,
             store: Some(Arc::clone(&store)),
             coverage: Some(config),
+            shelf: shelf(dir.path(), shelved),
         },
     );
     let s = scan(3);
@@ -183,6 +221,77 @@ fn a_retired_scans_signature_is_read_back_from_the_store_on_a_revision() {
         hub.is_served(2),
         "scan 2 served again without its signature"
     );
+}
+
+#[test]
+fn with_a_shelf_retired_scans_leave_memory_and_keep_their_poses() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = Arc::new(Store::create(&dir.path().join("m.scans")).unwrap());
+    let config = CoverageConfig::default();
+    let index_bytes = |shelved: bool, copies: u64| {
+        let hub = Hub::with_model(
+            64,
+            ModelOptions {
+                memory_budget_bytes: u64::MAX,
+                store: Some(Arc::clone(&store)),
+                coverage: Some(config),
+                shelf: shelf(dir.path(), shelved),
+            },
+        );
+        let s = scan(3);
+        let coverage = ScanCoverage::of(&s, &config);
+        for id in 0..=copies {
+            // Copies a millimetre apart: each redundant, each with its own pose.
+            let pose = Pose::translation(id as f64 * 1e-3, 0.0, 0.0);
+            let f = frame(id, &s, pose);
+            store.append(id, &f).unwrap();
+            let listing = ScanListing::of_scan(&s, f.len() as u64, coverage.score() as f32);
+            hub.add_scan(id, listing, pose, f, true, Some(coverage.clone()))
+                .unwrap();
+        }
+        let status = hub.status();
+        assert_eq!(status.scans, copies + 1);
+        assert!(status.served <= 3, "{status:?}");
+        assert_eq!(status.retired, copies + 1 - status.served);
+        if shelved {
+            assert_eq!(hub.shelved(), (status.retired, status.retired));
+            assert_eq!(status.on_disk, status.retired);
+        }
+        // A revision of a shelved scan reaches it, and it stays retired; the first
+        // scan moved far away brings one copy back with its own pose.
+        hub.revise_pose(copies, Pose::translation(copies as f64 * 1e-3, 0.0, 1e-4))
+            .unwrap();
+        assert!(!hub.is_served(copies));
+        let index_bytes = hub.memory_bytes().0;
+        let mut sub = hub.subscribe().unwrap();
+        hub.revise_pose(0, Pose::translation(80.0, 0.0, 0.0))
+            .unwrap();
+        let mut relisted = Vec::new();
+        while let Ok(f) = sub.live.try_recv() {
+            if let Message::ScanListed {
+                id,
+                world_from_scan,
+                ..
+            } = decode(&f)
+            {
+                let expected =
+                    Pose::translation(id as f64 * 1e-3, 0.0, if id == copies { 1e-4 } else { 0.0 });
+                assert_eq!(world_from_scan, expected, "scan {id}'s pose came back");
+                relisted.push(id);
+            }
+        }
+        assert!(!relisted.is_empty(), "a copy stands in for the moved scan");
+        assert_eq!(hub.scan_count() as u64, copies + 1);
+        (index_bytes, status.served, relisted)
+    };
+    // The shelf changes no decision. In memory the index grows with the retired
+    // scans; on the shelf it does not (beyond the database's fixed cache).
+    let kept = (index_bytes(false, 40), index_bytes(false, 400));
+    let shelved = (index_bytes(true, 40), index_bytes(true, 400));
+    assert_eq!((&kept.0.1, &kept.0.2), (&shelved.0.1, &shelved.0.2));
+    assert_eq!((&kept.1.1, &kept.1.2), (&shelved.1.1, &shelved.1.2));
+    assert!(kept.1.0 > kept.0.0 + 360 * 200, "in memory: {kept:?}");
+    assert!(shelved.1.0 < shelved.0.0 + 360 * 16, "shelved: {shelved:?}");
 }
 
 #[test]

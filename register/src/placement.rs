@@ -18,6 +18,7 @@ use texel::capture::{
     CaptureError, CaptureEvent, CaptureReader, PoseTopic, RegisteredPoses, topics,
 };
 use texel::model::{ModelEvent, ScanId};
+use texel::paged::PageStore;
 use texel::{PinholeCamera, Pose, TexelScan};
 
 use crate::{Registrar, RegistrationConfig, RegistrationStatus, ScanAnchor};
@@ -100,6 +101,8 @@ pub struct RegistrarStage {
     /// True poses by timestamp known before the session (a replayed capture's),
     /// consulted for the anchor only.
     truth: HashMap<u64, Pose>,
+    /// Where the registrar's scan records go beyond a few pages, if anywhere.
+    record_pages: Option<Box<dyn PageStore>>,
 }
 
 impl RegistrarStage {
@@ -108,7 +111,23 @@ impl RegistrarStage {
             config,
             registrar: None,
             truth: HashMap::new(),
+            record_pages: None,
         }
+    }
+
+    /// Keeps the registrar's per-scan records in `store` beyond a few pages
+    /// ([`Registrar::page_scan_records`]).
+    pub fn with_record_pages(mut self, store: Box<dyn PageStore>) -> Self {
+        self.record_pages = Some(store);
+        self
+    }
+
+    fn make_registrar(&mut self, anchor: Pose) -> Registrar {
+        let mut registrar = Registrar::with_anchor(self.config.clone(), anchor);
+        if let Some(store) = self.record_pages.take() {
+            registrar.page_scan_records(store);
+        }
+        registrar
     }
 
     /// Knows the true poses a capture carries, to anchor the world where the capture's
@@ -136,10 +155,12 @@ impl Registration for RegistrarStage {
         id: ScanId,
         world_from_scan: Pose,
     ) {
-        let config = &self.config;
-        self.registrar
-            .get_or_insert_with(|| Registrar::with_anchor(config.clone(), world_from_scan))
-            .restore(Arc::clone(scan), input.lidar, id, world_from_scan);
+        if self.registrar.is_none() {
+            self.registrar = Some(self.make_registrar(world_from_scan));
+        }
+        if let Some(r) = self.registrar.as_mut() {
+            r.restore(Arc::clone(scan), input.lidar, id, world_from_scan);
+        }
     }
 
     fn register(&mut self, scan: &Arc<TexelScan>, input: ScanInput<'_>) -> StageOutput {
@@ -151,8 +172,8 @@ impl Registration for RegistrarStage {
                     .or_else(|| self.truth.get(&input.timestamp_ns).copied())
                     .unwrap_or_else(crate::default_anchor);
                 self.truth = HashMap::new();
-                self.registrar
-                    .insert(Registrar::with_anchor(self.config.clone(), anchor))
+                let registrar = self.make_registrar(anchor);
+                self.registrar.insert(registrar)
             }
         };
         let result = registrar.register(Arc::clone(scan), input.lidar);

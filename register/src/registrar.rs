@@ -11,6 +11,7 @@ use std::sync::Arc;
 
 use nalgebra::Matrix6;
 use texel::model::{ModelEvent, ScanId};
+use texel::paged::PageStore;
 use texel::pose::pose_difference;
 use texel::{PinholeCamera, Pose, TexelScan};
 
@@ -24,6 +25,10 @@ use super::scan_table::{CompactPose, RevisionThresholds, ScanRecord, ScanTable};
 
 /// Fewest correspondences with one keyframe for the pair to become a graph edge.
 const MIN_EDGE_CORRESPONDENCES: usize = 12;
+
+/// Pages of per-scan records (1,024 scans, 96 bytes each, a page) a paged registrar
+/// keeps in memory: the newest scans, where registration and most revisions are.
+pub const RESIDENT_RECORD_PAGES: usize = 8;
 
 /// A keyframe: a graph node (its ordinal is the node's index).
 struct Keyframe {
@@ -148,16 +153,39 @@ impl Registrar {
         &self.config
     }
 
+    /// Keeps at most [`RESIDENT_RECORD_PAGES`] pages of per-scan records in memory
+    /// and the rest in `store`, so that the registrar's memory stops growing with
+    /// the frames (all but a keyframe list entry, 4 bytes, per scan).
+    pub fn page_scan_records(&mut self, store: Box<dyn PageStore>) {
+        self.scans.page_to(store, RESIDENT_RECORD_PAGES);
+    }
+
+    /// [`Self::page_scan_records`] with other page sizes, for a registrar that has
+    /// registered nothing yet (tests page a few dozen scans this way); a registrar
+    /// that has keeps its page size.
+    pub fn page_scan_records_with(
+        &mut self,
+        store: Box<dyn PageStore>,
+        resident_pages: usize,
+        records_per_page: usize,
+    ) {
+        if self.scans.is_empty() {
+            self.scans = ScanTable::with_page_records(records_per_page);
+        }
+        self.scans.page_to(store, resident_pages);
+    }
+
     /// The current pose of a registered scan: its keyframe's pose times its pose
     /// relative to the keyframe.
     pub fn pose(&self, id: ScanId) -> Option<Pose> {
         let record = usize::try_from(id).ok().and_then(|i| self.scans.get(i))?;
-        self.derived_pose(record)
+        self.derived_pose(&record)
     }
 
     /// Current poses of all registered scans, by id.
     pub fn poses(&self) -> Vec<Pose> {
         self.scans
+            .to_vec()
             .iter()
             .map(|r| self.derived_pose(r).unwrap_or(r.keyframe_from_scan))
             .collect()
@@ -243,7 +271,7 @@ impl Registrar {
                     id: ScanId::from(id),
                     keyframe: ScanId::from(keyframe.scan),
                     keyframe_from_scan: record.keyframe_from_scan,
-                    world_from_scan: self.derived_pose(record)?,
+                    world_from_scan: self.derived_pose(&record)?,
                 })
             })
             .collect()
@@ -541,10 +569,10 @@ impl Registrar {
         {
             k.members.pop();
         }
-        if let Some(r) = self.scans.get_mut(id) {
+        self.scans.update(id, |r| {
             r.keyframe = ordinal as u32;
             r.keyframe_from_scan = Pose::identity();
-        }
+        });
         self.keyframes.push(Keyframe {
             scan: id as u32,
             pyramid: Some(pyramid),

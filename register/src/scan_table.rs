@@ -6,11 +6,8 @@
 
 use nalgebra::{Quaternion, Translation3, UnitQuaternion};
 use texel::Pose;
+use texel::paged::{PageStore, PagedTable, Record};
 use texel::pose::pose_difference;
-
-/// Records are appended in blocks of at least this many (and a quarter of what is
-/// held), so the spare capacity stays under a quarter instead of doubling.
-const MIN_GROWTH: usize = 32;
 
 /// A pose in single precision, only ever compared with a threshold of millimetres
 /// and hundredths of a degree (f32 holds a world position of 1 km to 0.06 mm).
@@ -74,10 +71,72 @@ impl RevisionThresholds {
     }
 }
 
-/// Every registered scan by id (ids count from 0 without gaps).
-#[derive(Debug, Clone, Default)]
+impl Record for ScanRecord {
+    /// Pose (7 f64), emitted pose (7 f32), timestamp, keyframe.
+    const LEN: usize = 7 * 8 + 7 * 4 + 8 + 4;
+
+    fn encode(&self, out: &mut [u8]) {
+        let t = self.keyframe_from_scan.translation.vector;
+        let q = self.keyframe_from_scan.rotation.quaternion().coords;
+        let mut at = 0;
+        for v in [t.x, t.y, t.z, q.x, q.y, q.z, q.w] {
+            out[at..at + 8].copy_from_slice(&v.to_le_bytes());
+            at += 8;
+        }
+        let e = &self.emitted;
+        for v in e.translation_m.iter().chain(&e.rotation) {
+            out[at..at + 4].copy_from_slice(&v.to_le_bytes());
+            at += 4;
+        }
+        out[at..at + 8].copy_from_slice(&self.timestamp_ns.to_le_bytes());
+        out[at + 8..at + 12].copy_from_slice(&self.keyframe.to_le_bytes());
+    }
+
+    fn decode(bytes: &[u8]) -> Option<Self> {
+        if bytes.len() != Self::LEN {
+            return None;
+        }
+        let f64_at = |i: usize| {
+            Some(f64::from_le_bytes(
+                bytes.get(8 * i..8 * i + 8)?.try_into().ok()?,
+            ))
+        };
+        let f32_at = |i: usize| {
+            let at = 56 + 4 * i;
+            Some(f32::from_le_bytes(bytes.get(at..at + 4)?.try_into().ok()?))
+        };
+        let p: Vec<f64> = (0..7).map(f64_at).collect::<Option<_>>()?;
+        let e: Vec<f32> = (0..7).map(f32_at).collect::<Option<_>>()?;
+        if p.iter().any(|v| !v.is_finite()) || e.iter().any(|v| !v.is_finite()) {
+            return None;
+        }
+        let q = Quaternion::new(p[6], p[3], p[4], p[5]);
+        if (q.norm() - 1.0).abs() > 1e-6 {
+            return None;
+        }
+        Some(Self {
+            // Written from a unit quaternion and checked: kept bit for bit.
+            keyframe_from_scan: Pose::from_parts(
+                Translation3::new(p[0], p[1], p[2]),
+                UnitQuaternion::new_unchecked(q),
+            ),
+            emitted: CompactPose {
+                translation_m: [e[0], e[1], e[2]],
+                rotation: [e[3], e[4], e[5], e[6]],
+            },
+            timestamp_ns: u64::from_le_bytes(bytes.get(84..92)?.try_into().ok()?),
+            keyframe: u32::from_le_bytes(bytes.get(92..96)?.try_into().ok()?),
+        })
+    }
+}
+
+/// Every registered scan by id (ids count from 0 without gaps), in memory or, given
+/// a page store ([`ScanTable::page_to`]), in memory a few pages at a time: the
+/// table grows with the frames, and a long session's old scans are read back only
+/// when a revision reaches them.
+#[derive(Debug, Default)]
 pub struct ScanTable {
-    records: Vec<ScanRecord>,
+    records: PagedTable<ScanRecord>,
 }
 
 impl ScanTable {
@@ -89,39 +148,51 @@ impl ScanTable {
         self.records.is_empty()
     }
 
-    pub fn get(&self, id: usize) -> Option<&ScanRecord> {
+    /// An empty table in pages of `records_per_page` records.
+    pub fn with_page_records(records_per_page: usize) -> Self {
+        Self {
+            records: PagedTable::with_page_records(records_per_page),
+        }
+    }
+
+    /// Keeps at most `resident_pages` pages of records in memory, the rest in `store`.
+    pub fn page_to(&mut self, store: Box<dyn PageStore>, resident_pages: usize) {
+        self.records.page_to(store, resident_pages);
+    }
+
+    pub fn get(&self, id: usize) -> Option<ScanRecord> {
         self.records.get(id)
     }
 
-    pub fn get_mut(&mut self, id: usize) -> Option<&mut ScanRecord> {
-        self.records.get_mut(id)
+    /// Changes record `id`; false when there is none.
+    pub fn update(&mut self, id: usize, change: impl FnOnce(&mut ScanRecord)) -> bool {
+        self.records.update(id, change)
     }
 
     /// Appends a record; returns its id.
     pub fn push(&mut self, record: ScanRecord) -> usize {
-        if self.records.len() == self.records.capacity() {
-            let extra = (self.records.len() / 4).max(MIN_GROWTH);
-            self.records.reserve_exact(extra);
-        }
-        self.records.push(record);
-        self.records.len() - 1
+        self.records.push(record)
     }
 
-    pub fn iter(&self) -> impl Iterator<Item = &ScanRecord> {
-        self.records.iter()
+    /// Every record, by id.
+    pub fn to_vec(&self) -> Vec<ScanRecord> {
+        self.records.to_vec()
     }
 
     /// The newest scan with this timestamp.
-    pub fn newest_at(&self, timestamp_ns: u64) -> Option<&ScanRecord> {
+    pub fn newest_at(&self, timestamp_ns: u64) -> Option<ScanRecord> {
         self.records
-            .iter()
-            .rev()
-            .find(|r| r.timestamp_ns == timestamp_ns)
+            .find_from_newest(|r| r.timestamp_ns == timestamp_ns)
     }
 
-    /// Heap bytes held (capacity included).
+    /// Heap bytes held (resident pages).
     pub fn heap_bytes(&self) -> usize {
-        self.records.capacity() * std::mem::size_of::<ScanRecord>()
+        self.records.heap_bytes()
+    }
+
+    /// Page writes and reads that failed.
+    pub fn page_errors(&self) -> u64 {
+        self.records.errors()
     }
 }
 
@@ -129,6 +200,31 @@ impl ScanTable {
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
+
+    #[test]
+    fn a_record_round_trips_bit_for_bit_and_refuses_damage() {
+        let record = ScanRecord {
+            keyframe_from_scan: Pose::from_parts(
+                Translation3::new(-0.125, 3.5, 1e-12),
+                UnitQuaternion::from_euler_angles(1.0, -0.5, 0.25),
+            ),
+            emitted: CompactPose::from_pose(&Pose::translation(100.0, -2.0, 0.5)),
+            timestamp_ns: 1_700_000_000_123_456_789,
+            keyframe: 4_000_000_000,
+        };
+        let mut bytes = vec![0u8; ScanRecord::LEN];
+        record.encode(&mut bytes);
+        let back = ScanRecord::decode(&bytes).unwrap();
+        assert_eq!(back.keyframe_from_scan, record.keyframe_from_scan);
+        assert_eq!(back.emitted, record.emitted);
+        assert_eq!(
+            (back.timestamp_ns, back.keyframe),
+            (record.timestamp_ns, record.keyframe)
+        );
+        assert!(ScanRecord::decode(&bytes[1..]).is_none());
+        bytes[0..8].copy_from_slice(&f64::NAN.to_le_bytes());
+        assert!(ScanRecord::decode(&bytes).is_none());
+    }
 
     #[test]
     fn a_compact_pose_round_trips_within_a_micrometre_near_the_origin() {

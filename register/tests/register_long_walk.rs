@@ -13,6 +13,7 @@ use std::sync::Arc;
 use register_support::*;
 use texel::Pose;
 use texel::model::ModelEvent;
+use texel::paged::MemoryPages;
 use texel::pose::pose_difference;
 use texel_register::{Registrar, RegistrationConfig, ScanAnchor};
 
@@ -58,10 +59,23 @@ struct Walk {
 }
 
 fn walk(config: RegistrationConfig, laps_walked: usize) -> Walk {
+    walk_paged(config, laps_walked, None)
+}
+
+/// A walk whose registrar keeps `(resident pages, records a page)` of its scan
+/// records in memory and the rest in a page store.
+fn walk_paged(
+    config: RegistrationConfig,
+    laps_walked: usize,
+    paging: Option<(usize, usize)>,
+) -> Walk {
     let s = sensor(48, 48, 0.005);
     let scene = Scene::room();
     let truth = laps(laps_walked);
     let mut reg = Registrar::with_anchor(config, truth[0]);
+    if let Some((resident, per_page)) = paging {
+        reg.page_scan_records_with(Box::new(MemoryPages::default()), resident, per_page);
+    }
     let mut events = Vec::new();
     let mut nodes_after_lap = Vec::new();
     let mut placed = Vec::new();
@@ -189,6 +203,11 @@ fn revisions_are_sent_only_beyond_the_thresholds_and_derived_poses_follow_keyfra
     }
     assert!(revisions > 0, "the loop closure revised nothing");
     assert!(w.reg.stats().graph_optimisations > 0);
+    // Records paged out (2 pages of 8 scans in memory) are read back for the loop
+    // closure's revisions: the same revisions, the same poses.
+    let paged = walk_paged(RegistrationConfig::default(), 2, Some((2, 8)));
+    assert_eq!(format!("{:?}", paged.events), format!("{:?}", w.events));
+    assert_eq!(paged.reg.poses(), w.reg.poses());
     // Every scan's last sent pose is within the thresholds of its derived pose.
     assert_eq!(sent.len(), w.truth.len());
     for (id, pose) in w.reg.poses().iter().enumerate() {
@@ -273,7 +292,7 @@ impl Walk {
 fn memory_per_scan_is_small_and_resident_pyramids_are_bounded() {
     let mut config = RegistrationConfig::default();
     config.keyframes.max_resident = 12;
-    let w = walk(config, 2);
+    let w = walk(config.clone(), 2);
     let m = w.reg.heap_bytes();
     let stats = w.reg.stats();
     let per_scan = m.scan_bytes as f64 / m.scans as f64;
@@ -290,4 +309,22 @@ fn memory_per_scan_is_small_and_resident_pyramids_are_bounded() {
     assert_eq!(w.reg.poses().len(), w.truth.len());
     let ate = ate_m(&w.reg, &w.truth);
     assert!(ate < 0.05, "{ate}");
+
+    // With its records paged (2 pages of 8 in memory), the registrar decides and
+    // revises exactly as before, and holds a fixed share of its records: only the
+    // keyframes' member lists (4 bytes a scan) still grow.
+    let paged = walk_paged(config, 2, Some((2, 8)));
+    // Debug forms print every f64 in full: equal forms are equal values.
+    assert_eq!(
+        format!("{:?}", paged.events),
+        format!("{:?}", w.events),
+        "the same revisions"
+    );
+    assert_eq!(paged.reg.poses(), w.reg.poses());
+    assert_eq!(format!("{:?}", paged.anchors), format!("{:?}", w.anchors));
+    assert!(!w.events.is_empty());
+    let pm = paged.reg.heap_bytes();
+    let paged_per_scan = pm.scan_bytes as f64 / pm.scans as f64;
+    eprintln!("paged: {pm:?}: {paged_per_scan:.1} bytes a scan");
+    assert!(paged_per_scan < 30.0, "{paged_per_scan}");
 }

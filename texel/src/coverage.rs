@@ -5,6 +5,7 @@
 
 mod offers;
 mod retirement;
+mod shelf;
 
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
@@ -12,6 +13,7 @@ use serde::{Deserialize, Serialize};
 use crate::scan::{NO_VERTEX, TexelScan};
 
 pub use retirement::{Changes, Retirement, RetirementCounts};
+pub use shelf::{MemoryShelf, Shelf, ShelfError};
 
 /// The most samples one signature holds, whatever the lidar grid: the stride grows
 /// for grids so large that the configured one would exceed it.

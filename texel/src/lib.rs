@@ -12,6 +12,7 @@ pub mod fusion_tables;
 #[doc(hidden)]
 pub mod fuzzing;
 pub mod model;
+pub mod paged;
 pub mod pose;
 pub mod rays;
 pub mod scan;

@@ -8,7 +8,7 @@ use std::sync::Arc;
 
 use nalgebra::{Point3, Vector3};
 use proptest::prelude::*;
-use texel::coverage::{CoverageConfig, Retirement, ScanCoverage};
+use texel::coverage::{CoverageConfig, MemoryShelf, Retirement, ScanCoverage, Shelf, ShelfError};
 use texel::model::ScanId;
 use texel::pose::look_at;
 use texel::scan::{NO_VERTEX, TexelScan, TriangleFlags};
@@ -221,7 +221,9 @@ proptest! {
 
     /// An index that sheds retired scans' signatures and loads them back on a
     /// revision decides exactly as one that keeps every signature, loads only for
-    /// scans it shed, and holds no retired scan's signature between calls.
+    /// scans it shed, and holds no retired scan's signature between calls. One that
+    /// also shelves its retired scans decides the same again, and holds no retired
+    /// scan in memory between calls.
     #[test]
     fn shedding_signatures_changes_no_decision(
         poses in prop::collection::vec(arb_pose(), 2..10),
@@ -239,7 +241,22 @@ proptest! {
         let mut keeping = Retirement::new(config);
         let mut shedding = Retirement::new(config);
         shedding.shed_retired_signatures(true);
+        let mut shelving = Retirement::new(config);
+        shelving.set_shelf(Box::new(MemoryShelf::default()));
         let n = signatures.len() as u64;
+        let check_shelving = |shedding: &Retirement, shelving: &Retirement, upto: u64| {
+            for id in 0..upto {
+                prop_assert_eq!(shedding.is_retired(id), shelving.is_retired(id));
+                prop_assert_eq!(shedding.cells_of(id), shelving.cells_of(id));
+                prop_assert_eq!(
+                    shedding.witnesses_of_retired(id),
+                    shelving.witnesses_of_retired(id)
+                );
+            }
+            prop_assert_eq!(shelving.retired(), shelving.shelved(), "retired scans left in memory");
+            prop_assert_eq!(shelving.counts(), shedding.counts());
+            Ok(())
+        };
         let check = |keeping: &Retirement, shedding: &Retirement, upto: u64| {
             for id in 0..upto {
                 prop_assert_eq!(keeping.is_retired(id), shedding.is_retired(id));
@@ -252,8 +269,11 @@ proptest! {
         };
         for (i, (c, p)) in signatures.iter().zip(&all_poses).enumerate() {
             let id = i as ScanId;
-            prop_assert_eq!(keeping.add(id, c.clone(), p), shedding.add(id, c.clone(), p));
+            let changes = shedding.add(id, c.clone(), p);
+            prop_assert_eq!(&keeping.add(id, c.clone(), p), &changes);
+            prop_assert_eq!(shelving.add(id, c.clone(), p), changes);
             check(&keeping, &shedding, id + 1)?;
+            check_shelving(&shedding, &shelving, id + 1)?;
         }
         prop_assert!(keeping.heap_bytes() >= shedding.heap_bytes());
         for (i, p) in &revisions {
@@ -265,9 +285,13 @@ proptest! {
                 signatures.get(id as usize).cloned()
             });
             prop_assert_eq!(loads, usize::from(!held));
-            prop_assert_eq!(keeping.revise(id, p), shed_changes);
+            prop_assert_eq!(keeping.revise(id, p), shed_changes.clone());
+            let shelved_changes = shelving.revise_with(id, p, || signatures.get(id as usize).cloned());
+            prop_assert_eq!(shelved_changes, shed_changes);
             check(&keeping, &shedding, n)?;
+            check_shelving(&shedding, &shelving, n)?;
             check_invariants(&shedding, n);
+            check_invariants(&shelving, n);
         }
     }
 }
@@ -290,6 +314,77 @@ fn a_scan_whose_signature_cannot_be_loaded_is_served_again() {
     assert!(!index.is_retired(1));
     assert!(!index.cells_of(1).is_empty(), "moved offers still place it");
     check_invariants(&index, 2);
+}
+
+/// A shelf that can be made to fail its commits or to damage what it gives back.
+#[derive(Default)]
+struct FaultyShelf {
+    inner: MemoryShelf,
+    fail_commits: Arc<std::sync::atomic::AtomicBool>,
+    damage_reads: Arc<std::sync::atomic::AtomicBool>,
+}
+
+impl Shelf for FaultyShelf {
+    fn get(&self, ids: &[ScanId]) -> Result<Vec<Option<Vec<u8>>>, ShelfError> {
+        let mut found = self.inner.get(ids)?;
+        if self.damage_reads.load(std::sync::atomic::Ordering::Relaxed) {
+            for bytes in found.iter_mut().flatten() {
+                if let Some(b) = bytes.get_mut(3) {
+                    *b ^= 0x40;
+                }
+            }
+        }
+        Ok(found)
+    }
+
+    fn commit(&mut self, puts: &[(ScanId, Vec<u8>)], removes: &[ScanId]) -> Result<(), ShelfError> {
+        if self.fail_commits.load(std::sync::atomic::Ordering::Relaxed) {
+            return Err(ShelfError("disk full".into()));
+        }
+        self.inner.commit(puts, removes)
+    }
+
+    fn heap_bytes(&self) -> usize {
+        self.inner.heap_bytes()
+    }
+}
+
+#[test]
+fn a_failing_shelf_loses_no_scan_and_a_damaged_one_serves_its_scans_again() {
+    use std::sync::atomic::Ordering::Relaxed;
+    let config = config();
+    let p = pose([0.0, 0.0, 1.5], [2.0, 2.0, 0.5]);
+    let coverage = ScanCoverage::of(&synthetic_scan(&p, 16), &config);
+    let shelf = FaultyShelf::default();
+    let (fail, damage) = (
+        Arc::clone(&shelf.fail_commits),
+        Arc::clone(&shelf.damage_reads),
+    );
+    let mut index = Retirement::new(config);
+    index.set_shelf(Box::new(shelf));
+    index.add(0, coverage.clone(), &p);
+    assert_eq!(index.add(1, coverage.clone(), &p).retired, vec![1]);
+    assert_eq!(index.shelved(), 1);
+    // Commits fail: the copy retired now stays in memory, counted once.
+    fail.store(true, Relaxed);
+    assert_eq!(index.add(2, coverage.clone(), &p).retired, vec![2]);
+    assert_eq!((index.retired(), index.shelved()), (2, 1));
+    assert!(index.counts().shelf_errors >= 1);
+    check_invariants(&index, 3);
+    // The disk comes back: the next call shelves what was left behind too.
+    fail.store(false, Relaxed);
+    assert_eq!(index.add(3, coverage.clone(), &p).retired, vec![3]);
+    assert_eq!((index.retired(), index.shelved()), (3, 3));
+    check_invariants(&index, 4);
+    // The shelf gives back damaged entries: the witness moves, its dependents
+    // cannot be judged, and are served again rather than kept retired on a guess.
+    damage.store(true, Relaxed);
+    let moved = Pose::translation(0.01, 0.0, 0.0) * p;
+    let changes = index.revise_with(0, &moved, || Some(coverage.clone()));
+    assert_eq!(changes.restored, vec![1, 2, 3]);
+    assert_eq!(index.counts().restored_unreadable, 3);
+    assert_eq!(index.shelved(), 0);
+    assert!(!index.is_retired(1) && !index.is_retired(2) && !index.is_retired(3));
 }
 
 #[test]

@@ -27,6 +27,7 @@ use std::time::Duration;
 
 use bytes::Bytes;
 use texel::SensorModel;
+use texel::paged::{PAGE_RECORDS, Record};
 use texel::sync::SharedFrameSync;
 use texel::wire::Message;
 use thiserror::Error;
@@ -37,9 +38,11 @@ use tokio_util::sync::CancellationToken;
 
 use crate::config::{RegistrationMode, SessionConfig};
 use crate::hub::{Hub, ModelOptions};
+use crate::pages::FilePages;
 use crate::record::{RecordItem, RecordSummary, Recorder};
 use crate::resume::{self, ResumeError};
 use crate::server::{self, ServeOptions};
+use crate::shelf::ShelfDb;
 use crate::source::replay::{Pace, ReplaySource};
 use crate::source::serial::SerialSource;
 #[cfg(feature = "sim")]
@@ -55,6 +58,7 @@ use encode::Encoder;
 use ingest::Ingest;
 use placement::{CapturePoses, RegistrarStage, Registration};
 use restore::{Restored, restore_session};
+use texel_register::scan_table::ScanRecord;
 use worker::Worker;
 
 #[derive(Debug, Error)]
@@ -231,11 +235,39 @@ fn model_options(
         None => Store::create_anonymous(),
     }
     .map_err(|e| SessionError::Store(e.to_string()))?;
+    // Retired scans' entries wait beside the store (an unlinked file).
+    let shelf = if config.model.retirement.enabled {
+        Some(
+            ShelfDb::create_in(&spill_dir(config, recording))
+                .map_err(|e| SessionError::Store(e.to_string()))?,
+        )
+    } else {
+        None
+    };
     Ok(ModelOptions {
         memory_budget_bytes: config.model.memory_budget_bytes(),
         store: Some(Arc::new(store)),
         coverage: Some(config.model.retirement),
+        shelf,
     })
+}
+
+/// Where a session's unlinked spill files go (retired scans' entries, the pages of
+/// per-frame tables): beside the model's store, or in the system's temporary folder
+/// when the store is anonymous.
+fn spill_dir(config: &SessionConfig, recording: Option<&std::path::Path>) -> std::path::PathBuf {
+    config
+        .model
+        .store_path_for(recording)
+        .and_then(|p| p.parent().map(std::path::Path::to_path_buf))
+        .map(|d| {
+            if d.as_os_str().is_empty() {
+                std::path::PathBuf::from(".")
+            } else {
+                d
+            }
+        })
+        .unwrap_or_else(std::env::temp_dir)
 }
 
 /// The sources a session's config names.
@@ -321,9 +353,19 @@ pub fn build_registration(config: &SessionConfig) -> Result<Box<dyn Registration
             message: e.to_string(),
         })
     };
-    let register = |truth| {
-        Box::new(RegistrarStage::new(config.registration.clone()).with_truth(truth))
-            as Box<dyn Registration>
+    let register = |truth| -> Result<Box<dyn Registration>, SessionError> {
+        // The registrar's per-scan records beyond a few pages wait on disk.
+        let pages = FilePages::create_in(
+            &spill_dir(config, config.record.path.as_deref()),
+            "registrar",
+            PAGE_RECORDS * ScanRecord::LEN,
+        )
+        .map_err(|e| SessionError::Store(format!("registrar's record pages: {e}")))?;
+        Ok(Box::new(
+            RegistrarStage::new(config.registration.clone())
+                .with_truth(truth)
+                .with_record_pages(Box::new(pages)),
+        ))
     };
     let mode = match config.pipeline.registration {
         // A pose capture named explicitly is the session's choice.
@@ -359,10 +401,10 @@ pub fn build_registration(config: &SessionConfig) -> Result<Box<dyn Registration
                 Some(path) => read_poses(path)?.into_truth(),
                 None => Default::default(),
             };
-            Ok(register(truth))
+            register(truth)
         }
         RegistrationMode::Auto => match &replayed {
-            None => Ok(register(Default::default())),
+            None => register(Default::default()),
             Some(path) => {
                 let poses = read_poses(path)?;
                 if poses.texel_count() > 0 {
@@ -456,6 +498,14 @@ async fn run(
         metrics: Arc::clone(&metrics),
         fuse: config.pipeline.fuse,
         timestamps: restored_timestamps,
+        timestamp_pages: Some(Box::new(
+            FilePages::create_in(
+                &spill_dir(&config, config.record.path.as_deref()),
+                "timestamps",
+                PAGE_RECORDS * u64::LEN,
+            )
+            .map_err(|e| SessionError::Store(format!("timestamps' pages: {e}")))?,
+        )),
     };
     let encoder = Encoder {
         rx: publish_rx,

@@ -15,6 +15,7 @@ use std::time::Instant;
 
 use texel::capture::{PoseAnchor, PoseTopic};
 use texel::model::{ModelEvent, ScanId};
+use texel::paged::{PageStore, PagedTable};
 use texel::{FuseConfig, Pose, Sensor, SensorModel, TexelScan, fuse};
 use texel_register::ScanAnchor;
 use tokio::sync::mpsc;
@@ -35,7 +36,12 @@ pub struct Worker {
     pub fuse: FuseConfig,
     /// Timestamps of the scans already in the model by id (a resumed session's).
     pub timestamps: Vec<u64>,
+    /// Where the timestamps' pages beyond a few go (`None`: all in memory).
+    pub timestamp_pages: Option<Box<dyn PageStore>>,
 }
+
+/// Pages of timestamps (1,024 scans, 8 bytes each, a page) kept in memory.
+const RESIDENT_TIMESTAMP_PAGES: usize = 4;
 
 impl Worker {
     /// Processes jobs until the ingest stage closes the queue.
@@ -43,8 +49,15 @@ impl Worker {
         // The ray table is built once per sensor model, not per frame.
         let mut sensor: Option<(Arc<SensorModel>, Sensor)> = None;
         // Timestamps of the scans in the model by id, to record pose revisions.
+        let mut timestamps = PagedTable::default();
+        for t in std::mem::take(&mut self.timestamps) {
+            timestamps.push(t);
+        }
+        if let Some(store) = self.timestamp_pages.take() {
+            timestamps.page_to(store, RESIDENT_TIMESTAMP_PAGES);
+        }
         let mut recorded = Recorded {
-            timestamps: std::mem::take(&mut self.timestamps),
+            timestamps,
             hanging: Vec::new(),
         };
         while let Some(job) = self.jobs.blocking_recv() {
@@ -255,7 +268,7 @@ impl Worker {
 /// which hang from another scan (one bit each: the recording derives their pose
 /// from their keyframe's).
 struct Recorded {
-    timestamps: Vec<u64>,
+    timestamps: PagedTable<u64>,
     hanging: Vec<u64>,
 }
 
@@ -264,7 +277,6 @@ impl Recorded {
         usize::try_from(id)
             .ok()
             .and_then(|i| self.timestamps.get(i))
-            .copied()
     }
 
     fn is_hanging(&self, id: ScanId) -> bool {

@@ -114,9 +114,7 @@ impl Registrar {
             self.scans.push(record);
         }
         if id < self.scans.len() {
-            if let Some(r) = self.scans.get_mut(id) {
-                *r = record;
-            }
+            self.scans.update(id, |r| *r = record);
         } else {
             self.scans.push(record);
         }

@@ -226,10 +226,10 @@ impl Registrar {
         if let Some(k) = self.keyframes.get_mut(to) {
             k.members.push(id as u32);
         }
-        if let Some(r) = self.scans.get_mut(id) {
+        self.scans.update(id, |r| {
             r.keyframe = to as u32;
             r.keyframe_from_scan = keyframe_from_scan;
-        }
+        });
         self.rehung.push(id as u32);
     }
 
@@ -259,15 +259,18 @@ impl Registrar {
                 continue;
             };
             for &id in &k.members {
-                let Some(r) = self.scans.get_mut(id as usize) else {
-                    continue;
-                };
-                let derived = world_from_keyframe * r.keyframe_from_scan;
-                if thresholds.exceeded(&derived, &r.emitted.to_pose()) {
-                    r.emitted = CompactPose::from_pose(&derived);
+                let mut revised = None;
+                self.scans.update(id as usize, |r| {
+                    let derived = world_from_keyframe * r.keyframe_from_scan;
+                    if thresholds.exceeded(&derived, &r.emitted.to_pose()) {
+                        r.emitted = CompactPose::from_pose(&derived);
+                        revised = Some(derived);
+                    }
+                });
+                if let Some(world_from_scan) = revised {
                     self.events.push(ModelEvent::PoseRevised {
                         id: ScanId::from(id),
-                        world_from_scan: derived,
+                        world_from_scan,
                     });
                 }
             }
@@ -281,11 +284,14 @@ impl Registrar {
             let Some(derived) = self.pose(id as ScanId) else {
                 continue;
             };
-            let Some(r) = self.scans.get_mut(id) else {
-                continue;
-            };
-            if thresholds.exceeded(&derived, &r.emitted.to_pose()) {
-                r.emitted = CompactPose::from_pose(&derived);
+            let mut revised = false;
+            self.scans.update(id, |r| {
+                if thresholds.exceeded(&derived, &r.emitted.to_pose()) {
+                    r.emitted = CompactPose::from_pose(&derived);
+                    revised = true;
+                }
+            });
+            if revised {
                 self.events.push(ModelEvent::PoseRevised {
                     id: id as ScanId,
                     world_from_scan: derived,
@@ -300,7 +306,7 @@ impl Registrar {
         let Some(t) = self.motion.last_timestamp_ns() else {
             return;
         };
-        let Some(pose) = self.scans.newest_at(t).and_then(|r| self.derived_pose(r)) else {
+        let Some(pose) = self.scans.newest_at(t).and_then(|r| self.derived_pose(&r)) else {
             return;
         };
         self.motion.rebase(pose);

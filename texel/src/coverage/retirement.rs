@@ -4,11 +4,13 @@
 //! witness whose offer dominates its own there (`docs/model.md`, "Retirement").
 //! A retired scan keeps its offers packed (`offers.rs`), and with shedding on not
 //! its signature: a pose revision loads the signature again from wherever its
-//! caller keeps the scan.
+//! caller keeps the scan. With a shelf (`shelf.rs`), a retired scan leaves memory
+//! altogether between the calls that need it.
 
 use std::collections::{HashMap, HashSet};
 
 use super::offers::{CellKey, Offer, Offers, moved_offers, offers_of};
+use super::shelf::{Shelf, ShelvedEntry};
 use super::{CoverageConfig, MIN_RANGE_M, ScanCoverage};
 use crate::model::ScanId;
 use crate::pose::Pose;
@@ -58,13 +60,18 @@ pub struct RetirementCounts {
     pub restored_approximate: u64,
     /// Retired scans kept retired by their own witnesses after a revision.
     pub revalidated: u64,
+    /// Retired scans served again because the shelf could not give them back.
+    pub restored_unreadable: u64,
+    /// Shelf operations that failed (what could not be shelved stays in memory).
+    pub shelf_errors: u64,
 }
 
 /// The incremental retirement index. Holds only ids, poses' effects (offers) and
 /// coverage signatures; never a scan.
-#[derive(Debug, Clone, Default)]
+#[derive(Debug, Default)]
 pub struct Retirement {
     config: CoverageConfig,
+    /// Served scans, and retired scans not on a shelf (all of them without one).
     scans: HashMap<ScanId, Entry>,
     /// Served scans offering each cell with their offer's strength, in arrival
     /// order or strongest first (`strongest_candidates_first`): a witness is looked
@@ -74,6 +81,31 @@ pub struct Retirement {
     counts: RetirementCounts,
     /// Drop the signatures of retired scans (see [`Retirement::shed_retired_signatures`]).
     shed_retired: bool,
+    /// Where retired scans wait between the calls that need them.
+    shelf: Option<ShelfSlot>,
+}
+
+/// A shelf and what the index knows of it without asking it.
+struct ShelfSlot {
+    shelf: Box<dyn Shelf>,
+    /// Entries on it.
+    len: usize,
+    /// Scans in memory for the current call (loaded, added or retired in it): settled
+    /// at its end. Those a failed commit left in memory stay here to try again.
+    touched: Vec<ScanId>,
+    /// Which of them are (still) on the shelf too.
+    loaded: HashSet<ScanId>,
+    /// Scans the shelf could not give back: forgotten at the end of the call.
+    lost: Vec<ScanId>,
+}
+
+impl std::fmt::Debug for ShelfSlot {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ShelfSlot")
+            .field("len", &self.len)
+            .field("touched", &self.touched.len())
+            .finish_non_exhaustive()
+    }
 }
 
 /// The redundancy tests left in one call.
@@ -155,7 +187,7 @@ impl Retirement {
     /// the served scans sharing its cells that it makes redundant are retired,
     /// least reliable first. An id already present is treated as a pose revision.
     pub fn add(&mut self, id: ScanId, coverage: ScanCoverage, world_from_scan: &Pose) -> Changes {
-        if self.scans.contains_key(&id) {
+        if self.scans.contains_key(&id) || self.shelved_entry(id).is_some() {
             return self.revise(id, world_from_scan);
         }
         let mut budget = Budget::new(&self.config);
@@ -173,6 +205,7 @@ impl Retirement {
                 dependents: Vec::new(),
             },
         );
+        self.touch(id);
         let mut log = Log::default();
         log.note(id, true);
         let witnesses = if self.config.enabled {
@@ -192,7 +225,15 @@ impl Retirement {
                 self.retire_neighbours(id, &mut budget, &mut log);
             }
         }
-        log.finish(self)
+        self.finish(log)
+    }
+
+    /// The net changes of a call; then the retired scans it touched go (back) to the
+    /// shelf.
+    fn finish(&mut self, log: Log) -> Changes {
+        let changes = log.finish(self);
+        self.settle();
+        changes
     }
 
     /// Moves scan `id` to `world_from_scan`: the scans that named it as a witness
@@ -218,10 +259,22 @@ impl Retirement {
         world_from_scan: &Pose,
         load: impl FnOnce() -> Option<ScanCoverage>,
     ) -> Changes {
-        let mut budget = Budget::new(&self.config);
         let mut log = Log::default();
+        self.load(&[id], &mut log);
+        self.revise_logged(id, world_from_scan, load, &mut log);
+        self.finish(log)
+    }
+
+    fn revise_logged(
+        &mut self,
+        id: ScanId,
+        world_from_scan: &Pose,
+        load: impl FnOnce() -> Option<ScanCoverage>,
+        log: &mut Log,
+    ) {
+        let mut budget = Budget::new(&self.config);
         let Some(entry) = self.scans.get(&id) else {
-            return Changes::default();
+            return;
         };
         let served = entry.served;
         let (offers, loaded, exact) = match &entry.coverage {
@@ -255,23 +308,23 @@ impl Retirement {
             // Approximate offers retire nothing, this scan least of all.
             if served {
                 self.index(id);
-                let dependents = self.take_dependents(id);
-                self.recheck_all(&dependents, &mut budget, &mut log);
+                let dependents = self.take_dependents(id, log);
+                self.recheck_all(&dependents, &mut budget, log);
             } else {
                 self.counts.restored_approximate += 1;
                 self.unlink(id);
                 self.serve(id);
             }
-            return log.finish(self);
+            return;
         }
         if served {
             self.index(id);
-            let dependents = self.take_dependents(id);
-            self.revalidate_all(&dependents, &mut budget, &mut log);
+            let dependents = self.take_dependents(id, log);
+            self.revalidate_all(&dependents, &mut budget, log);
             if let Some(witnesses) = self.redundant_served(id, &mut budget) {
-                self.retire(id, witnesses, &mut budget, &mut log);
+                self.retire(id, witnesses, &mut budget, log);
             } else {
-                self.retire_neighbours(id, &mut budget, &mut log);
+                self.retire_neighbours(id, &mut budget, log);
             }
         } else if let Some(witnesses) = self.still_witnessed(id, &mut budget) {
             // Its witnesses still stand in for it where it moved to.
@@ -280,19 +333,175 @@ impl Retirement {
             self.link(id, witnesses);
         } else {
             self.unlink(id);
-            if self.recheck(id, &mut budget, &mut log) {
-                self.retire_neighbours(id, &mut budget, &mut log);
+            if self.recheck(id, &mut budget, log) {
+                self.retire_neighbours(id, &mut budget, log);
             }
         }
-        if self.is_retired(id) {
+        if self.is_retired_here(id) {
             self.shed(id);
         }
-        log.finish(self)
     }
 
     /// Whether scan `id` is retired (false for an unknown id).
     pub fn is_retired(&self, id: ScanId) -> bool {
+        match self.scans.get(&id) {
+            Some(e) => !e.served,
+            None => self.shelved_entry(id).is_some(),
+        }
+    }
+
+    /// Whether scan `id` is in memory and retired.
+    fn is_retired_here(&self, id: ScanId) -> bool {
         self.scans.get(&id).is_some_and(|e| !e.served)
+    }
+
+    /// Keeps retired scans on `shelf` between the calls that need them, and sheds
+    /// their signatures: memory then holds the served scans alone (and their links
+    /// to the retired ones). The retired scans held now go to the shelf at once.
+    pub fn set_shelf(&mut self, shelf: Box<dyn Shelf>) {
+        self.shed_retired_signatures(true);
+        let retired: Vec<ScanId> = self
+            .scans
+            .iter()
+            .filter(|(_, e)| !e.served)
+            .map(|(id, _)| *id)
+            .collect();
+        self.shelf = Some(ShelfSlot {
+            shelf,
+            len: 0,
+            touched: retired,
+            loaded: HashSet::new(),
+            lost: Vec::new(),
+        });
+        self.settle();
+    }
+
+    /// The number of retired scans on the shelf.
+    pub fn shelved(&self) -> usize {
+        self.shelf.as_ref().map_or(0, |s| s.len)
+    }
+
+    /// Notes that scan `id` is in memory for this call, to be settled at its end.
+    fn touch(&mut self, id: ScanId) {
+        if let Some(slot) = self.shelf.as_mut() {
+            slot.touched.push(id);
+        }
+    }
+
+    /// Scan `id`'s entry on the shelf, read without loading it (`None` when it is
+    /// not there, or not readable).
+    fn shelved_entry(&self, id: ScanId) -> Option<ShelvedEntry> {
+        let slot = self.shelf.as_ref()?;
+        let bytes = slot.shelf.get(&[id]).ok()?.into_iter().next()??;
+        ShelvedEntry::from_bytes(&bytes).ok()
+    }
+
+    /// Brings the shelved scans among `ids` into memory for this call. A scan the
+    /// shelf cannot give back is forgotten and reported served again: the index
+    /// cannot judge it, and serving a scan costs memory where retiring one on a
+    /// guess could cost surfaces.
+    fn load(&mut self, ids: &[ScanId], log: &mut Log) {
+        let Some(slot) = self.shelf.as_mut() else {
+            return;
+        };
+        let wanted: Vec<ScanId> = ids
+            .iter()
+            .copied()
+            .filter(|id| !self.scans.contains_key(id))
+            .collect();
+        if wanted.is_empty() {
+            return;
+        }
+        let found = match slot.shelf.get(&wanted) {
+            Ok(found) => found,
+            Err(_) => {
+                self.counts.shelf_errors += 1;
+                vec![None; wanted.len()]
+            }
+        };
+        for (id, bytes) in wanted.into_iter().zip(found) {
+            let Some(bytes) = bytes else {
+                continue;
+            };
+            match ShelvedEntry::from_bytes(&bytes) {
+                Ok(e) => {
+                    self.scans.insert(
+                        id,
+                        Entry {
+                            coverage: None,
+                            world_from_scan: e.world_from_scan,
+                            offers: Offers::Packed(e.packed_offers),
+                            score: e.score,
+                            served: false,
+                            witnesses: e.witnesses,
+                            dependents: Vec::new(),
+                        },
+                    );
+                    slot.touched.push(id);
+                    slot.loaded.insert(id);
+                }
+                Err(_) => {
+                    self.counts.shelf_errors += 1;
+                    self.counts.restored_unreadable += 1;
+                    slot.lost.push(id);
+                    log.note(id, false);
+                }
+            }
+        }
+    }
+
+    /// The end of a call: the retired scans it touched go (back) to the shelf and
+    /// leave memory, the ones it served again leave the shelf, in one commit. After
+    /// a failed commit they stay in memory (nothing is lost) and are tried again at
+    /// the end of the next call.
+    fn settle(&mut self) {
+        let Some(slot) = self.shelf.as_mut() else {
+            return;
+        };
+        slot.touched.sort_unstable();
+        slot.touched.dedup();
+        let mut puts = Vec::new();
+        let mut removes: Vec<ScanId> = slot.lost.clone();
+        for &id in &slot.touched {
+            match self.scans.get_mut(&id) {
+                Some(e) if !e.served => {
+                    e.offers.pack();
+                    if let Offers::Packed(packed) = &e.offers {
+                        let shelved = ShelvedEntry {
+                            world_from_scan: e.world_from_scan,
+                            score: e.score,
+                            witnesses: e.witnesses.clone(),
+                            packed_offers: packed.clone(),
+                        };
+                        puts.push((id, shelved.to_bytes()));
+                    }
+                }
+                _ => {
+                    if slot.loaded.contains(&id) {
+                        removes.push(id);
+                    }
+                }
+            }
+        }
+        if puts.is_empty() && removes.is_empty() {
+            slot.touched.clear();
+            return;
+        }
+        if slot.shelf.commit(&puts, &removes).is_err() {
+            self.counts.shelf_errors += 1;
+            return;
+        }
+        let added = puts
+            .iter()
+            .filter(|(id, _)| !slot.loaded.contains(id))
+            .count();
+        slot.len = (slot.len + added).saturating_sub(removes.len());
+        for (id, _) in &puts {
+            self.scans.remove(id);
+        }
+        slot.touched.clear();
+        slot.loaded.clear();
+        slot.lost.clear();
     }
 
     /// What the index decided so far, by cause.
@@ -307,11 +516,33 @@ impl Retirement {
 
     /// The number of retired scans.
     pub fn retired(&self) -> usize {
-        self.scans.len() - self.served
+        let in_memory = self.scans.len() - self.served;
+        match &self.shelf {
+            // Scans a failed commit left in memory that are also on the shelf count once.
+            Some(slot) => in_memory + slot.len - slot.loaded.len(),
+            None => in_memory,
+        }
     }
 
     /// The cells scan `id` covers at its current pose (empty for an unknown id).
     pub fn cells_of(&self, id: ScanId) -> Vec<[i64; 3]> {
+        match self.scans.get(&id) {
+            Some(_) => self.cells_here(id),
+            None => self
+                .shelved_entry(id)
+                .map(|e| {
+                    Offers::Packed(e.packed_offers)
+                        .view()
+                        .iter()
+                        .map(|(k, _)| *k)
+                        .collect()
+                })
+                .unwrap_or_default(),
+        }
+    }
+
+    /// The cells of scan `id` held in memory.
+    fn cells_here(&self, id: ScanId) -> Vec<[i64; 3]> {
         self.scans
             .get(&id)
             .map(|e| e.offers.view().iter().map(|(k, _)| *k).collect())
@@ -320,10 +551,13 @@ impl Retirement {
 
     /// The served witnesses of retired scan `id` (empty when served or unknown).
     pub fn witnesses_of_retired(&self, id: ScanId) -> Vec<ScanId> {
-        self.scans
-            .get(&id)
-            .map(|e| e.witnesses.to_vec())
-            .unwrap_or_default()
+        match self.scans.get(&id) {
+            Some(e) => e.witnesses.to_vec(),
+            None => self
+                .shelved_entry(id)
+                .map(|e| e.witnesses.to_vec())
+                .unwrap_or_default(),
+        }
     }
 
     /// Bytes the index holds on the heap (approximate: tables at their capacity).
@@ -346,6 +580,11 @@ impl Retirement {
             .map(|v| v.capacity() * std::mem::size_of::<(ScanId, f32)>())
             .sum();
         entries
+            + self.shelf.as_ref().map_or(0, |s| {
+                s.shelf.heap_bytes()
+                    + (s.touched.capacity() + s.lost.capacity() + s.loaded.capacity())
+                        * std::mem::size_of::<ScanId>()
+            })
             + self.scans.capacity() * (std::mem::size_of::<(ScanId, Entry)>() + 8)
             + cells
             + self.cells.capacity() * (std::mem::size_of::<(CellKey, Vec<(ScanId, f32)>)>() + 8)
@@ -426,7 +665,7 @@ impl Retirement {
             return;
         }
         let mut neighbours: Vec<ScanId> = self
-            .cells_of(id)
+            .cells_here(id)
             .iter()
             .filter_map(|k| self.cells.get(k))
             .flatten()
@@ -454,6 +693,7 @@ impl Retirement {
     /// Retires served scan `id` with its witnesses; the scans that named it as a
     /// witness are tested again.
     fn retire(&mut self, id: ScanId, witnesses: Vec<ScanId>, budget: &mut Budget, log: &mut Log) {
+        self.touch(id);
         self.unindex(id);
         if let Some(e) = self.scans.get_mut(&id)
             && e.served
@@ -462,7 +702,7 @@ impl Retirement {
             self.served = self.served.saturating_sub(1);
             self.counts.retired_later += 1;
         }
-        let dependents = self.take_dependents(id);
+        let dependents = self.take_dependents(id, log);
         self.link(id, witnesses);
         self.shed(id);
         self.recheck_all(&dependents, budget, log);
@@ -604,14 +844,18 @@ impl Retirement {
         }
     }
 
-    /// The retired scans naming `id` as a witness, unlinked from it, in id order.
-    fn take_dependents(&mut self, id: ScanId) -> Vec<ScanId> {
+    /// The retired scans naming `id` as a witness, unlinked from it, in id order,
+    /// loaded from the shelf (those it cannot give back are left out, to be served
+    /// again).
+    fn take_dependents(&mut self, id: ScanId, log: &mut Log) -> Vec<ScanId> {
         let mut d: Vec<ScanId> = self
             .scans
             .get_mut(&id)
             .map(|e| std::mem::take(&mut e.dependents))
             .unwrap_or_default();
         d.sort_unstable();
+        self.load(&d, log);
+        d.retain(|r| self.scans.contains_key(r));
         d
     }
 
@@ -652,7 +896,7 @@ impl Retirement {
 
     /// Takes `id` out of the cells of its offers.
     fn unindex(&mut self, id: ScanId) {
-        for k in self.cells_of(id) {
+        for k in self.cells_here(id) {
             if let Some(list) = self.cells.get_mut(&k) {
                 list.retain(|&(s, _)| s != id);
                 if list.is_empty() {
@@ -679,7 +923,9 @@ impl Log {
         let mut touched: Vec<(ScanId, bool)> = self.0.into_iter().collect();
         touched.sort_unstable();
         for (id, before) in touched {
-            match (before, index.is_retired(id)) {
+            // Every scan a call touched is in memory until the call settles: a scan
+            // the shelf could not give back is not, and counts as served again.
+            match (before, index.is_retired_here(id)) {
                 (true, true) => changes.retired.push(id),
                 (false, false) => changes.restored.push(id),
                 _ => {}
