@@ -29,7 +29,7 @@ use texel::wire::{Message, ModelStatus, WireError};
 use tokio::sync::mpsc;
 
 use crate::serve_order::{REGION_M, Served, coarse_first};
-use crate::shelf::{DiskShelf, HUB_TABLE, RETIREMENT_TABLE, ShelfDb, ShelvedListing};
+use crate::shelf::{DiskShelf, ShelfFiles, ShelfTable, ShelvedListing};
 use crate::store::{Store, StoreError};
 
 /// One client's live feed.
@@ -79,7 +79,7 @@ pub struct ModelOptions {
     pub coverage: Option<CoverageConfig>,
     /// Where retired scans' entries wait (the hub's and retirement's); `None` keeps
     /// them in memory.
-    pub shelf: Option<Arc<ShelfDb>>,
+    pub shelf: Option<Arc<ShelfFiles>>,
 }
 
 struct Inner {
@@ -197,14 +197,17 @@ impl Hub {
             let mut r = Retirement::new(c);
             r.shed_retired_signatures(true);
             if let Some(db) = &options.shelf {
-                r.set_shelf(Box::new(DiskShelf::new(Arc::clone(db), RETIREMENT_TABLE)));
+                r.set_shelf(Box::new(DiskShelf::new(
+                    Arc::clone(db),
+                    ShelfTable::Retirement,
+                )));
             }
             r
         });
         let shelf = options
             .shelf
             .as_ref()
-            .map(|db| DiskShelf::new(Arc::clone(db), HUB_TABLE));
+            .map(|db| DiskShelf::new(Arc::clone(db), ShelfTable::Hub));
         Arc::new(Self {
             inner: Mutex::new(Inner {
                 entries: BTreeMap::new(),
@@ -338,9 +341,10 @@ impl Hub {
             return Some(e.retired);
         }
         let shelf = inner.shelf.as_ref()?;
-        match shelf.get(&[id]) {
-            Ok(found) => found.into_iter().next().flatten().map(|_| true),
-            Err(_) => None,
+        match shelf.get(&[id]).into_iter().next()? {
+            Ok(found) => found.map(|_| true),
+            // Held but unreadable: it is known, and was retired.
+            Err(_) => Some(true),
         }
     }
 
@@ -383,9 +387,10 @@ impl Hub {
         let Some(shelf) = inner.shelf.as_ref() else {
             return false;
         };
-        let found = match shelf.get(&[id]) {
-            Ok(found) => found.into_iter().next().flatten(),
-            Err(e) => {
+        let found = match shelf.get(&[id]).into_iter().next() {
+            Some(Ok(found)) => found,
+            None => None,
+            Some(Err(e)) => {
                 Self::shelf_failed(inner, &e.to_string());
                 return false;
             }

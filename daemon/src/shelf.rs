@@ -1,151 +1,102 @@
 //! The model's shelf on disk: what the daemon knows of retired scans (retirement's
-//! entries, the hub's listings and poses) in an embedded database (redb) in an
-//! unlinked file beside the store, so that memory holds the served model and a
-//! bounded cache whatever the session's length. The file lives as long as the
-//! daemon: a resumed session rebuilds it from the recording.
+//! entries, the hub's listings and poses), so that memory holds the served model
+//! whatever the session's length. Each table is a store (`store.rs`: append-only
+//! entries with a CRC, found through a paged index) in an unlinked file beside the
+//! model's store: a rewrite appends, a removal appends an empty entry. Nothing is
+//! flushed to disk (the files live only as long as the daemon; a resumed session
+//! rebuilds them from the recording), so a commit never waits for the disk. The
+//! superseded entries stay in the file: about 0.5 kB per revision of a retired
+//! scan, small beside the store's frame of about 1 MB per scan.
 
-use std::fs::{File, OpenOptions};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::Arc;
 
 use nalgebra::{Quaternion, Translation3, UnitQuaternion};
-use redb::backends::FileBackend;
-use redb::{Database, Durability, ReadableDatabase, TableDefinition};
 use texel::Pose;
 use texel::coverage::{Shelf, ShelfError};
 use texel::model::{ScanId, ScanListing};
 
-/// Retirement's entries of retired scans.
-pub const RETIREMENT_TABLE: TableDefinition<'static, u64, &'static [u8]> =
-    TableDefinition::new("retirement");
-/// The hub's entries of retired scans.
-pub const HUB_TABLE: TableDefinition<'static, u64, &'static [u8]> = TableDefinition::new("hub");
+use crate::store::{Store, StoreError};
 
-/// The database's page cache: the memory the shelf may hold, whatever it holds on
-/// disk. Retired scans are read back one call at a time, a few hundred bytes each.
-pub const CACHE_BYTES: usize = 8 << 20;
-
-/// Commits between durable ones. Non-durable commits are cheap (no fsync) but redb
-/// reuses the pages they free only after a durable commit; without one now and
-/// then the file would grow with every revision.
-const DURABLE_EVERY: u64 = 256;
-
-/// Why the shelf could not be made.
-#[derive(Debug, thiserror::Error)]
-#[error("model shelf {path}: {message}")]
-pub struct ShelfOpenError {
-    pub path: String,
-    pub message: String,
+/// Which of the shelf's tables.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ShelfTable {
+    /// Retirement's entries of retired scans.
+    Retirement,
+    /// The hub's entries of retired scans.
+    Hub,
 }
 
-/// The database behind the daemon's shelves.
-pub struct ShelfDb {
-    db: Database,
-    path: PathBuf,
+/// The shelf's tables.
+#[derive(Debug)]
+pub struct ShelfFiles {
+    retirement: Store,
+    hub: Store,
 }
 
-impl ShelfDb {
-    /// Creates an empty shelf in `dir`, its file unlinked at once: it lives as long
-    /// as the daemon, even one that is killed.
-    pub fn create_in(dir: &Path) -> Result<Arc<Self>, ShelfOpenError> {
-        let nanos = std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map_or(0, |d| d.as_nanos());
-        let path = dir.join(format!("texel-shelf-{}-{nanos}.redb", std::process::id()));
-        let fail = |message: String| ShelfOpenError {
-            path: path.display().to_string(),
-            message,
-        };
-        let file: File = OpenOptions::new()
-            .read(true)
-            .write(true)
-            .create_new(true)
-            .open(&path)
-            .map_err(|e| fail(e.to_string()))?;
-        std::fs::remove_file(&path).map_err(|e| fail(format!("cannot unlink: {e}")))?;
-        let backend = FileBackend::new(file).map_err(|e| fail(e.to_string()))?;
-        let db = Database::builder()
-            .set_cache_size(CACHE_BYTES)
-            .create_with_backend(backend)
-            .map_err(|e| fail(e.to_string()))?;
-        // Tables exist from the start, so reads never meet a missing one.
-        let txn = db.begin_write().map_err(|e| fail(e.to_string()))?;
-        for table in [RETIREMENT_TABLE, HUB_TABLE] {
-            txn.open_table(table).map_err(|e| fail(e.to_string()))?;
+impl ShelfFiles {
+    /// Creates the shelf's (empty, unlinked) files in `dir`.
+    pub fn create_in(dir: &Path) -> Result<Arc<Self>, StoreError> {
+        Ok(Arc::new(Self {
+            retirement: Store::create_unlinked_in(dir, "shelf-retirement")?,
+            hub: Store::create_unlinked_in(dir, "shelf-hub")?,
+        }))
+    }
+
+    fn table(&self, table: ShelfTable) -> &Store {
+        match table {
+            ShelfTable::Retirement => &self.retirement,
+            ShelfTable::Hub => &self.hub,
         }
-        txn.commit().map_err(|e| fail(e.to_string()))?;
-        Ok(Arc::new(Self { db, path }))
-    }
-
-    /// Where the (unlinked) file was made: for messages.
-    pub fn path(&self) -> &Path {
-        &self.path
     }
 }
 
-/// One table of the shelf database as a [`Shelf`].
+/// One table of the shelf as a [`Shelf`].
 pub struct DiskShelf {
-    db: Arc<ShelfDb>,
-    table: TableDefinition<'static, u64, &'static [u8]>,
-    commits: u64,
+    files: Arc<ShelfFiles>,
+    table: ShelfTable,
 }
 
 impl DiskShelf {
-    pub fn new(db: Arc<ShelfDb>, table: TableDefinition<'static, u64, &'static [u8]>) -> Self {
-        Self {
-            db,
-            table,
-            commits: 0,
-        }
+    pub fn new(files: Arc<ShelfFiles>, table: ShelfTable) -> Self {
+        Self { files, table }
     }
 
-    fn error(&self, e: impl std::fmt::Display) -> ShelfError {
-        ShelfError(format!("{} ({}): {e}", self.db.path.display(), self.table))
+    fn store(&self) -> &Store {
+        self.files.table(self.table)
     }
 }
 
 impl Shelf for DiskShelf {
-    fn get(&self, ids: &[ScanId]) -> Result<Vec<Option<Vec<u8>>>, ShelfError> {
-        let txn = self.db.db.begin_read().map_err(|e| self.error(e))?;
-        let table = txn.open_table(self.table).map_err(|e| self.error(e))?;
+    fn get(&self, ids: &[ScanId]) -> Vec<Result<Option<Vec<u8>>, ShelfError>> {
         ids.iter()
-            .map(|id| {
-                table
-                    .get(id)
-                    .map(|found| found.map(|v| v.value().to_vec()))
-                    .map_err(|e| self.error(e))
+            .map(|&id| match self.store().read(id) {
+                // An empty entry is a removal.
+                Ok(bytes) if bytes.is_empty() => Ok(None),
+                Ok(bytes) => Ok(Some(bytes.to_vec())),
+                Err(StoreError::Missing { .. }) => Ok(None),
+                Err(e) => Err(ShelfError(e.to_string())),
             })
             .collect()
     }
 
     fn commit(&mut self, puts: &[(ScanId, Vec<u8>)], removes: &[ScanId]) -> Result<(), ShelfError> {
-        let mut txn = self.db.db.begin_write().map_err(|e| self.error(e))?;
-        self.commits += 1;
-        let durability = if self.commits.is_multiple_of(DURABLE_EVERY) {
-            Durability::Immediate
-        } else {
-            Durability::None
-        };
-        txn.set_durability(durability).map_err(|e| self.error(e))?;
-        {
-            let mut table = txn.open_table(self.table).map_err(|e| self.error(e))?;
-            for id in removes {
-                table.remove(id).map_err(|e| self.error(e))?;
-            }
-            for (id, bytes) in puts {
-                table
-                    .insert(id, bytes.as_slice())
-                    .map_err(|e| self.error(e))?;
-            }
+        let store = self.store();
+        for &id in removes {
+            store
+                .append(id, &[])
+                .map_err(|e| ShelfError(e.to_string()))?;
         }
-        // Dropping an uncommitted transaction aborts it: an error leaves no part.
-        txn.commit().map_err(|e| self.error(e))
+        for (id, bytes) in puts {
+            store
+                .append(*id, bytes)
+                .map_err(|e| ShelfError(e.to_string()))?;
+        }
+        Ok(())
     }
 
     fn heap_bytes(&self) -> usize {
-        // The cache is shared by the tables and fills up to its size; each table
-        // counts half so that the two together count it once.
-        CACHE_BYTES / 2
+        self.store().heap_bytes()
     }
 }
 
@@ -241,25 +192,39 @@ mod tests {
     use super::*;
 
     #[test]
-    fn entries_round_trip_and_tables_are_apart() {
-        let dir = std::env::temp_dir();
-        let db = ShelfDb::create_in(&dir).unwrap();
-        assert!(!db.path().exists(), "the file is unlinked");
-        let mut retirement = DiskShelf::new(Arc::clone(&db), RETIREMENT_TABLE);
-        let mut hub = DiskShelf::new(Arc::clone(&db), HUB_TABLE);
+    fn entries_round_trip_removals_hold_and_tables_are_apart() {
+        let dir = tempfile::tempdir().unwrap();
+        let files = ShelfFiles::create_in(dir.path()).unwrap();
+        assert_eq!(
+            std::fs::read_dir(dir.path()).unwrap().count(),
+            0,
+            "the files are unlinked"
+        );
+        let mut retirement = DiskShelf::new(Arc::clone(&files), ShelfTable::Retirement);
+        let mut hub = DiskShelf::new(Arc::clone(&files), ShelfTable::Hub);
         let big: Vec<u8> = (0..5000u32).map(|i| (i * 7) as u8).collect();
         retirement
-            .commit(&[(1, vec![1, 2, 3]), (u64::MAX, big.clone())], &[])
+            .commit(&[(1, vec![1, 2, 3]), (1 << 40, big.clone())], &[])
             .unwrap();
         hub.commit(&[(1, vec![9])], &[]).unwrap();
-        assert_eq!(
-            retirement.get(&[1, 2, u64::MAX]).unwrap(),
-            vec![Some(vec![1, 2, 3]), None, Some(big)]
-        );
-        assert_eq!(hub.get(&[1]).unwrap(), vec![Some(vec![9])]);
+        let got: Vec<_> = retirement
+            .get(&[1, 2, 1 << 40])
+            .into_iter()
+            .map(Result::unwrap)
+            .collect();
+        assert_eq!(got, vec![Some(vec![1, 2, 3]), None, Some(big)]);
+        assert_eq!(hub.get(&[1]).pop().unwrap().unwrap(), Some(vec![9]));
         retirement.commit(&[(2, vec![4])], &[1]).unwrap();
-        assert_eq!(retirement.get(&[1, 2]).unwrap(), vec![None, Some(vec![4])]);
-        assert_eq!(hub.get(&[1]).unwrap(), vec![Some(vec![9])]);
+        let got: Vec<_> = retirement
+            .get(&[1, 2])
+            .into_iter()
+            .map(Result::unwrap)
+            .collect();
+        assert_eq!(got, vec![None, Some(vec![4])]);
+        assert_eq!(hub.get(&[1]).pop().unwrap().unwrap(), Some(vec![9]));
+        // Put back after a removal, it is there again.
+        retirement.commit(&[(1, vec![5])], &[]).unwrap();
+        assert_eq!(retirement.get(&[1]).pop().unwrap().unwrap(), Some(vec![5]));
     }
 
     #[test]
@@ -289,33 +254,5 @@ mod tests {
                 .unwrap_err()
                 .contains("CRC")
         );
-    }
-
-    #[test]
-    fn many_commits_reuse_the_file_s_pages() {
-        let db = ShelfDb::create_in(&std::env::temp_dir()).unwrap();
-        let mut shelf = DiskShelf::new(Arc::clone(&db), RETIREMENT_TABLE);
-        // A thousand entries rewritten many times, as revisions rewrite retired
-        // scans: the live data is 500 kB whatever the number of rewrites.
-        for round in 0..20u64 {
-            for chunk in 0..10u64 {
-                let puts: Vec<(ScanId, Vec<u8>)> = (0..100)
-                    .map(|i| (chunk * 100 + i, vec![round as u8; 500]))
-                    .collect();
-                shelf.commit(&puts, &[]).unwrap();
-            }
-        }
-        let stats = {
-            let txn = db.db.begin_write().unwrap();
-            let stats = txn.stats().unwrap();
-            txn.abort().unwrap();
-            stats
-        };
-        let allocated = stats.allocated_pages() * stats.page_size() as u64;
-        assert!(
-            allocated < 8 << 20,
-            "{allocated} bytes allocated for 500 kB of entries"
-        );
-        assert_eq!(shelf.get(&[999]).unwrap(), vec![Some(vec![19u8; 500])]);
     }
 }

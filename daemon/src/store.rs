@@ -225,11 +225,16 @@ impl Store {
     /// Creates a store in the system's temporary folder whose file is unlinked at
     /// once: it lives as long as the store, even if the process is killed.
     pub fn create_anonymous() -> Result<Self, StoreError> {
+        Self::create_unlinked_in(&std::env::temp_dir(), "model")
+    }
+
+    /// Creates a store in `dir` whose file is unlinked at once (`name` only marks it
+    /// while it is being made).
+    pub fn create_unlinked_in(dir: &Path, name: &str) -> Result<Self, StoreError> {
         let nanos = std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
             .map_or(0, |d| d.as_nanos());
-        let path =
-            std::env::temp_dir().join(format!("texel-model-{}-{nanos}.scans", std::process::id()));
+        let path = dir.join(format!("texel-{name}-{}-{nanos}.scans", std::process::id()));
         let store = Self::create(&path)?;
         std::fs::remove_file(&path).map_err(|source| io_error(&path, source))?;
         Ok(store)
@@ -296,6 +301,17 @@ impl Store {
 
     pub fn path(&self) -> &Path {
         &self.path
+    }
+
+    /// Bytes the store holds in memory: its index's resident pages, and the map of
+    /// ids far beyond the others.
+    pub fn heap_bytes(&self) -> usize {
+        let slots = self
+            .slots
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        slots.dense.heap_bytes()
+            + slots.sparse.capacity() * (std::mem::size_of::<(ScanId, Slot)>() + 1)
     }
 
     /// Bytes written so far.

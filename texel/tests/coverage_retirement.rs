@@ -325,16 +325,16 @@ struct FaultyShelf {
 }
 
 impl Shelf for FaultyShelf {
-    fn get(&self, ids: &[ScanId]) -> Result<Vec<Option<Vec<u8>>>, ShelfError> {
-        let mut found = self.inner.get(ids)?;
+    fn get(&self, ids: &[ScanId]) -> Vec<Result<Option<Vec<u8>>, ShelfError>> {
+        let mut found = self.inner.get(ids);
         if self.damage_reads.load(std::sync::atomic::Ordering::Relaxed) {
-            for bytes in found.iter_mut().flatten() {
+            for bytes in found.iter_mut().flatten().flatten() {
                 if let Some(b) = bytes.get_mut(3) {
                     *b ^= 0x40;
                 }
             }
         }
-        Ok(found)
+        found
     }
 
     fn commit(&mut self, puts: &[(ScanId, Vec<u8>)], removes: &[ScanId]) -> Result<(), ShelfError> {

@@ -42,7 +42,7 @@ use crate::pages::FilePages;
 use crate::record::{RecordItem, RecordSummary, Recorder};
 use crate::resume::{self, ResumeError};
 use crate::server::{self, ServeOptions};
-use crate::shelf::ShelfDb;
+use crate::shelf::ShelfFiles;
 use crate::source::replay::{Pace, ReplaySource};
 use crate::source::serial::SerialSource;
 #[cfg(feature = "sim")]
@@ -238,7 +238,7 @@ fn model_options(
     // Retired scans' entries wait beside the store (an unlinked file).
     let shelf = if config.model.retirement.enabled {
         Some(
-            ShelfDb::create_in(&spill_dir(config, recording))
+            ShelfFiles::create_in(&spill_dir(config, recording))
                 .map_err(|e| SessionError::Store(e.to_string()))?,
         )
     } else {

@@ -392,7 +392,7 @@ impl Retirement {
     /// not there, or not readable).
     fn shelved_entry(&self, id: ScanId) -> Option<ShelvedEntry> {
         let slot = self.shelf.as_ref()?;
-        let bytes = slot.shelf.get(&[id]).ok()?.into_iter().next()??;
+        let bytes = slot.shelf.get(&[id]).into_iter().next()?.ok()??;
         ShelvedEntry::from_bytes(&bytes).ok()
     }
 
@@ -412,18 +412,14 @@ impl Retirement {
         if wanted.is_empty() {
             return;
         }
-        let found = match slot.shelf.get(&wanted) {
-            Ok(found) => found,
-            Err(_) => {
-                self.counts.shelf_errors += 1;
-                vec![None; wanted.len()]
-            }
-        };
+        let found = slot.shelf.get(&wanted);
         for (id, bytes) in wanted.into_iter().zip(found) {
-            let Some(bytes) = bytes else {
-                continue;
+            let entry = match bytes {
+                Ok(Some(bytes)) => ShelvedEntry::from_bytes(&bytes),
+                Ok(None) => continue,
+                Err(e) => Err(e),
             };
-            match ShelvedEntry::from_bytes(&bytes) {
+            match entry {
                 Ok(e) => {
                     self.scans.insert(
                         id,

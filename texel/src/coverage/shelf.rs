@@ -20,10 +20,12 @@ pub struct ShelfError(pub String);
 
 /// Storage for retired scans' entries, by scan id, as opaque bytes.
 pub trait Shelf: Send {
-    /// The entries of `ids`, in order (`None` for an id it does not hold).
-    fn get(&self, ids: &[ScanId]) -> Result<Vec<Option<Vec<u8>>>, ShelfError>;
-    /// Stores `puts` (replacing entries of the same ids) and removes `removes`, as
-    /// one change: after an error, none of it happened.
+    /// The entries of `ids`, in order: `Ok(None)` for an id it does not hold, an
+    /// error for one it holds but cannot give back.
+    fn get(&self, ids: &[ScanId]) -> Vec<Result<Option<Vec<u8>>, ShelfError>>;
+    /// Removes `removes`, then stores `puts` (replacing entries of the same ids).
+    /// After an error a prefix of it may have happened: the caller keeps what it
+    /// could not store and stores it again later (storing is idempotent).
     fn commit(&mut self, puts: &[(ScanId, Vec<u8>)], removes: &[ScanId]) -> Result<(), ShelfError>;
     /// Bytes it holds in memory (a cache, a buffer).
     fn heap_bytes(&self) -> usize;
@@ -48,8 +50,10 @@ impl MemoryShelf {
 }
 
 impl Shelf for MemoryShelf {
-    fn get(&self, ids: &[ScanId]) -> Result<Vec<Option<Vec<u8>>>, ShelfError> {
-        Ok(ids.iter().map(|id| self.entries.get(id).cloned()).collect())
+    fn get(&self, ids: &[ScanId]) -> Vec<Result<Option<Vec<u8>>, ShelfError>> {
+        ids.iter()
+            .map(|id| Ok(self.entries.get(id).cloned()))
+            .collect()
     }
 
     fn commit(&mut self, puts: &[(ScanId, Vec<u8>)], removes: &[ScanId]) -> Result<(), ShelfError> {
