@@ -197,10 +197,10 @@ impl Hub {
             let mut r = Retirement::new(c);
             r.shed_retired_signatures(true);
             if let Some(db) = &options.shelf {
-                r.set_shelf(Box::new(DiskShelf::new(
-                    Arc::clone(db),
-                    ShelfTable::Retirement,
-                )));
+                r.set_shelf(
+                    Box::new(DiskShelf::new(Arc::clone(db), ShelfTable::Retirement)),
+                    Box::new(DiskShelf::new(Arc::clone(db), ShelfTable::Links)),
+                );
             }
             r
         });

@@ -25,6 +25,8 @@ pub enum ShelfTable {
     Retirement,
     /// The hub's entries of retired scans.
     Hub,
+    /// Served scans' lists of dependents (retirement's links).
+    Links,
 }
 
 /// The shelf's tables.
@@ -32,6 +34,7 @@ pub enum ShelfTable {
 pub struct ShelfFiles {
     retirement: Store,
     hub: Store,
+    links: Store,
 }
 
 impl ShelfFiles {
@@ -40,6 +43,7 @@ impl ShelfFiles {
         Ok(Arc::new(Self {
             retirement: Store::create_unlinked_in(dir, "shelf-retirement")?,
             hub: Store::create_unlinked_in(dir, "shelf-hub")?,
+            links: Store::create_unlinked_in(dir, "shelf-links")?,
         }))
     }
 
@@ -47,6 +51,7 @@ impl ShelfFiles {
         match table {
             ShelfTable::Retirement => &self.retirement,
             ShelfTable::Hub => &self.hub,
+            ShelfTable::Links => &self.links,
         }
     }
 }

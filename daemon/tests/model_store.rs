@@ -294,7 +294,10 @@ fn with_a_shelf_retired_scans_leave_memory_and_keep_their_poses() {
     assert_eq!((&kept.1.1, &kept.1.2), (&shelved.1.1, &shelved.1.2));
     assert!(kept.1.0 > kept.0.0 + 360 * 200, "in memory: {kept:?}");
     assert!(shelved.1.0 < shelved.0.0 + 360 * 64, "shelved: {shelved:?}");
-    assert!(shelved.1.0 - shelved.0.0 < (kept.1.0 - kept.0.0) / 4, "{kept:?} {shelved:?}");
+    assert!(
+        shelved.1.0 - shelved.0.0 < (kept.1.0 - kept.0.0) / 4,
+        "{kept:?} {shelved:?}"
+    );
 }
 
 #[test]

@@ -242,7 +242,7 @@ proptest! {
         let mut shedding = Retirement::new(config);
         shedding.shed_retired_signatures(true);
         let mut shelving = Retirement::new(config);
-        shelving.set_shelf(Box::new(MemoryShelf::default()));
+        shelving.set_shelf(Box::new(MemoryShelf::default()), Box::new(MemoryShelf::default()));
         let n = signatures.len() as u64;
         let check_shelving = |shedding: &Retirement, shelving: &Retirement, upto: u64| {
             for id in 0..upto {
@@ -361,7 +361,7 @@ fn a_failing_shelf_loses_no_scan_and_a_damaged_one_serves_its_scans_again() {
         Arc::clone(&shelf.damage_reads),
     );
     let mut index = Retirement::new(config);
-    index.set_shelf(Box::new(shelf));
+    index.set_shelf(Box::new(shelf), Box::new(MemoryShelf::default()));
     index.add(0, coverage.clone(), &p);
     assert_eq!(index.add(1, coverage.clone(), &p).retired, vec![1]);
     assert_eq!(index.shelved(), 1);

@@ -9,6 +9,7 @@
 
 use std::collections::{HashMap, HashSet};
 
+use super::links::Dependents;
 use super::offers::{CellKey, Offer, Offers, moved_offers, offers_of};
 use super::shelf::{Shelf, ShelvedEntry};
 use super::{CoverageConfig, MIN_RANGE_M, ScanCoverage};
@@ -38,8 +39,8 @@ struct Entry {
     served: bool,
     /// Retired: the served scans whose offers dominate this one's.
     witnesses: Box<[ScanId]>,
-    /// Served: the retired scans that name this one as a witness, sorted.
-    dependents: Vec<ScanId>,
+    /// Served: the retired scans that name this one as a witness.
+    dependents: Dependents,
 }
 
 /// What the index has decided since it was made, by cause: where a long session's
@@ -88,6 +89,10 @@ pub struct Retirement {
 /// A shelf and what the index knows of it without asking it.
 struct ShelfSlot {
     shelf: Box<dyn Shelf>,
+    /// Served scans' lists of dependents.
+    links: Box<dyn Shelf>,
+    /// Served scans whose dependents' changes are due to be written to `links`.
+    flush_due: Vec<ScanId>,
     /// Entries on it.
     len: usize,
     /// Scans in memory for the current call (loaded, added or retired in it): settled
@@ -202,7 +207,7 @@ impl Retirement {
                 score,
                 served: false,
                 witnesses: Box::default(),
-                dependents: Vec::new(),
+                dependents: Dependents::default(),
             },
         );
         self.touch(id);
@@ -355,10 +360,11 @@ impl Retirement {
         self.scans.get(&id).is_some_and(|e| !e.served)
     }
 
-    /// Keeps retired scans on `shelf` between the calls that need them, and sheds
-    /// their signatures: memory then holds the served scans alone (and their links
-    /// to the retired ones). The retired scans held now go to the shelf at once.
-    pub fn set_shelf(&mut self, shelf: Box<dyn Shelf>) {
+    /// Keeps retired scans on `shelf` between the calls that need them, and the
+    /// served scans' lists of dependents on `links` (`links.rs`), and sheds
+    /// retired scans' signatures: memory then holds the served scans and the recent
+    /// changes of their links. The retired scans held now go to the shelf at once.
+    pub fn set_shelf(&mut self, shelf: Box<dyn Shelf>, links: Box<dyn Shelf>) {
         self.shed_retired_signatures(true);
         let retired: Vec<ScanId> = self
             .scans
@@ -368,6 +374,8 @@ impl Retirement {
             .collect();
         self.shelf = Some(ShelfSlot {
             shelf,
+            links,
+            flush_due: Vec::new(),
             len: 0,
             touched: retired,
             loaded: HashSet::new(),
@@ -430,7 +438,7 @@ impl Retirement {
                             score: e.score,
                             served: false,
                             witnesses: e.witnesses,
-                            dependents: Vec::new(),
+                            dependents: Dependents::default(),
                         },
                     );
                     slot.touched.push(id);
@@ -454,6 +462,14 @@ impl Retirement {
         let Some(slot) = self.shelf.as_mut() else {
             return;
         };
+        for owner in std::mem::take(&mut slot.flush_due) {
+            if let Some(e) = self.scans.get_mut(&owner).filter(|e| e.served)
+                && e.dependents.flush_due()
+                && e.dependents.flush(owner, &mut slot.links).is_err()
+            {
+                self.counts.shelf_errors += 1;
+            }
+        }
         slot.touched.sort_unstable();
         slot.touched.dedup();
         let mut puts = Vec::new();
@@ -567,7 +583,7 @@ impl Retirement {
                     .map_or(0, |c| std::mem::size_of::<ScanCoverage>() + c.heap_bytes())
                     + e.offers.heap_bytes()
                     + e.witnesses.len() * std::mem::size_of::<ScanId>()
-                    + e.dependents.capacity() * std::mem::size_of::<ScanId>()
+                    + e.dependents.heap_bytes()
             })
             .sum();
         let cells: usize = self
@@ -813,10 +829,13 @@ impl Retirement {
     /// Records `witnesses` as those of retired scan `id`, both ways.
     fn link(&mut self, id: ScanId, witnesses: Vec<ScanId>) {
         for w in &witnesses {
-            if let Some(e) = self.scans.get_mut(w)
-                && let Err(at) = e.dependents.binary_search(&id)
-            {
-                e.dependents.insert(at, id);
+            if let Some(e) = self.scans.get_mut(w) {
+                e.dependents.insert(id);
+                if e.dependents.flush_due()
+                    && let Some(slot) = self.shelf.as_mut()
+                {
+                    slot.flush_due.push(*w);
+                }
             }
         }
         if let Some(e) = self.scans.get_mut(&id) {
@@ -832,10 +851,8 @@ impl Retirement {
             .map(|e| std::mem::take(&mut e.witnesses))
             .unwrap_or_default();
         for w in witnesses {
-            if let Some(e) = self.scans.get_mut(&w)
-                && let Ok(at) = e.dependents.binary_search(&id)
-            {
-                e.dependents.remove(at);
+            if let Some(e) = self.scans.get_mut(&w) {
+                e.dependents.remove(id);
             }
         }
     }
@@ -844,12 +861,14 @@ impl Retirement {
     /// loaded from the shelf (those it cannot give back are left out, to be served
     /// again).
     fn take_dependents(&mut self, id: ScanId, log: &mut Log) -> Vec<ScanId> {
-        let mut d: Vec<ScanId> = self
-            .scans
-            .get_mut(&id)
-            .map(|e| std::mem::take(&mut e.dependents))
-            .unwrap_or_default();
-        d.sort_unstable();
+        let links = self.shelf.as_mut().map(|s| &mut s.links);
+        let (mut d, error) = match self.scans.get_mut(&id) {
+            Some(e) => e.dependents.take(id, links),
+            None => (Vec::new(), None),
+        };
+        if error.is_some() {
+            self.counts.shelf_errors += 1;
+        }
         self.load(&d, log);
         d.retain(|r| self.scans.contains_key(r));
         d
