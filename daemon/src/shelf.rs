@@ -32,22 +32,22 @@ pub enum ShelfTable {
 /// The shelf's tables.
 #[derive(Debug)]
 pub struct ShelfFiles {
-    retirement: Store,
-    hub: Store,
-    links: Store,
+    retirement: Arc<Store>,
+    hub: Arc<Store>,
+    links: Arc<Store>,
 }
 
 impl ShelfFiles {
     /// Creates the shelf's (empty, unlinked) files in `dir`.
     pub fn create_in(dir: &Path) -> Result<Arc<Self>, StoreError> {
         Ok(Arc::new(Self {
-            retirement: Store::create_unlinked_in(dir, "shelf-retirement")?,
-            hub: Store::create_unlinked_in(dir, "shelf-hub")?,
-            links: Store::create_unlinked_in(dir, "shelf-links")?,
+            retirement: Arc::new(Store::create_unlinked_in(dir, "shelf-retirement")?),
+            hub: Arc::new(Store::create_unlinked_in(dir, "shelf-hub")?),
+            links: Arc::new(Store::create_unlinked_in(dir, "shelf-links")?),
         }))
     }
 
-    fn table(&self, table: ShelfTable) -> &Store {
+    fn table(&self, table: ShelfTable) -> &Arc<Store> {
         match table {
             ShelfTable::Retirement => &self.retirement,
             ShelfTable::Hub => &self.hub,
@@ -58,17 +58,25 @@ impl ShelfFiles {
 
 /// One table of the shelf as a [`Shelf`].
 pub struct DiskShelf {
-    files: Arc<ShelfFiles>,
-    table: ShelfTable,
+    store: Arc<Store>,
 }
 
 impl DiskShelf {
     pub fn new(files: Arc<ShelfFiles>, table: ShelfTable) -> Self {
-        Self { files, table }
+        Self::over(Arc::clone(files.table(table)))
+    }
+
+    /// A shelf table of its own in `dir` (the registrar's keyframe member lists).
+    pub fn create_in(dir: &Path, name: &str) -> Result<Self, StoreError> {
+        Ok(Self::over(Arc::new(Store::create_unlinked_in(dir, name)?)))
+    }
+
+    fn over(store: Arc<Store>) -> Self {
+        Self { store }
     }
 
     fn store(&self) -> &Store {
-        self.files.table(self.table)
+        &self.store
     }
 }
 

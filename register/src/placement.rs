@@ -17,6 +17,7 @@ use std::sync::Arc;
 use texel::capture::{
     CaptureError, CaptureEvent, CaptureReader, PoseTopic, RegisteredPoses, topics,
 };
+use texel::coverage::Shelf;
 use texel::model::{ModelEvent, ScanId};
 use texel::paged::PageStore;
 use texel::{PinholeCamera, Pose, TexelScan};
@@ -103,6 +104,8 @@ pub struct RegistrarStage {
     truth: HashMap<u64, Pose>,
     /// Where the registrar's scan records go beyond a few pages, if anywhere.
     record_pages: Option<Box<dyn PageStore>>,
+    /// Where the registrar's keyframe member lists wait, if anywhere.
+    member_shelf: Option<Box<dyn Shelf>>,
 }
 
 impl RegistrarStage {
@@ -112,6 +115,7 @@ impl RegistrarStage {
             registrar: None,
             truth: HashMap::new(),
             record_pages: None,
+            member_shelf: None,
         }
     }
 
@@ -122,10 +126,20 @@ impl RegistrarStage {
         self
     }
 
+    /// Keeps the registrar's keyframe member lists in `shelf`
+    /// ([`Registrar::shelve_members`]).
+    pub fn with_member_shelf(mut self, shelf: Box<dyn Shelf>) -> Self {
+        self.member_shelf = Some(shelf);
+        self
+    }
+
     fn make_registrar(&mut self, anchor: Pose) -> Registrar {
         let mut registrar = Registrar::with_anchor(self.config.clone(), anchor);
         if let Some(store) = self.record_pages.take() {
             registrar.page_scan_records(store);
+        }
+        if let Some(shelf) = self.member_shelf.take() {
+            registrar.shelve_members(shelf);
         }
         registrar
     }

@@ -10,6 +10,8 @@ use std::collections::VecDeque;
 use std::sync::Arc;
 
 use nalgebra::Matrix6;
+use texel::coverage::Shelf;
+use texel::coverage::links::Dependents;
 use texel::model::{ModelEvent, ScanId};
 use texel::paged::PageStore;
 use texel::pose::pose_difference;
@@ -40,9 +42,11 @@ struct Keyframe {
     pyramid: Option<Arc<ScanPyramid>>,
     /// The registration tick at which the window or loop closure last used it.
     last_used: u64,
-    /// Ids of the scans that hang from it (their poses move with it); u32 to keep a
-    /// scan's cost small (4.5 years of scans at 30 Hz).
-    members: Vec<u32>,
+    /// Ids of the scans that hang from it (their poses move with it): with a member
+    /// shelf ([`Registrar::shelve_members`]) only the changes since the list was
+    /// written to it, so that a keyframe revisited all session long holds a bounded
+    /// share of its members in memory.
+    members: Dependents,
 }
 
 /// A scan that failed, waiting for a later keyframe to register against.
@@ -119,6 +123,12 @@ pub struct Registrar {
     /// Counts `register` calls: the clock of least-recently-used pyramid eviction.
     tick: u64,
     resident: usize,
+    /// Where keyframes' member lists wait, if anywhere.
+    member_shelf: Option<Box<dyn Shelf>>,
+    /// Member lists that could not be written or read back.
+    member_shelf_errors: u64,
+    /// Changes a keyframe's member list holds in memory before it is written.
+    member_flush_changes: usize,
 }
 
 impl Registrar {
@@ -133,6 +143,9 @@ impl Registrar {
             config,
             anchor: world_from_first_scan,
             scans: ScanTable::default(),
+            member_shelf: None,
+            member_shelf_errors: 0,
+            member_flush_changes: texel::coverage::links::FLUSH_CHANGES,
             keyframes: Vec::new(),
             window: VecDeque::new(),
             graph: PoseGraph::new(),
@@ -158,6 +171,61 @@ impl Registrar {
     /// the frames (all but a keyframe list entry, 4 bytes, per scan).
     pub fn page_scan_records(&mut self, store: Box<dyn PageStore>) {
         self.scans.page_to(store, RESIDENT_RECORD_PAGES);
+    }
+
+    /// Keeps the keyframes' member lists in `shelf`: memory holds each keyframe's
+    /// changes since its list was last written (at most
+    /// [`texel::coverage::links::FLUSH_CHANGES`]), so a scan costs memory no bytes
+    /// of membership.
+    pub fn shelve_members(&mut self, shelf: Box<dyn Shelf>) {
+        self.shelve_members_with(shelf, texel::coverage::links::FLUSH_CHANGES);
+    }
+
+    /// [`Self::shelve_members`], writing a keyframe's list every `flush_changes`
+    /// changes (tests write after a few).
+    pub fn shelve_members_with(&mut self, shelf: Box<dyn Shelf>, flush_changes: usize) {
+        self.member_shelf = Some(shelf);
+        self.member_flush_changes = flush_changes.max(1);
+    }
+
+    /// Member lists that could not be written to or read back from the member shelf.
+    pub fn member_shelf_errors(&self) -> u64 {
+        self.member_shelf_errors
+    }
+
+    /// Scan `id` hangs from keyframe `keyframe`.
+    pub(crate) fn add_member(&mut self, keyframe: usize, id: usize) {
+        let Some(k) = self.keyframes.get_mut(keyframe) else {
+            return;
+        };
+        k.members.insert(id as ScanId);
+        if k.members.changes() >= self.member_flush_changes
+            && let Some(shelf) = self.member_shelf.as_mut()
+            && k.members.flush(keyframe as ScanId, shelf).is_err()
+        {
+            self.member_shelf_errors += 1;
+        }
+    }
+
+    /// Scan `id` no longer hangs from keyframe `keyframe`.
+    pub(crate) fn remove_member(&mut self, keyframe: usize, id: usize) {
+        if let Some(k) = self.keyframes.get_mut(keyframe) {
+            k.members.remove(id as ScanId);
+        }
+    }
+
+    /// The scans that hang from keyframe `keyframe`, in id order.
+    pub(crate) fn members_of(&mut self, keyframe: usize) -> Vec<ScanId> {
+        let Some(k) = self.keyframes.get(keyframe) else {
+            return Vec::new();
+        };
+        let (ids, error) = k
+            .members
+            .list(keyframe as ScanId, self.member_shelf.as_deref());
+        if error.is_some() {
+            self.member_shelf_errors += 1;
+        }
+        ids
     }
 
     /// [`Self::page_scan_records`] with other page sizes, for a registrar that has
@@ -224,11 +292,7 @@ impl Registrar {
     /// What the registrar holds in memory.
     pub fn heap_bytes(&self) -> RegistrarMemory {
         use std::mem::size_of;
-        let members: usize = self
-            .keyframes
-            .iter()
-            .map(|k| k.members.capacity() * size_of::<u32>())
-            .sum();
+        let members: usize = self.keyframes.iter().map(|k| k.members.heap_bytes()).sum();
         let pyramid_bytes = self
             .keyframes
             .iter()
@@ -374,7 +438,7 @@ impl Registrar {
             scan: id as u32,
             pyramid: Some(pyramid),
             last_used: self.tick,
-            members: vec![id as u32],
+            members: Dependents::with(id as ScanId),
         });
         self.rehung.push(id as u32);
         self.resident += 1;
@@ -448,9 +512,7 @@ impl Registrar {
             timestamp_ns: scan.timestamp_ns,
             keyframe: reference as u32,
         });
-        if let Some(k) = self.keyframes.get_mut(reference) {
-            k.members.push(id as u32);
-        }
+        self.add_member(reference, id);
         self.rehung.push(id as u32);
         self.events.push(ModelEvent::ScanAdded {
             id: id as ScanId,
@@ -564,10 +626,12 @@ impl Registrar {
             });
         }
         // The scan now hangs from itself.
-        if let Some(k) = self.keyframes.get_mut(reference)
-            && k.members.last() == Some(&(id as u32))
+        if self
+            .scans
+            .get(id)
+            .is_some_and(|r| r.keyframe as usize == reference)
         {
-            k.members.pop();
+            self.remove_member(reference, id);
         }
         self.scans.update(id, |r| {
             r.keyframe = ordinal as u32;
@@ -577,7 +641,7 @@ impl Registrar {
             scan: id as u32,
             pyramid: Some(pyramid),
             last_used: self.tick,
-            members: vec![id as u32],
+            members: Dependents::with(id as ScanId),
         });
         self.rehung.push(id as u32);
         self.resident += 1;

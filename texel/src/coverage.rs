@@ -3,7 +3,7 @@
 //! index that retires scans whose every surface cell is offered at least as reliably
 //! by scans the model keeps. `docs/model.md` ("Retirement") states the criterion.
 
-mod links;
+pub mod links;
 mod offers;
 mod retirement;
 mod shelf;

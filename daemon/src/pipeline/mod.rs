@@ -42,7 +42,7 @@ use crate::pages::FilePages;
 use crate::record::{RecordItem, RecordSummary, Recorder};
 use crate::resume::{self, ResumeError};
 use crate::server::{self, ServeOptions};
-use crate::shelf::ShelfFiles;
+use crate::shelf::{DiskShelf, ShelfFiles};
 use crate::source::replay::{Pace, ReplaySource};
 use crate::source::serial::SerialSource;
 #[cfg(feature = "sim")]
@@ -354,17 +354,18 @@ pub fn build_registration(config: &SessionConfig) -> Result<Box<dyn Registration
         })
     };
     let register = |truth| -> Result<Box<dyn Registration>, SessionError> {
-        // The registrar's per-scan records beyond a few pages wait on disk.
-        let pages = FilePages::create_in(
-            &spill_dir(config, config.record.path.as_deref()),
-            "registrar",
-            PAGE_RECORDS * ScanRecord::LEN,
-        )
-        .map_err(|e| SessionError::Store(format!("registrar's record pages: {e}")))?;
+        // The registrar's per-scan records beyond a few pages, and its keyframes'
+        // member lists, wait on disk.
+        let dir = spill_dir(config, config.record.path.as_deref());
+        let pages = FilePages::create_in(&dir, "registrar", PAGE_RECORDS * ScanRecord::LEN)
+            .map_err(|e| SessionError::Store(format!("registrar's record pages: {e}")))?;
+        let members = DiskShelf::create_in(&dir, "shelf-members")
+            .map_err(|e| SessionError::Store(format!("registrar's member lists: {e}")))?;
         Ok(Box::new(
             RegistrarStage::new(config.registration.clone())
                 .with_truth(truth)
-                .with_record_pages(Box::new(pages)),
+                .with_record_pages(Box::new(pages))
+                .with_member_shelf(Box::new(members)),
         ))
     };
     let mode = match config.pipeline.registration {
@@ -505,6 +506,14 @@ async fn run(
                 PAGE_RECORDS * u64::LEN,
             )
             .map_err(|e| SessionError::Store(format!("timestamps' pages: {e}")))?,
+        )),
+        hanging_pages: Some(Box::new(
+            FilePages::create_in(
+                &spill_dir(&config, config.record.path.as_deref()),
+                "hanging",
+                PAGE_RECORDS * u64::LEN,
+            )
+            .map_err(|e| SessionError::Store(format!("hanging scans' pages: {e}")))?,
         )),
     };
     let encoder = Encoder {

@@ -38,6 +38,8 @@ pub struct Worker {
     pub timestamps: Vec<u64>,
     /// Where the timestamps' pages beyond a few go (`None`: all in memory).
     pub timestamp_pages: Option<Box<dyn PageStore>>,
+    /// Where the pages of the set of hanging scans beyond a few go.
+    pub hanging_pages: Option<Box<dyn PageStore>>,
 }
 
 /// Pages of timestamps (1,024 scans, 8 bytes each, a page) kept in memory.
@@ -56,9 +58,13 @@ impl Worker {
         if let Some(store) = self.timestamp_pages.take() {
             timestamps.page_to(store, RESIDENT_TIMESTAMP_PAGES);
         }
+        let mut hanging = PagedTable::default();
+        if let Some(store) = self.hanging_pages.take() {
+            hanging.page_to(store, RESIDENT_TIMESTAMP_PAGES);
+        }
         let mut recorded = Recorded {
             timestamps,
-            hanging: Vec::new(),
+            hanging,
         };
         while let Some(job) = self.jobs.blocking_recv() {
             if sensor.as_ref().is_none_or(|(m, _)| **m != *job.sensor) {
@@ -269,7 +275,8 @@ impl Worker {
 /// from their keyframe's).
 struct Recorded {
     timestamps: PagedTable<u64>,
-    hanging: Vec<u64>,
+    /// A bit per scan, 64 to a word.
+    hanging: PagedTable<u64>,
 }
 
 impl Recorded {
@@ -296,15 +303,15 @@ impl Recorded {
         if i > self.timestamps.len() + (1 << 20) {
             return;
         }
-        if self.hanging.len() <= i / 64 {
-            self.hanging.resize(i / 64 + 1, 0);
+        while self.hanging.len() <= i / 64 {
+            self.hanging.push(0);
         }
-        if let Some(word) = self.hanging.get_mut(i / 64) {
+        self.hanging.update(i / 64, |word| {
             if hanging {
                 *word |= 1 << (i % 64);
             } else {
                 *word &= !(1 << (i % 64));
             }
-        }
+        });
     }
 }

@@ -8,6 +8,7 @@
 use std::sync::Arc;
 
 use nalgebra::Matrix6;
+use texel::coverage::links::Dependents;
 use texel::model::ScanId;
 use texel::pose::pose_difference;
 use texel::{PinholeCamera, Pose, TexelScan};
@@ -46,7 +47,7 @@ impl Registrar {
                 scan: id as u32,
                 pyramid: Some(pyramid),
                 last_used: self.tick,
-                members: Vec::new(),
+                members: Dependents::default(),
             });
             self.resident += 1;
             self.enter_window(0);
@@ -74,7 +75,7 @@ impl Registrar {
                 scan: id as u32,
                 pyramid: Some(pyramid),
                 last_used: self.tick,
-                members: Vec::new(),
+                members: Dependents::default(),
             });
             self.resident += 1;
             self.enter_window(ordinal);
@@ -118,9 +119,7 @@ impl Registrar {
         } else {
             self.scans.push(record);
         }
-        if let Some(k) = self.keyframes.get_mut(reference) {
-            k.members.push(id as u32);
-        }
+        self.add_member(reference, id);
         // This run's keyframes may not be the earlier run's: the recording learns
         // how the scan hangs now.
         self.rehung.push(id as u32);

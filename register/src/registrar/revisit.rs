@@ -218,14 +218,8 @@ impl Registrar {
 
     /// Moves scan `id` from keyframe `from` to keyframe `to`.
     fn attach(&mut self, id: usize, from: usize, to: usize, keyframe_from_scan: Pose) {
-        if let Some(k) = self.keyframes.get_mut(from)
-            && let Some(at) = k.members.iter().rposition(|&m| m as usize == id)
-        {
-            k.members.swap_remove(at);
-        }
-        if let Some(k) = self.keyframes.get_mut(to) {
-            k.members.push(id as u32);
-        }
+        self.remove_member(from, id);
+        self.add_member(to, id);
         self.scans.update(id, |r| {
             r.keyframe = to as u32;
             r.keyframe_from_scan = keyframe_from_scan;
@@ -253,12 +247,11 @@ impl Registrar {
     /// Revisions for the scans of the keyframes in `range`.
     fn revise_keyframes(&mut self, range: Range<usize>) {
         let thresholds = self.thresholds();
-        let poses = self.graph.poses();
         for o in range {
-            let (Some(k), Some(world_from_keyframe)) = (self.keyframes.get(o), poses.get(o)) else {
+            let Some(world_from_keyframe) = self.graph.poses().get(o).copied() else {
                 continue;
             };
-            for &id in &k.members {
+            for id in self.members_of(o) {
                 let mut revised = None;
                 self.scans.update(id as usize, |r| {
                     let derived = world_from_keyframe * r.keyframe_from_scan;

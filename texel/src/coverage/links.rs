@@ -10,11 +10,12 @@ use super::shelf::{Shelf, ShelfError};
 use crate::model::ScanId;
 
 /// Changes held in memory before the list on the shelf is rewritten with them.
-pub(super) const FLUSH_CHANGES: usize = 256;
+pub const FLUSH_CHANGES: usize = 256;
 
-/// One served scan's dependents.
+/// One served scan's dependents (or any set of ids an owner gathers over a session,
+/// such as a keyframe's member scans).
 #[derive(Debug, Clone, Default)]
-pub(super) struct Dependents {
+pub struct Dependents {
     count: usize,
     /// Without a shelf: all of them. With one: those added since the shelved list
     /// was written. Sorted.
@@ -26,8 +27,19 @@ pub(super) struct Dependents {
 }
 
 impl Dependents {
+    /// A set of one.
+    pub fn with(id: ScanId) -> Self {
+        let mut d = Self::default();
+        d.insert(id);
+        d
+    }
+
     pub fn len(&self) -> usize {
         self.count
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.count == 0
     }
 
     /// Adds `id` (not already a dependent).
@@ -59,7 +71,12 @@ impl Dependents {
 
     /// Whether enough changes are held that the shelved list should take them.
     pub fn flush_due(&self) -> bool {
-        self.added.len() + self.removed.len() >= FLUSH_CHANGES
+        self.changes() >= FLUSH_CHANGES
+    }
+
+    /// Changes held since the list was last written (all of them without a shelf).
+    pub fn changes(&self) -> usize {
+        self.added.len() + self.removed.len()
     }
 
     /// All of them, sorted, and none left: the shelved list (if any) merged with the
@@ -80,6 +97,23 @@ impl Dependents {
         };
         let error = error.or(links.commit(&[], &[owner]).err());
         (merged, error)
+    }
+
+    /// All of them, sorted, left in place: the shelved list (if any) merged with the
+    /// changes since. When the shelved list cannot be read, the changes alone and
+    /// the error.
+    pub fn list(
+        &self,
+        owner: ScanId,
+        links: Option<&dyn Shelf>,
+    ) -> (Vec<ScanId>, Option<ShelfError>) {
+        let Some(links) = links.filter(|_| self.on_shelf) else {
+            return (self.added.clone(), None);
+        };
+        match read_list(links, owner) {
+            Ok(shelved) => (merge(&shelved, &self.added, &self.removed), None),
+            Err(e) => (self.added.clone(), Some(e)),
+        }
     }
 
     /// Writes the list with the changes merged to `links`; the changes leave
@@ -212,6 +246,8 @@ mod tests {
                 prop_assert_eq!(shelved.len(), truth.len());
             }
             let want: Vec<ScanId> = truth.into_iter().collect();
+            prop_assert_eq!(shelved.list(7, Some(links.as_ref())).0, want.clone());
+            prop_assert_eq!(kept.list(7, None).0, want.clone());
             prop_assert_eq!(kept.take(7, None).0, want.clone());
             let (got, error) = shelved.take(7, Some(&mut links));
             prop_assert!(error.is_none());
