@@ -270,6 +270,20 @@ fn spill_dir(config: &SessionConfig, recording: Option<&std::path::Path>) -> std
         .unwrap_or_else(std::env::temp_dir)
 }
 
+/// A page store for a worker's table of 8-byte words (`name` marks its file).
+fn word_pages(
+    config: &SessionConfig,
+    name: &str,
+) -> Result<Box<dyn texel::paged::PageStore>, SessionError> {
+    let pages = FilePages::create_in(
+        &spill_dir(config, config.record.path.as_deref()),
+        name,
+        PAGE_RECORDS * u64::LEN,
+    )
+    .map_err(|e| SessionError::Store(format!("{name} pages: {e}")))?;
+    Ok(Box::new(pages))
+}
+
 /// The sources a session's config names.
 pub fn build_sources(config: &SessionConfig) -> Vec<Box<dyn Source>> {
     build_sources_after(config, None)
@@ -499,22 +513,8 @@ async fn run(
         metrics: Arc::clone(&metrics),
         fuse: config.pipeline.fuse,
         timestamps: restored_timestamps,
-        timestamp_pages: Some(Box::new(
-            FilePages::create_in(
-                &spill_dir(&config, config.record.path.as_deref()),
-                "timestamps",
-                PAGE_RECORDS * u64::LEN,
-            )
-            .map_err(|e| SessionError::Store(format!("timestamps' pages: {e}")))?,
-        )),
-        hanging_pages: Some(Box::new(
-            FilePages::create_in(
-                &spill_dir(&config, config.record.path.as_deref()),
-                "hanging",
-                PAGE_RECORDS * u64::LEN,
-            )
-            .map_err(|e| SessionError::Store(format!("hanging scans' pages: {e}")))?,
-        )),
+        timestamp_pages: Some(word_pages(&config, "timestamps")?),
+        hanging_pages: Some(word_pages(&config, "hanging")?),
     };
     let encoder = Encoder {
         rx: publish_rx,

@@ -170,13 +170,7 @@ impl Retirement {
     pub fn shed_retired_signatures(&mut self, on: bool) {
         self.shed_retired = on;
         if on {
-            let retired: Vec<ScanId> = self
-                .scans
-                .iter()
-                .filter(|(_, e)| !e.served)
-                .map(|(id, _)| *id)
-                .collect();
-            for id in retired {
+            for id in self.retired_here() {
                 self.shed(id);
             }
         }
@@ -355,6 +349,15 @@ impl Retirement {
         }
     }
 
+    /// The retired scans held in memory.
+    fn retired_here(&self) -> Vec<ScanId> {
+        self.scans
+            .iter()
+            .filter(|(_, e)| !e.served)
+            .map(|(id, _)| *id)
+            .collect()
+    }
+
     /// Whether scan `id` is in memory and retired.
     fn is_retired_here(&self, id: ScanId) -> bool {
         self.scans.get(&id).is_some_and(|e| !e.served)
@@ -366,12 +369,7 @@ impl Retirement {
     /// changes of their links. The retired scans held now go to the shelf at once.
     pub fn set_shelf(&mut self, shelf: Box<dyn Shelf>, links: Box<dyn Shelf>) {
         self.shed_retired_signatures(true);
-        let retired: Vec<ScanId> = self
-            .scans
-            .iter()
-            .filter(|(_, e)| !e.served)
-            .map(|(id, _)| *id)
-            .collect();
+        let retired = self.retired_here();
         self.shelf = Some(ShelfSlot {
             shelf,
             links,
