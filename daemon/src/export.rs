@@ -20,6 +20,9 @@ use thiserror::Error;
 pub enum ExportFormat {
     Ply,
     Gltf,
+    /// An OGC 3D Tiles 1.1 tileset of the level-of-detail hierarchy (a folder).
+    #[value(name = "3dtiles")]
+    Tiles3d,
 }
 
 #[derive(Debug, Error)]
@@ -46,6 +49,17 @@ pub enum ExportCommandError {
     Fuse { index: usize, source: FuseError },
     #[error(transparent)]
     Export(#[from] ExportError),
+    #[error("--format 3dtiles exports the whole model as a tileset folder; drop --frame")]
+    WholeModelOnly,
+    #[error("level of detail: {0}")]
+    Lod(#[from] texel_lod::LodError),
+    #[error("3D Tiles: {0}")]
+    Tiles(#[from] texel_lod::TilesError),
+    #[error("{}: {source}", path.display())]
+    Io {
+        path: std::path::PathBuf,
+        source: std::io::Error,
+    },
 }
 
 /// What was exported.
@@ -106,6 +120,9 @@ pub fn export_frame(
     world: bool,
     out: &Path,
 ) -> Result<ExportSummary, ExportCommandError> {
+    if format == ExportFormat::Tiles3d {
+        return Err(ExportCommandError::WholeModelOnly);
+    }
     let (pair, sensor_model, pose) = read_frame(capture, index, world)?;
     let timestamp_ns = pair.timestamp_ns();
     let world_from_scan = match (world, pose) {
@@ -129,6 +146,7 @@ pub fn export_frame(
     match format {
         ExportFormat::Ply => write_ply(&scans, out)?,
         ExportFormat::Gltf => write_gltf(&scans, out)?,
+        ExportFormat::Tiles3d => return Err(ExportCommandError::WholeModelOnly),
     }
     Ok(ExportSummary {
         timestamp_ns,

@@ -20,3 +20,4 @@ pub mod source;
 pub mod status;
 pub mod store;
 pub mod texture;
+pub mod tiles_export;

@@ -76,6 +76,16 @@ enum Command {
         /// /truth/pose) instead of its own EO frame.
         #[arg(long, requires = "frame")]
         world: bool,
+        /// With --format 3dtiles: LAT,LON,HEIGHT (degrees, degrees, metres above the
+        /// WGS84 ellipsoid) of the world origin, world x east and y north there.
+        /// Without it the tileset stays in the model's local frame.
+        #[arg(long, value_parser = texel_daemon::tiles_export::parse_georef)]
+        georef: Option<texel_lod::GeoReference>,
+        /// With --format 3dtiles: TOML overrides of the level-of-detail defaults
+        /// (leaf_voxel_m, tile_voxels, tile_triangle_budget, simplify_error_voxels,
+        /// truncation_voxels).
+        #[arg(long)]
+        lod_config: Option<PathBuf>,
         #[arg(long)]
         out: PathBuf,
     },
@@ -145,9 +155,22 @@ fn main() -> ExitCode {
             frame,
             format,
             world,
+            georef,
+            lod_config,
             out,
         } => {
+            if (georef.is_some() || lod_config.is_some())
+                && format != texel_daemon::export::ExportFormat::Tiles3d
+            {
+                eprintln!(
+                    "texeld export: --georef and --lod-config shape a 3D Tiles tileset; use them with --format 3dtiles"
+                );
+                return ExitCode::FAILURE;
+            }
             let Some(frame) = frame else {
+                if format == texel_daemon::export::ExportFormat::Tiles3d {
+                    return export_tiles(&capture, &out, georef.as_ref(), lod_config.as_deref());
+                }
                 return export_model(&capture, format, &out);
             };
             export_frame(&capture, frame, format, world, &out)
@@ -180,6 +203,45 @@ fn export_frame(
                 } else {
                     "EO"
                 },
+                out.display()
+            );
+            ExitCode::SUCCESS
+        }
+        Err(e) => {
+            eprintln!("texeld export: {e}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn export_tiles(
+    capture: &std::path::Path,
+    out: &std::path::Path,
+    georef: Option<&texel_lod::GeoReference>,
+    lod_config: Option<&std::path::Path>,
+) -> ExitCode {
+    let registration = texel_register::RegistrationConfig::default();
+    let lod = match lod_config.map(texel_daemon::tiles_export::load_lod_config) {
+        None => texel_lod::LodConfig::default(),
+        Some(Ok(config)) => config,
+        Some(Err(e)) => {
+            eprintln!("texeld export: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    match texel_daemon::tiles_export::export_tiles(capture, out, &registration, &lod, georef) {
+        Ok(s) => {
+            println!(
+                "exported the model as 3D Tiles: {} scans of {} frames, {} tiles in {} levels, {} triangles, {} bytes (field {} MiB; fused in {:.1} s, built in {:.1} s) -> {}",
+                s.placement.scans,
+                s.placement.frames,
+                s.tiles,
+                u32::from(s.depth) + 1,
+                s.triangles,
+                s.bytes,
+                s.field_bytes / (1 << 20),
+                s.fuse_s,
+                s.build_s,
                 out.display()
             );
             ExitCode::SUCCESS

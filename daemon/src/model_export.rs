@@ -38,20 +38,29 @@ pub struct ModelExportSummary {
     pub left_out: usize,
 }
 
-/// Exports the registered model of `capture` to `out`.
-pub fn export_model(
+/// How the placed scans of a capture were found.
+#[derive(Debug, Clone, Copy)]
+pub struct Placement {
+    pub frames: usize,
+    pub scans: usize,
+    pub poses: PoseSource,
+}
+
+/// Calls `visit` with every scan of `capture` placed in the world. With `/texel/pose`
+/// in the capture the scans stream through one at a time; without, the capture is
+/// registered first and the scans are visited with their final poses.
+pub fn for_each_placed(
     capture: &Path,
-    format: ExportFormat,
-    out: &Path,
     registration: &RegistrationConfig,
-) -> Result<ModelExportSummary, ExportCommandError> {
+    visit: &mut dyn FnMut(&Arc<TexelScan>, &Pose),
+) -> Result<Placement, ExportCommandError> {
     let poses = CapturePoses::from_capture(capture)?;
     let registered = poses.texel_count() > 0;
     let mut sensors = SensorCache::new();
-    let mut placed: Vec<(Arc<TexelScan>, Pose)> = Vec::new();
     let mut registrar: Option<Registrar> = None;
     let mut scans_by_id: Vec<Arc<TexelScan>> = Vec::new();
     let mut frames = 0usize;
+    let mut placed = 0usize;
     let fuse_config = FuseConfig::default();
     for item in open_texel_frames(capture)? {
         let (pair, model) = match item {
@@ -74,7 +83,8 @@ pub fn export_model(
         };
         if registered {
             if let Some(pose) = poses.texel_pose(timestamp_ns) {
-                placed.push((scan, pose));
+                visit(&scan, &pose);
+                placed += 1;
             }
             continue;
         }
@@ -98,17 +108,40 @@ pub fn export_model(
     }
     if let Some(registrar) = &registrar {
         // Final poses, after every refinement.
-        placed = scans_by_id
-            .into_iter()
-            .zip(registrar.poses().iter().copied())
-            .collect();
+        for (scan, pose) in scans_by_id.iter().zip(registrar.poses().iter()) {
+            visit(scan, pose);
+            placed += 1;
+        }
     }
-    if placed.is_empty() {
+    if placed == 0 {
         return Err(ExportCommandError::NothingToExport {
             path: capture.display().to_string(),
             frames,
         });
     }
+    Ok(Placement {
+        frames,
+        scans: placed,
+        poses: if registered {
+            PoseSource::Capture
+        } else {
+            PoseSource::Registered
+        },
+    })
+}
+
+/// Exports the registered model of `capture` to `out` as PLY or glTF (3D Tiles goes
+/// through `tiles_export`).
+pub fn export_model(
+    capture: &Path,
+    format: ExportFormat,
+    out: &Path,
+    registration: &RegistrationConfig,
+) -> Result<ModelExportSummary, ExportCommandError> {
+    let mut placed: Vec<(Arc<TexelScan>, Pose)> = Vec::new();
+    let placement = for_each_placed(capture, registration, &mut |scan, pose| {
+        placed.push((Arc::clone(scan), *pose));
+    })?;
     let scans: Vec<ExportScan<'_>> = placed
         .iter()
         .map(|(scan, pose)| ExportScan {
@@ -119,17 +152,14 @@ pub fn export_model(
     match format {
         ExportFormat::Ply => write_ply(&scans, out)?,
         ExportFormat::Gltf => write_gltf(&scans, out)?,
+        ExportFormat::Tiles3d => return Err(ExportCommandError::WholeModelOnly),
     }
     Ok(ModelExportSummary {
-        frames,
+        frames: placement.frames,
         scans: placed.len(),
         vertices: placed.iter().map(|(s, _)| s.vertex_count()).sum(),
         usable_triangles: placed.iter().map(|(s, _)| s.usable_triangle_count()).sum(),
-        poses: if registered {
-            PoseSource::Capture
-        } else {
-            PoseSource::Registered
-        },
-        left_out: frames - placed.len(),
+        poses: placement.poses,
+        left_out: placement.frames - placed.len(),
     })
 }

@@ -55,6 +55,50 @@ pub fn run_python(script: &str, args: &[&std::ffi::OsStr]) -> Output {
     output
 }
 
+/// The Node.js peer checks that `scripts/setup.sh` installs: `$TEXEL_NODE_DIR`, else
+/// `$XDG_CACHE_HOME/texel/node`, else `~/.cache/texel/node`.
+pub fn node_dir() -> PathBuf {
+    if let Some(v) = std::env::var_os("TEXEL_NODE_DIR") {
+        return PathBuf::from(v);
+    }
+    let cache = std::env::var_os("XDG_CACHE_HOME")
+        .map(PathBuf::from)
+        .or_else(|| std::env::var_os("HOME").map(|h| PathBuf::from(h).join(".cache")))
+        .unwrap_or_else(|| PathBuf::from(".cache"));
+    cache.join("texel").join("node")
+}
+
+/// Runs `scripts/node/<script>` with Node.js, its packages resolved from
+/// [`node_dir`]; panics with the set-up command when they are missing and with the
+/// script's stderr when it fails.
+pub fn run_node(script: &str, args: &[&std::ffi::OsStr]) -> Output {
+    let modules = node_dir().join("node_modules");
+    assert!(
+        modules.exists(),
+        "the Node.js peer checks are missing at {}; run scripts/setup.sh (the README's \
+         test command does this)",
+        modules.display()
+    );
+    // An ES module resolves packages from its own folder upwards, so the script runs
+    // from a copy beside the installed packages.
+    // One copy per call, so tests running at once never read a half-written one.
+    static CALLS: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+    let call = CALLS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let source = repo_root().join("scripts").join("node").join(script);
+    let copy = node_dir().join(format!(".{}-{call}-{script}", std::process::id()));
+    std::fs::copy(&source, &copy)
+        .unwrap_or_else(|e| panic!("cannot copy {} beside its packages: {e}", source.display()));
+    let output = Command::new("node").arg(&copy).args(args).output();
+    let _ = std::fs::remove_file(&copy);
+    let output = output.unwrap_or_else(|e| panic!("cannot run node {script}: {e}"));
+    assert!(
+        output.status.success(),
+        "{script} failed: {}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    output
+}
+
 /// The path of a binary of this workspace, built by cargo for the tests.
 pub fn workspace_binary(name: &str) -> PathBuf {
     // Integration tests run from target/<profile>/deps; binaries sit one level up.

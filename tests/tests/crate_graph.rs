@@ -68,9 +68,15 @@ fn the_daemon_builds_without_the_simulator() {
 }
 
 #[test]
-fn registration_and_the_shared_vocabulary_stay_free_of_services() {
+fn the_pure_stages_and_the_shared_vocabulary_stay_free_of_services() {
     // Dev-dependencies aside (registration's tests use the simulator for truth).
-    for package in ["texel", "texel-register", "texel-client"] {
+    for package in [
+        "texel",
+        "texel-register",
+        "texel-surface",
+        "texel-lod",
+        "texel-client",
+    ] {
         let packages = tree_along("normal,build", package, &[]);
         // The client's async transport is an opt-in feature; the others take none.
         let services: &[&str] = if package == "texel-client" {
@@ -92,6 +98,8 @@ fn no_product_crate_depends_on_the_tooling_crate() {
     for package in [
         "texel",
         "texel-register",
+        "texel-surface",
+        "texel-lod",
         "texel-client",
         "calib",
         "sims",

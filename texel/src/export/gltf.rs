@@ -207,7 +207,7 @@ pub fn write_gltf(scans: &[ExportScan<'_>], path: &Path) -> Result<(), ExportErr
 
 /// The GLB container: a 12-byte header, a JSON chunk padded with spaces and a BIN
 /// chunk padded with zeros.
-fn glb_container(mut json: Vec<u8>, mut bin: Vec<u8>) -> Vec<u8> {
+pub fn glb_container(mut json: Vec<u8>, mut bin: Vec<u8>) -> Vec<u8> {
     while !json.len().is_multiple_of(4) {
         json.push(b' ');
     }

@@ -1,0 +1,116 @@
+//! `texeld export CAPTURE --format 3dtiles --out DIR`: the registered model's
+//! level-of-detail hierarchy written as an OGC 3D Tiles 1.1 tileset. Scans stream
+//! into the hierarchy's field one at a time (with `/texel/pose` in the capture), so
+//! memory follows the surface, not the capture's length.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use texel_lod::{GeoReference, LodBuilder, LodConfig, tileset_files};
+use texel_register::RegistrationConfig;
+
+use crate::export::ExportCommandError;
+use crate::model_export::{Placement, for_each_placed};
+
+/// What the export wrote and what it cost.
+#[derive(Debug)]
+pub struct TilesExportSummary {
+    pub placement: Placement,
+    pub tiles: usize,
+    pub depth: u8,
+    pub triangles: usize,
+    pub bytes: u64,
+    /// Bytes of the leaf field at its largest.
+    pub field_bytes: usize,
+    pub fuse_s: f64,
+    pub build_s: f64,
+}
+
+/// Parses `LAT,LON,HEIGHT` (degrees, degrees, metres above the WGS84 ellipsoid): the
+/// world origin's place on the globe, world x east and y north there.
+pub fn parse_georef(text: &str) -> Result<GeoReference, String> {
+    let parts: Vec<&str> = text.split(',').map(str::trim).collect();
+    let [lat, lon, height] = parts.as_slice() else {
+        return Err(format!("expected LAT,LON,HEIGHT, got {text:?}"));
+    };
+    let num = |name: &str, s: &str| {
+        s.parse::<f64>()
+            .map_err(|e| format!("{name} {s:?} is not a number: {e}"))
+    };
+    let geo = GeoReference {
+        latitude_deg: num("latitude", lat)?,
+        longitude_deg: num("longitude", lon)?,
+        height_m: num("height", height)?,
+        world_point_m: [0.0; 3],
+    };
+    geo.validate().map_err(|e| e.to_string())?;
+    Ok(geo)
+}
+
+/// Reads a TOML file of level-of-detail overrides (keys of `LodConfig`; unknown keys
+/// and bad values are errors naming the file).
+pub fn load_lod_config(path: &Path) -> Result<LodConfig, String> {
+    let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let config: LodConfig =
+        toml::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
+    config
+        .validate()
+        .map_err(|e| format!("{}: {e}", path.display()))?;
+    Ok(config)
+}
+
+/// Builds the hierarchy of `capture`'s registered model and writes the tileset into
+/// `out_dir` (created if missing). `tileset.json` is written last, through a
+/// temporary name, so a failed export never leaves a tileset pointing at missing
+/// tiles.
+pub fn export_tiles(
+    capture: &Path,
+    out_dir: &Path,
+    registration: &RegistrationConfig,
+    lod: &LodConfig,
+    geo: Option<&GeoReference>,
+) -> Result<TilesExportSummary, ExportCommandError> {
+    let started = Instant::now();
+    let mut builder = LodBuilder::new(*lod)?;
+    let placement = for_each_placed(capture, registration, &mut |scan, pose| {
+        builder.add_scan(scan, pose);
+    })?;
+    let field_bytes = builder.heap_bytes();
+    let fuse_s = started.elapsed().as_secs_f64();
+    let built = Instant::now();
+    let hierarchy = builder.build()?;
+    let files = tileset_files(&hierarchy, geo)?;
+    let build_s = built.elapsed().as_secs_f64();
+    let io = |path: PathBuf| move |source| ExportCommandError::Io { path, source };
+    std::fs::create_dir_all(out_dir).map_err(io(out_dir.to_path_buf()))?;
+    let mut bytes = 0u64;
+    let mut tileset = None;
+    for file in files {
+        bytes += file.bytes.len() as u64;
+        if file.path == "tileset.json" {
+            tileset = Some(file);
+            continue;
+        }
+        let path = out_dir.join(&file.path);
+        if let Some(parent) = path.parent() {
+            std::fs::create_dir_all(parent).map_err(io(parent.to_path_buf()))?;
+        }
+        std::fs::write(&path, &file.bytes).map_err(io(path.clone()))?;
+    }
+    if let Some(file) = tileset {
+        let temporary = out_dir.join("tileset.json.partial");
+        std::fs::write(&temporary, &file.bytes).map_err(io(temporary.clone()))?;
+        let path = out_dir.join("tileset.json");
+        std::fs::rename(&temporary, &path).map_err(io(path.clone()))?;
+    }
+    Ok(TilesExportSummary {
+        placement,
+        tiles: hierarchy.nodes.len(),
+        depth: hierarchy.layout.depth,
+        triangles: hierarchy.triangle_count(),
+        bytes,
+        field_bytes,
+        fuse_s,
+        build_s,
+    })
+}

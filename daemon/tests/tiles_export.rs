@@ -1,0 +1,223 @@
+//! `texeld export --format 3dtiles` on a simulated capture, read by independent
+//! readers: tileset.json passes the 3D Tiles 1.1 JSON schema, every tile's content
+//! passes the Khronos glTF validator with zero errors, and loaders.gl reads the whole
+//! tileset back with the vertex counts we wrote and every vertex inside its tile's
+//! bounding volume. The checks are shown to fail on a broken tileset and a broken tile.
+#![allow(clippy::unwrap_used, clippy::expect_used)] // tests panic on failure by design
+
+use std::ffi::OsStr;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use serde_json::Value;
+use sims::{CaptureOptions, Scene, SimOptions, Simulator};
+
+fn render_hall(path: &Path, frames: usize) {
+    let scene = Scene::load(&texel_e2e::repo_root().join("configs/scenes/long-hall.toml")).unwrap();
+    let sim = Simulator::with_options(
+        scene,
+        &SimOptions {
+            seed: 3,
+            frames: Some(frames),
+            ..SimOptions::default()
+        },
+    )
+    .unwrap();
+    let options = CaptureOptions {
+        writer: texel::capture::WriterOptions {
+            sync_to_disk: false,
+            ..Default::default()
+        },
+        ..Default::default()
+    };
+    sims::render_capture(&sim, path, &options, &mut |_, _| {}).unwrap();
+}
+
+fn texeld(args: &[&OsStr]) -> (bool, String, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_texeld"))
+        .args(args)
+        .output()
+        .unwrap();
+    (
+        out.status.success(),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+fn schema_dir() -> PathBuf {
+    texel_e2e::repo_root().join("lod/tests/schema/3d-tiles-1.1")
+}
+
+fn check(dir: &Path) -> Value {
+    let out = texel_e2e::run_node(
+        "check-tileset.mjs",
+        &[dir.as_os_str(), schema_dir().as_os_str()],
+    );
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
+/// Vertex count of a GLB's first accessor, read from its JSON chunk.
+fn glb_vertices(bytes: &[u8]) -> u64 {
+    let json_len = u32::from_le_bytes(bytes[12..16].try_into().unwrap()) as usize;
+    let json: Value = serde_json::from_slice(&bytes[20..20 + json_len]).unwrap();
+    json["accessors"][0]["count"].as_u64().unwrap()
+}
+
+fn content_uris(tile: &Value, out: &mut Vec<String>) {
+    if let Some(uri) = tile["content"]["uri"].as_str() {
+        out.push(uri.to_string());
+    }
+    for child in tile["children"]
+        .as_array()
+        .map(Vec::as_slice)
+        .unwrap_or(&[])
+    {
+        content_uris(child, out);
+    }
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    for entry in std::fs::read_dir(from).unwrap() {
+        let entry = entry.unwrap();
+        let target = to.join(entry.file_name());
+        if entry.file_type().unwrap().is_dir() {
+            std::fs::create_dir_all(&target).unwrap();
+            copy_dir(&entry.path(), &target);
+        } else {
+            std::fs::copy(entry.path(), target).unwrap();
+        }
+    }
+}
+
+#[test]
+fn a_3d_tiles_export_passes_the_schema_the_gltf_validator_and_loaders_gl() {
+    let dir = tempfile::tempdir().unwrap();
+    let capture = dir.path().join("hall.mcap");
+    render_hall(&capture, 45);
+    // Small tiles, so a few metres of hall make a tree of several levels.
+    let lod = dir.path().join("lod.toml");
+    std::fs::write(
+        &lod,
+        "leaf_voxel_m = 0.05\ntile_voxels = 16\ntile_triangle_budget = 1500\n",
+    )
+    .unwrap();
+    let tiles = dir.path().join("tiles");
+    let (ok, stdout, stderr) = texeld(&[
+        OsStr::new("export"),
+        capture.as_os_str(),
+        OsStr::new("--format"),
+        OsStr::new("3dtiles"),
+        OsStr::new("--lod-config"),
+        lod.as_os_str(),
+        OsStr::new("--georef"),
+        OsStr::new("47.3769,8.5417,408"),
+        OsStr::new("--out"),
+        tiles.as_os_str(),
+    ]);
+    assert!(ok, "{stderr}");
+    assert!(
+        stdout.contains("exported the model as 3D Tiles"),
+        "{stdout}"
+    );
+    let tileset: Value =
+        serde_json::from_slice(&std::fs::read(tiles.join("tileset.json")).unwrap()).unwrap();
+    assert_eq!(tileset["root"]["transform"].as_array().unwrap().len(), 16);
+    let mut uris = Vec::new();
+    content_uris(&tileset["root"], &mut uris);
+    assert!(uris.len() >= 6, "{} tiles", uris.len());
+    assert!(uris.iter().any(|u| u.starts_with("tiles/2/")), "{uris:?}");
+    let written: u64 = uris
+        .iter()
+        .map(|u| glb_vertices(&std::fs::read(tiles.join(u)).unwrap()))
+        .sum();
+
+    let report = check(&tiles);
+    eprintln!("{stdout}{report}");
+    assert_eq!(report["schemaErrors"], Value::Array(vec![]), "{report}");
+    assert_eq!(report["gltfErrors"], 0, "{report}");
+    assert_eq!(report["contents"].as_u64().unwrap() as usize, uris.len());
+    assert_eq!(report["loaderTiles"].as_u64().unwrap() as usize, uris.len());
+    assert_eq!(
+        report["loaderVertices"].as_u64().unwrap(),
+        written,
+        "{report}"
+    );
+    assert_eq!(report["outsideBox"], 0, "{report}");
+
+    // The checks can fail: a tileset without its asset and a tile that claims more
+    // vertices than it holds are both caught.
+    let broken = dir.path().join("broken");
+    std::fs::create_dir_all(&broken).unwrap();
+    copy_dir(&tiles, &broken);
+    let mut bad = tileset.clone();
+    bad.as_object_mut().unwrap().remove("asset");
+    std::fs::write(
+        broken.join("tileset.json"),
+        serde_json::to_vec(&bad).unwrap(),
+    )
+    .unwrap();
+    let glb_path = broken.join(&uris[0]);
+    let mut glb = std::fs::read(&glb_path).unwrap();
+    let json_len = u32::from_le_bytes(glb[12..16].try_into().unwrap()) as usize;
+    let text = String::from_utf8(glb[20..20 + json_len].to_vec()).unwrap();
+    // Same length, so the container stays well formed: only the primitive's mode
+    // (4, triangles) becomes one glTF does not have.
+    assert!(text.contains("\"mode\":4"), "{text}");
+    let patched = text.replacen("\"mode\":4", "\"mode\":9", 1);
+    glb[20..20 + json_len].copy_from_slice(patched.as_bytes());
+    std::fs::write(&glb_path, &glb).unwrap();
+    let report = check(&broken);
+    assert!(report["gltfErrors"].as_u64().unwrap() > 0, "{report}");
+    assert!(
+        !report["schemaErrors"].as_array().unwrap().is_empty(),
+        "{report}"
+    );
+}
+
+#[test]
+fn bad_3d_tiles_arguments_are_refused_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let capture = dir.path().join("hall.mcap");
+    render_hall(&capture, 3);
+    let out = dir.path().join("t");
+    let (ok, _, stderr) = texeld(&[
+        OsStr::new("export"),
+        capture.as_os_str(),
+        OsStr::new("--format"),
+        OsStr::new("3dtiles"),
+        OsStr::new("--georef"),
+        OsStr::new("95,8,400"),
+        OsStr::new("--out"),
+        out.as_os_str(),
+    ]);
+    assert!(!ok && stderr.contains("latitude"), "{stderr}");
+    let lod = dir.path().join("lod.toml");
+    std::fs::write(&lod, "tile_voxel = 16\n").unwrap();
+    let (ok, _, stderr) = texeld(&[
+        OsStr::new("export"),
+        capture.as_os_str(),
+        OsStr::new("--format"),
+        OsStr::new("3dtiles"),
+        OsStr::new("--lod-config"),
+        lod.as_os_str(),
+        OsStr::new("--out"),
+        out.as_os_str(),
+    ]);
+    assert!(
+        !ok && stderr.contains("tile_voxel") && stderr.contains("lod.toml"),
+        "{stderr}"
+    );
+    let (ok, _, stderr) = texeld(&[
+        OsStr::new("export"),
+        capture.as_os_str(),
+        OsStr::new("--frame"),
+        OsStr::new("0"),
+        OsStr::new("--format"),
+        OsStr::new("3dtiles"),
+        OsStr::new("--out"),
+        out.as_os_str(),
+    ]);
+    assert!(!ok && stderr.contains("whole model"), "{stderr}");
+    assert!(!out.join("tileset.json").exists());
+}

@@ -1,0 +1,14 @@
+//! Hierarchical level of detail for the texel model (Liu 2014): a quadtree over the
+//! ground whose tiles hold the merged surface of the scans under them, simplified to
+//! one triangle budget per tile; selection of the tiles to draw by screen-space error;
+//! and the hierarchy as an OGC 3D Tiles 1.1 tileset. Pure, synchronous, I/O-free.
+
+pub mod build;
+pub mod select;
+pub mod tiles;
+pub mod tree;
+
+pub use build::{Hierarchy, LodBuilder, LodConfig, LodError, LodNode, build_from_field};
+pub use select::{Lens, SelectConfig, Selection, TileIndex, TileInfo, View, select};
+pub use tiles::{GeoReference, TileFile, TilesError, tileset_files};
+pub use tree::{Layout, TileId};

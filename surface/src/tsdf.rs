@@ -1,0 +1,497 @@
+//! The truncated signed distance field: sparse 8³ blocks of voxels keyed by their
+//! integer index in the world, so a model 5,000 km from the origin has the same
+//! resolution as one at the origin (voxel centres are computed in f64).
+
+use std::collections::HashMap;
+
+use thiserror::Error;
+
+/// A voxel's integer index: its centre is at `(index + 0.5) * voxel_m` in the world.
+pub type VoxelIndex = [i64; 3];
+
+const BLOCK_SIDE: i64 = 8;
+const BLOCK_VOXELS: usize = 512;
+
+/// One voxel's fused state.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Voxel {
+    /// Signed distance to the surface along the viewing rays, metres: positive in
+    /// front of the surface (free space), negative behind it.
+    pub sdf_m: f32,
+    /// Sum of the weights of the samples fused here; 0 means never observed.
+    pub weight: f32,
+    /// Weighted sum of colours (linear in the 8-bit values).
+    pub colour_sum: [f32; 3],
+    pub colour_weight: f32,
+}
+
+impl Voxel {
+    /// The fused colour, `None` where no textured sample reached the voxel.
+    pub fn colour(&self) -> Option<[u8; 3]> {
+        // Guard: a zero colour weight has no colour (not a division by zero).
+        if self.colour_weight <= 0.0 {
+            return None;
+        }
+        let c = |k: usize| {
+            (self.colour_sum[k] / self.colour_weight)
+                .round()
+                .clamp(0.0, 255.0) as u8
+        };
+        Some([c(0), c(1), c(2)])
+    }
+}
+
+#[derive(Debug, Clone)]
+struct Block {
+    voxels: Box<[Voxel; BLOCK_VOXELS]>,
+}
+
+impl Block {
+    fn new() -> Self {
+        Self {
+            voxels: Box::new([Voxel::default(); BLOCK_VOXELS]),
+        }
+    }
+}
+
+/// How fine the field is and how far behind and before a surface it reaches.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TsdfConfig {
+    /// Edge of a voxel, metres.
+    pub voxel_m: f64,
+    /// Half-width of the band around a surface that a sample updates, in voxels. Three
+    /// voxels cover the range noise of a scan seen at the voxel size, and the
+    /// neighbouring voxels that surface extraction interpolates between.
+    pub truncation_voxels: f64,
+    /// Cap on a voxel's accumulated weight, so late observations still move it.
+    pub max_weight: f32,
+}
+
+impl Default for TsdfConfig {
+    fn default() -> Self {
+        Self {
+            voxel_m: 0.05,
+            truncation_voxels: 3.0,
+            max_weight: 128.0,
+        }
+    }
+}
+
+#[derive(Debug, Error, PartialEq)]
+pub enum TsdfError {
+    #[error("TSDF {field} must be {expected}, got {value}")]
+    BadConfig {
+        field: &'static str,
+        expected: &'static str,
+        value: f64,
+    },
+}
+
+/// One return to fuse: the surface point, the centre of projection it was seen from,
+/// how reliable it is and its colour.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Sample {
+    pub point_m: [f64; 3],
+    pub centre_m: [f64; 3],
+    /// In (0, 1]: the normal accuracy of the surface there (Killpack & Budge 2016 §3.1).
+    pub weight: f32,
+    pub colour: Option<[u8; 3]>,
+}
+
+/// A sparse truncated signed distance field (Curless & Levoy 1996).
+#[derive(Debug, Clone)]
+pub struct Tsdf {
+    config: TsdfConfig,
+    /// Voxel `[0, 0, 0]` starts here (world metres).
+    origin_m: [f64; 3],
+    blocks: HashMap<[i64; 3], Block>,
+}
+
+impl Tsdf {
+    pub fn new(config: TsdfConfig) -> Result<Self, TsdfError> {
+        let bad = |field, expected, value| TsdfError::BadConfig {
+            field,
+            expected,
+            value,
+        };
+        if !(config.voxel_m.is_finite() && config.voxel_m >= 1e-4 && config.voxel_m <= 1e4) {
+            return Err(bad("voxel_m", "in [1e-4, 1e4]", config.voxel_m));
+        }
+        if !(config.truncation_voxels.is_finite()
+            && (1.0..=64.0).contains(&config.truncation_voxels))
+        {
+            return Err(bad(
+                "truncation_voxels",
+                "in [1, 64]",
+                config.truncation_voxels,
+            ));
+        }
+        if !(config.max_weight.is_finite() && config.max_weight >= 1.0) {
+            return Err(bad(
+                "max_weight",
+                "at least 1",
+                f64::from(config.max_weight),
+            ));
+        }
+        Ok(Self {
+            config,
+            origin_m: [0.0; 3],
+            blocks: HashMap::new(),
+        })
+    }
+
+    pub fn config(&self) -> TsdfConfig {
+        self.config
+    }
+
+    pub fn voxel_m(&self) -> f64 {
+        self.config.voxel_m
+    }
+
+    pub fn truncation_m(&self) -> f64 {
+        self.config.voxel_m * self.config.truncation_voxels
+    }
+
+    pub fn block_count(&self) -> usize {
+        self.blocks.len()
+    }
+
+    /// Bytes held by the blocks.
+    pub fn heap_bytes(&self) -> usize {
+        self.blocks.len() * (BLOCK_VOXELS * std::mem::size_of::<Voxel>() + 48)
+    }
+
+    /// The voxel containing a world point. Points beyond ±2^62 voxels saturate.
+    pub fn index_of(&self, point_m: [f64; 3]) -> VoxelIndex {
+        [0, 1, 2].map(|a| ((point_m[a] - self.origin_m[a]) / self.config.voxel_m).floor() as i64)
+    }
+
+    /// A voxel's centre in the world.
+    pub fn centre_of(&self, index: VoxelIndex) -> [f64; 3] {
+        [0, 1, 2].map(|a| self.origin_m[a] + (index[a] as f64 + 0.5) * self.config.voxel_m)
+    }
+
+    /// Where voxel `[0, 0, 0]` starts.
+    pub fn origin_m(&self) -> [f64; 3] {
+        self.origin_m
+    }
+
+    /// The same field with voxel `by` renamed `[0, 0, 0]`: a change of names, not of
+    /// samples. `by` must be a whole number of blocks (multiples of 8) on each axis.
+    pub fn reanchored(self, by: [i64; 3]) -> Result<Tsdf, TsdfError> {
+        if let Some(&bad) = by.iter().find(|b| b.rem_euclid(BLOCK_SIDE) != 0) {
+            return Err(TsdfError::BadConfig {
+                field: "anchor",
+                expected: "a multiple of 8 voxels",
+                value: bad as f64,
+            });
+        }
+        let shift = by.map(|b| b / BLOCK_SIDE);
+        let origin_m = self.centre_of(by).map(|c| c - 0.5 * self.config.voxel_m);
+        let blocks = self
+            .blocks
+            .into_iter()
+            .map(|(key, block)| ([0, 1, 2].map(|a| key[a] - shift[a]), block))
+            .collect();
+        Ok(Tsdf {
+            config: self.config,
+            origin_m,
+            blocks,
+        })
+    }
+
+    /// The voxel at `index` if it was ever observed.
+    pub fn voxel(&self, index: VoxelIndex) -> Option<&Voxel> {
+        let (key, slot) = split(index);
+        let voxel = &self.blocks.get(&key)?.voxels[slot];
+        (voxel.weight > 0.0).then_some(voxel)
+    }
+
+    /// Fuses `samples`: each updates the voxels along its viewing ray within the
+    /// truncation band around its point with the projective signed distance, a
+    /// weighted running mean. Samples with a non-finite coordinate, a non-positive
+    /// weight or no length between centre and point are skipped. Returns the number
+    /// of voxel updates.
+    pub fn integrate(&mut self, samples: &[Sample]) -> usize {
+        let voxel_m = self.config.voxel_m;
+        let truncation_m = self.truncation_m();
+        let max_weight = self.config.max_weight;
+        let mut updates = 0usize;
+        for sample in samples {
+            let Some(dir) = unit_ray(sample) else {
+                continue;
+            };
+            let weight = sample.weight.min(1.0);
+            if weight.is_nan() || weight <= 0.0 {
+                continue;
+            }
+            // Half-voxel steps along the ray reach every voxel the band crosses;
+            // consecutive repeats of one voxel are fused once.
+            let steps = (2.0 * truncation_m / (0.5 * voxel_m)).ceil() as i64;
+            let mut last: Option<VoxelIndex> = None;
+            for step in 0..=steps {
+                let s = -truncation_m + step as f64 * 0.5 * voxel_m;
+                let x = [0, 1, 2].map(|k| sample.point_m[k] + s * dir[k]);
+                let index = self.index_of(x);
+                if last == Some(index) {
+                    continue;
+                }
+                last = Some(index);
+                let centre = self.centre_of(index);
+                // Projective distance of the voxel centre in front of the point.
+                let sdf = (0..3)
+                    .map(|k| (sample.point_m[k] - centre[k]) * dir[k])
+                    .sum::<f64>();
+                if sdf.abs() > truncation_m {
+                    continue;
+                }
+                let (key, slot) = split(index);
+                let voxel = &mut self.blocks.entry(key).or_insert_with(Block::new).voxels[slot];
+                fuse_into(voxel, sdf as f32, weight, sample.colour, max_weight);
+                updates += 1;
+            }
+        }
+        updates
+    }
+
+    /// The field at twice the voxel size, from the same origin: each coarse voxel is
+    /// the weighted mean of its eight children (their centres average to its centre, so a planar field
+    /// stays exact). The truncation band keeps its width in metres where it can
+    /// (at least one coarse voxel).
+    pub fn downsampled(&self) -> Tsdf {
+        let voxel_m = self.config.voxel_m * 2.0;
+        let truncation_voxels = (self.truncation_m() / voxel_m).max(1.0);
+        let mut coarse = Tsdf {
+            config: TsdfConfig {
+                voxel_m,
+                truncation_voxels,
+                max_weight: self.config.max_weight,
+            },
+            origin_m: self.origin_m,
+            blocks: HashMap::new(),
+        };
+        for (key, block) in &self.blocks {
+            for (slot, child) in block.voxels.iter().enumerate() {
+                if child.weight <= 0.0 {
+                    continue;
+                }
+                let index = join(*key, slot);
+                let parent = index.map(|i| i.div_euclid(2));
+                let (pkey, pslot) = split(parent);
+                let voxel = &mut coarse.blocks.entry(pkey).or_insert_with(Block::new).voxels[pslot];
+                let w = voxel.weight + child.weight;
+                // w > 0: child.weight > 0.
+                voxel.sdf_m = (voxel.sdf_m * voxel.weight + child.sdf_m * child.weight) / w;
+                voxel.weight = w;
+                for k in 0..3 {
+                    voxel.colour_sum[k] += child.colour_sum[k];
+                }
+                voxel.colour_weight += child.colour_weight;
+            }
+        }
+        coarse
+    }
+
+    /// Inclusive bounds of the observed voxels, `None` when nothing was fused.
+    pub fn bounds(&self) -> Option<(VoxelIndex, VoxelIndex)> {
+        let mut keys = self.blocks.keys();
+        let first = *keys.next()?;
+        let (lo, hi) = keys.fold((first, first), |(mut lo, mut hi), k| {
+            for a in 0..3 {
+                lo[a] = lo[a].min(k[a]);
+                hi[a] = hi[a].max(k[a]);
+            }
+            (lo, hi)
+        });
+        Some((
+            lo.map(|b| b * BLOCK_SIDE),
+            hi.map(|b| b * BLOCK_SIDE + BLOCK_SIDE - 1),
+        ))
+    }
+
+    /// The lowest voxel of every block that holds an observed voxel.
+    pub fn block_corners(&self) -> impl Iterator<Item = VoxelIndex> + '_ {
+        self.blocks.keys().map(|key| key.map(|k| k * BLOCK_SIDE))
+    }
+
+    /// Every observed voxel whose x and y index lie in `[lo, hi)`, in no set order.
+    pub fn voxels_in_columns(
+        &self,
+        lo: [i64; 2],
+        hi: [i64; 2],
+    ) -> impl Iterator<Item = (VoxelIndex, &Voxel)> + '_ {
+        let block_lo = lo.map(|i| i.div_euclid(BLOCK_SIDE));
+        let block_hi = hi.map(|i| (i - 1).div_euclid(BLOCK_SIDE));
+        self.blocks
+            .iter()
+            .filter(move |(key, _)| (0..2).all(|a| key[a] >= block_lo[a] && key[a] <= block_hi[a]))
+            .flat_map(move |(key, block)| {
+                block
+                    .voxels
+                    .iter()
+                    .enumerate()
+                    .map(move |(slot, v)| (join(*key, slot), v))
+                    .filter(move |(index, v)| {
+                        v.weight > 0.0 && (0..2).all(|a| index[a] >= lo[a] && index[a] < hi[a])
+                    })
+            })
+    }
+}
+
+/// The unit direction from the centre to the point, `None` for a degenerate sample
+/// (non-finite coordinates or centre and point closer than a micrometre).
+fn unit_ray(sample: &Sample) -> Option<[f64; 3]> {
+    let d = [0, 1, 2].map(|k| sample.point_m[k] - sample.centre_m[k]);
+    let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+    if !len.is_finite() || len < 1e-6 {
+        return None;
+    }
+    Some(d.map(|x| x / len))
+}
+
+/// The weighted running mean of Curless & Levoy (1996), eq. 1-2, with the weight
+/// capped.
+fn fuse_into(voxel: &mut Voxel, sdf_m: f32, weight: f32, colour: Option<[u8; 3]>, cap: f32) {
+    let w = voxel.weight + weight;
+    // w > 0: weight > 0.
+    voxel.sdf_m = (voxel.sdf_m * voxel.weight + sdf_m * weight) / w;
+    voxel.weight = w.min(cap);
+    if let Some(c) = colour {
+        // Weighted like the distance: the most reliable views colour the surface.
+        for (sum, channel) in voxel.colour_sum.iter_mut().zip(c) {
+            *sum += f32::from(channel) * weight;
+        }
+        voxel.colour_weight += weight;
+        if voxel.colour_weight > cap {
+            let scale = cap / voxel.colour_weight;
+            for sum in &mut voxel.colour_sum {
+                *sum *= scale;
+            }
+            voxel.colour_weight = cap;
+        }
+    }
+}
+
+fn split(index: VoxelIndex) -> ([i64; 3], usize) {
+    let key = index.map(|i| i.div_euclid(BLOCK_SIDE));
+    let local = index.map(|i| i.rem_euclid(BLOCK_SIDE) as usize);
+    (key, local[0] + 8 * local[1] + 64 * local[2])
+}
+
+fn join(key: [i64; 3], slot: usize) -> VoxelIndex {
+    let local = [slot % 8, (slot / 8) % 8, slot / 64];
+    [0, 1, 2].map(|a| key[a] * BLOCK_SIDE + local[a] as i64)
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, clippy::expect_used)] // tests panic on failure by design
+    use super::*;
+
+    #[test]
+    fn split_and_join_are_inverse_across_zero() {
+        for index in [[0, 0, 0], [-1, -1, -1], [7, 8, -9], [-8, 15, 1 << 40]] {
+            let (key, slot) = split(index);
+            assert_eq!(join(key, slot), index);
+        }
+    }
+
+    #[test]
+    fn bad_configs_are_refused_by_name() {
+        let e = Tsdf::new(TsdfConfig {
+            voxel_m: 0.0,
+            ..TsdfConfig::default()
+        })
+        .unwrap_err();
+        assert!(e.to_string().contains("voxel_m"), "{e}");
+        let e = Tsdf::new(TsdfConfig {
+            truncation_voxels: f64::NAN,
+            ..TsdfConfig::default()
+        })
+        .unwrap_err();
+        assert!(e.to_string().contains("truncation_voxels"), "{e}");
+    }
+
+    #[test]
+    fn a_plane_seen_head_on_has_the_true_distance_in_its_band() {
+        let mut tsdf = Tsdf::new(TsdfConfig::default()).unwrap();
+        // Wall at x = 2.01, seen from the origin along +x.
+        let samples: Vec<Sample> = (-20..20)
+            .flat_map(|y| (-20..20).map(move |z| (y, z)))
+            .map(|(y, z)| Sample {
+                point_m: [2.01, f64::from(y) * 0.02, f64::from(z) * 0.02],
+                centre_m: [0.0, f64::from(y) * 0.02, f64::from(z) * 0.02],
+                weight: 1.0,
+                colour: Some([200, 100, 50]),
+            })
+            .collect();
+        assert!(tsdf.integrate(&samples) > 0);
+        for i in 38..42 {
+            let v = tsdf.voxel([i, 0, 0]).unwrap();
+            let centre = tsdf.centre_of([i, 0, 0])[0];
+            assert!(
+                (f64::from(v.sdf_m) - (2.01 - centre)).abs() < 1e-5,
+                "{i}: {v:?}"
+            );
+            assert_eq!(v.colour(), Some([200, 100, 50]));
+        }
+        // Beyond the band nothing is written.
+        assert!(tsdf.voxel([30, 0, 0]).is_none());
+        assert!(tsdf.voxel([45, 0, 0]).is_none());
+        // Renaming voxels moves no sample.
+        let before = *tsdf.voxel([40, 0, 0]).unwrap();
+        let moved = tsdf.clone().reanchored([16, -8, 0]).unwrap();
+        assert_eq!(moved.voxel([24, 8, 0]), Some(&before));
+        assert_eq!(moved.index_of([2.01, 0.0, 0.0]), [24, 8, 0]);
+        assert!(tsdf.reanchored([3, 0, 0]).is_err());
+    }
+
+    #[test]
+    fn degenerate_samples_write_nothing() {
+        let mut tsdf = Tsdf::new(TsdfConfig::default()).unwrap();
+        let bad = [
+            Sample {
+                point_m: [1.0, 1.0, 1.0],
+                centre_m: [1.0, 1.0, 1.0],
+                weight: 1.0,
+                colour: None,
+            },
+            Sample {
+                point_m: [f64::NAN, 0.0, 0.0],
+                centre_m: [0.0; 3],
+                weight: 1.0,
+                colour: None,
+            },
+            Sample {
+                point_m: [1.0, 0.0, 0.0],
+                centre_m: [0.0; 3],
+                weight: 0.0,
+                colour: None,
+            },
+        ];
+        assert_eq!(tsdf.integrate(&bad), 0);
+        assert_eq!(tsdf.block_count(), 0);
+        assert!(tsdf.bounds().is_none());
+    }
+
+    #[test]
+    fn downsampling_keeps_a_planar_field_exact() {
+        let mut tsdf = Tsdf::new(TsdfConfig::default()).unwrap();
+        let samples: Vec<Sample> = (-40..40)
+            .flat_map(|y| (-40..40).map(move |z| (y, z)))
+            .map(|(y, z)| Sample {
+                point_m: [3.03, f64::from(y) * 0.01, f64::from(z) * 0.01],
+                centre_m: [0.0, f64::from(y) * 0.01, f64::from(z) * 0.01],
+                weight: 1.0,
+                colour: None,
+            })
+            .collect();
+        tsdf.integrate(&samples);
+        let coarse = tsdf.downsampled();
+        assert_eq!(coarse.voxel_m(), 0.1);
+        let i = coarse.index_of([3.03, 0.05, 0.05]);
+        let v = coarse.voxel(i).unwrap();
+        let centre = coarse.centre_of(i)[0];
+        assert!((f64::from(v.sdf_m) - (3.03 - centre)).abs() < 1e-4, "{v:?}");
+    }
+}
