@@ -93,7 +93,9 @@ pub enum TsdfError {
 pub struct Sample {
     pub point_m: [f64; 3],
     pub centre_m: [f64; 3],
-    /// In (0, 1]: the normal accuracy of the surface there (Killpack & Budge 2016 §3.1).
+    /// In (0, 1]: the normal accuracy of the surface there (Killpack & Budge 2016 §3.1),
+    /// the cosine between the viewing ray and the surface normal. It weighs the
+    /// sample and turns distances along the ray into distances across the surface.
     pub weight: f32,
     pub colour: Option<[u8; 3]>,
 }
@@ -208,10 +210,20 @@ impl Tsdf {
     }
 
     /// Fuses `samples`: each updates the voxels along its viewing ray within the
-    /// truncation band around its point with the projective signed distance, a
-    /// weighted running mean. Samples with a non-finite coordinate, a non-positive
+    /// truncation band around its point with the signed distance to the surface, a
+    /// running mean weighted by the square of the sample's normal accuracy (a grazing
+    /// view's distance is least certain, and the square lets head-on views outvote
+    /// it where both reach). Samples with a non-finite coordinate, a non-positive
     /// weight or no length between centre and point are skipped. Returns the number
     /// of voxel updates.
+    ///
+    /// The distance along the ray is scaled by the sample's normal accuracy (the
+    /// cosine between ray and surface normal) to approximate the distance
+    /// perpendicular to the surface: a wall seen at a grazing angle would otherwise
+    /// store distances stretched by 1/cos, and neighbouring voxels would differ by
+    /// several voxels across the surface. The ray segment in front of the point is
+    /// stretched by the same factor (at most fourfold) so the band keeps its width
+    /// across the surface there.
     pub fn integrate(&mut self, samples: &[Sample]) -> usize {
         let voxel_m = self.config.voxel_m;
         let truncation_m = self.truncation_m();
@@ -225,12 +237,17 @@ impl Tsdf {
             if weight.is_nan() || weight <= 0.0 {
                 continue;
             }
+            let cos = f64::from(weight).max(0.25);
+            // In front of the point the ray crossed free space: stretch the band
+            // there. Behind it nothing is known, and a ray grazing a curved surface
+            // leaves it again: keep the plain band.
+            let front_m = truncation_m / cos;
             // Half-voxel steps along the ray reach every voxel the band crosses;
             // consecutive repeats of one voxel are fused once.
-            let steps = (2.0 * truncation_m / (0.5 * voxel_m)).ceil() as i64;
+            let steps = ((front_m + truncation_m) / (0.5 * voxel_m)).ceil() as i64;
             let mut last: Option<VoxelIndex> = None;
             for step in 0..=steps {
-                let s = -truncation_m + step as f64 * 0.5 * voxel_m;
+                let s = -front_m + step as f64 * 0.5 * voxel_m;
                 let x = [0, 1, 2].map(|k| sample.point_m[k] + s * dir[k]);
                 let index = self.index_of(x);
                 if last == Some(index) {
@@ -238,16 +255,18 @@ impl Tsdf {
                 }
                 last = Some(index);
                 let centre = self.centre_of(index);
-                // Projective distance of the voxel centre in front of the point.
-                let sdf = (0..3)
+                // Distance of the voxel centre in front of the point, along the ray,
+                // then across the surface.
+                let along = (0..3)
                     .map(|k| (sample.point_m[k] - centre[k]) * dir[k])
                     .sum::<f64>();
+                let sdf = along * cos;
                 if sdf.abs() > truncation_m {
                     continue;
                 }
                 let (key, slot) = split(index);
                 let voxel = &mut self.blocks.entry(key).or_insert_with(Block::new).voxels[slot];
-                fuse_into(voxel, sdf as f32, weight, sample.colour, max_weight);
+                fuse_into(voxel, sdf as f32, weight * weight, sample.colour, max_weight);
                 updates += 1;
             }
         }

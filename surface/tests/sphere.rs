@@ -89,7 +89,15 @@ fn whole(tsdf: &Tsdf) -> VoxelRegion {
 /// Largest distance of a vertex from the sphere's surface, and the share of
 /// triangles whose normal points away from the centre.
 fn fit(mesh: &SurfaceMesh, centre: [f64; 3], radius: f64) -> (f64, f64) {
+    let (worst, _, outward) = fit_rms(mesh, centre, radius);
+    (worst, outward)
+}
+
+/// Largest and root-mean-square distance of the vertices from the sphere, and the
+/// share of triangles facing out.
+fn fit_rms(mesh: &SurfaceMesh, centre: [f64; 3], radius: f64) -> (f64, f64, f64) {
     let mut worst: f64 = 0.0;
+    let mut sum2 = 0.0;
     for v in 0..mesh.vertex_count() {
         let p = mesh.world(v).unwrap();
         let r = (0..3)
@@ -97,7 +105,9 @@ fn fit(mesh: &SurfaceMesh, centre: [f64; 3], radius: f64) -> (f64, f64) {
             .sum::<f64>()
             .sqrt();
         worst = worst.max((r - radius).abs());
+        sum2 += (r - radius).powi(2);
     }
+    let rms = (sum2 / mesh.vertex_count().max(1) as f64).sqrt();
     let outward = mesh
         .triangles
         .iter()
@@ -114,7 +124,7 @@ fn fit(mesh: &SurfaceMesh, centre: [f64; 3], radius: f64) -> (f64, f64) {
             n.iter().zip(c).map(|(a, b)| a * b).sum::<f64>() > 0.0
         })
         .count();
-    (worst, outward as f64 / mesh.triangle_count().max(1) as f64)
+    (worst, rms, outward as f64 / mesh.triangle_count().max(1) as f64)
 }
 
 #[test]
@@ -123,8 +133,9 @@ fn the_sphere_is_recovered_within_a_fraction_of_a_voxel_far_from_the_origin() {
     let tsdf = fused(FAR, 1.0, voxel, 0.0);
     let mesh = extract(&tsdf, whole(&tsdf), FAR);
     assert!(mesh.triangle_count() > 2_000, "{}", mesh.triangle_count());
-    let (worst, outward) = fit(&mesh, FAR, 1.0);
-    assert!(worst < 0.35 * voxel, "worst {worst} m");
+    let (worst, rms, outward) = fit_rms(&mesh, FAR, 1.0);
+    assert!(worst < 0.2 * voxel, "worst {worst} m");
+    assert!(rms < 0.05 * voxel, "rms {rms} m");
     assert!(outward > 0.99, "outward share {outward}");
     // Closed: every edge is shared by exactly two triangles.
     let mut edges = std::collections::HashMap::new();
