@@ -9,11 +9,12 @@ repo="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 
 # Packages: lavapipe (software Vulkan) for wgpu; Xvfb and X client libraries for the
 # windowed viewer; libclang for the v4l crate's bindgen; libusb for Open3D; LLVM 19
-# for Mitsuba's LLVM backend; DejaVu fonts for the text of plots; g++ for meshoptimizer.
+# for Mitsuba's LLVM backend; DejaVu fonts for the text of plots; g++ for meshoptimizer;
+# Chromium for CesiumJS, the independent 3D Tiles viewer the exports are checked in.
 packages=(
   mesa-vulkan-drivers libvulkan1 xvfb xauth libxcursor1 libxi6 libxrandr2
   libxkbcommon-x11-0 libx11-xcb1 libclang-dev libusb-1.0-0 libllvm19 pkg-config fonts-dejavu-core
-  g++
+  g++ chromium
 )
 
 missing=()
@@ -45,7 +46,8 @@ if [ ! -x "$venv/bin/python" ] || ! cmp -s "$req" "$stamp"; then
 fi
 
 # The Node.js peer checks (Khronos glTF validator, a JSON Schema validator for the 3D
-# Tiles schema, loaders.gl's 3D Tiles reader), outside the clone, reinstalled only when
+# Tiles schema, loaders.gl's 3D Tiles reader, CesiumJS driven in Chromium by
+# playwright-core), outside the clone, reinstalled only when
 # the lock file changes. Node.js and npm come from Debian when the machine has none.
 if ! command -v node >/dev/null 2>&1 || ! command -v npm >/dev/null 2>&1; then
   sudo=""

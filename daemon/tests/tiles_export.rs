@@ -3,7 +3,10 @@
 //! passes the Khronos glTF validator with zero errors, and loaders.gl reads the whole
 //! tileset back with the vertex counts we wrote and every vertex inside its tile's
 //! bounding volume. The checks are shown to fail on a broken tileset and a broken tile.
+//! CesiumJS in headless Chromium opens a street's tileset and shows the model in the
+//! colours the tiles hold.
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests panic on failure by design
+#![allow(clippy::needless_range_loop)] // r, g and b side by side read clearer indexed
 
 use std::ffi::OsStr;
 use std::path::{Path, PathBuf};
@@ -13,7 +16,12 @@ use serde_json::Value;
 use sims::{CaptureOptions, Scene, SimOptions, Simulator};
 
 fn render_hall(path: &Path, frames: usize) {
-    let scene = Scene::load(&texel_e2e::repo_root().join("configs/scenes/long-hall.toml")).unwrap();
+    render("long-hall", path, frames);
+}
+
+fn render(scene: &str, path: &Path, frames: usize) {
+    let scene =
+        Scene::load(&texel_e2e::repo_root().join(format!("configs/scenes/{scene}.toml"))).unwrap();
     let sim = Simulator::with_options(
         scene,
         &SimOptions {
@@ -220,4 +228,100 @@ fn bad_3d_tiles_arguments_are_refused_by_name() {
     ]);
     assert!(!ok && stderr.contains("whole model"), "{stderr}");
     assert!(!out.join("tileset.json").exists());
+}
+
+/// Mean sRGB colour of the vertices of the finest tiles, decoded from the GLBs'
+/// linear 16-bit COLOR_0 with the sRGB transfer function.
+fn finest_tiles_mean_colour(dir: &Path, tileset: &Value) -> [f64; 3] {
+    let mut uris = Vec::new();
+    content_uris(&tileset["root"], &mut uris);
+    let deepest = uris
+        .iter()
+        .filter_map(|u| u.split('/').nth(1).and_then(|l| l.parse::<u32>().ok()))
+        .max()
+        .unwrap();
+    let mut sum = [0.0f64; 3];
+    let mut count = 0.0;
+    for uri in uris
+        .iter()
+        .filter(|u| u.starts_with(&format!("tiles/{deepest}/")))
+    {
+        let bytes = std::fs::read(dir.join(uri)).unwrap();
+        let json_len = u32::from_le_bytes(bytes[12..16].try_into().unwrap()) as usize;
+        let json: Value = serde_json::from_slice(&bytes[20..20 + json_len]).unwrap();
+        let bin = &bytes[20 + json_len + 8..];
+        let n = json["accessors"][1]["count"].as_u64().unwrap() as usize;
+        assert_eq!(json["accessors"][1]["componentType"], 5123);
+        let offset = json["bufferViews"][1]["byteOffset"].as_u64().unwrap() as usize;
+        for v in 0..n {
+            for k in 0..3 {
+                let at = offset + v * 8 + k * 2;
+                let linear = f64::from(u16::from_le_bytes([bin[at], bin[at + 1]])) / 65535.0;
+                let srgb = if linear <= 0.0031308 {
+                    12.92 * linear
+                } else {
+                    1.055 * linear.powf(1.0 / 2.4) - 0.055
+                };
+                sum[k] += srgb * 255.0;
+            }
+            count += 1.0;
+        }
+    }
+    sum.map(|s| s / count)
+}
+
+#[test]
+fn cesium_opens_a_street_tileset_and_shows_the_model_in_its_colours() {
+    let dir = tempfile::tempdir().unwrap();
+    let capture = dir.path().join("street.mcap");
+    // Two seconds of the street: the camera pans from the road to the left facades.
+    render("street", &capture, 60);
+    let tiles = dir.path().join("tiles");
+    let (ok, stdout, stderr) = texeld(&[
+        OsStr::new("export"),
+        capture.as_os_str(),
+        OsStr::new("--format"),
+        OsStr::new("3dtiles"),
+        OsStr::new("--georef"),
+        OsStr::new("47.3769,8.5417,408"),
+        OsStr::new("--out"),
+        tiles.as_os_str(),
+    ]);
+    assert!(ok, "{stderr}");
+    let tileset: Value =
+        serde_json::from_slice(&std::fs::read(tiles.join("tileset.json")).unwrap()).unwrap();
+    let expected = finest_tiles_mean_colour(&tiles, &tileset);
+    let png = dir.path().join("cesium.png");
+    let out = texel_e2e::run_node("cesium-view.mjs", &[tiles.as_os_str(), png.as_os_str()]);
+    let report: Value = serde_json::from_slice(&out.stdout).unwrap();
+    eprintln!("{stdout}{report} expected mean colour {expected:?}");
+    assert!(report.get("error").is_none(), "{report}");
+    assert_eq!(report["pageErrors"], Value::Array(vec![]), "{report}");
+    assert_eq!(report["allLoaded"], true, "{report}");
+    assert!(report["tilesLoaded"].as_u64().unwrap() >= 1, "{report}");
+    assert!(png.exists());
+    // The model fills a real part of the view (framed on its bounding sphere)...
+    let coverage = report["coverage"].as_f64().unwrap();
+    assert!(coverage > 0.01, "coverage {coverage}");
+    // ...in the colours the tiles hold: unlit vertex colours come out as stored, so a
+    // wrong transfer function (linear shown as sRGB brightens mid-greys by ~40 %) or
+    // lit shading would move the mean far more than what framing changes.
+    let mean: Vec<f64> = report["meanRgb"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_f64().unwrap())
+        .collect();
+    let brightness = |c: &[f64]| (c[0] + c[1] + c[2]) / 3.0;
+    let ratio = brightness(&mean) / brightness(&expected);
+    assert!(
+        (0.85..1.15).contains(&ratio),
+        "shown {mean:?}, held {expected:?}"
+    );
+    for k in 0..3 {
+        assert!(
+            (mean[k] - expected[k]).abs() < 30.0,
+            "shown {mean:?}, held {expected:?}"
+        );
+    }
 }

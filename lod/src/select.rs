@@ -227,7 +227,8 @@ pub fn projected_error_px(view: &View, info: &TileInfo, centre_weight: f64) -> f
     let error = info.geometric_error_m.max(0.0);
     // Guard: the eye inside the box (distance 0) or a degenerate field of view.
     let half_fov_tan = (0.5 * view.fov_y_rad).tan();
-    if distance < 1e-9 || half_fov_tan.is_nan() || half_fov_tan <= 1e-9 || !half_fov_tan.is_finite() {
+    if distance < 1e-9 || half_fov_tan.is_nan() || half_fov_tan <= 1e-9 || !half_fov_tan.is_finite()
+    {
         return if error > 0.0 { f64::INFINITY } else { 0.0 };
     }
     let px = error * view.viewport_height_px / (2.0 * distance * half_fov_tan);

@@ -1,6 +1,7 @@
 //! The hierarchy as an OGC 3D Tiles 1.1 tileset: `tileset.json` (bounding boxes,
 //! geometric errors, REPLACE refinement, one tile per node) and one binary glTF 2.0
-//! per tile, coloured per vertex and unlit (the colours are the scene's own light).
+//! per tile, coloured per vertex (linear, from the sRGB pixels) and unlit (the colours
+//! are the scene's own light).
 //!
 //! Frames: tile coordinates are the model's world frame (right-handed, +z up,
 //! metres), read as a local east-north-up frame. glTF is +y up and 3D Tiles turns
@@ -182,8 +183,19 @@ fn bounding_box(node: &LodNode) -> Vec<f64> {
     ]
 }
 
+/// An 8-bit sRGB value as a 16-bit linear one (IEC 61966-2-1).
+pub fn srgb_to_linear_u16(value: u8) -> u16 {
+    let v = f64::from(value) / 255.0;
+    let linear = if v <= 0.04045 {
+        v / 12.92
+    } else {
+        ((v + 0.055) / 1.055).powf(2.4)
+    };
+    (linear * 65535.0).round().clamp(0.0, 65535.0) as u16
+}
+
 /// A node's mesh as binary glTF: positions (f32, y-up, offsets from a translated
-/// node), RGBA8 vertex colours, u32 indices, one unlit material.
+/// node), linear RGBA16 vertex colours, u32 indices, one unlit material.
 pub fn tile_glb(node: &LodNode) -> Result<Vec<u8>, TilesError> {
     let mesh: &SurfaceMesh = &node.mesh;
     let n = mesh.vertex_count();
@@ -194,7 +206,7 @@ pub fn tile_glb(node: &LodNode) -> Result<Vec<u8>, TilesError> {
         });
     }
     let to_gltf = |p: [f32; 3]| [p[0], p[2], -p[1]];
-    let mut bin: Vec<u8> = Vec::with_capacity(n * 16 + mesh.triangle_count() * 12);
+    let mut bin: Vec<u8> = Vec::with_capacity(n * 20 + mesh.triangle_count() * 12);
     let mut lo = [f32::INFINITY; 3];
     let mut hi = [f32::NEG_INFINITY; 3];
     for p in &mesh.positions {
@@ -205,9 +217,14 @@ pub fn tile_glb(node: &LodNode) -> Result<Vec<u8>, TilesError> {
             bin.extend_from_slice(&q[a].to_le_bytes());
         }
     }
+    // glTF vertex colours are linear; the EO pixels are sRGB. Sixteen bits keep the
+    // dark end, where linear values crowd together, as fine as the pixels were.
     let colour_offset = bin.len();
     for c in &mesh.colours {
-        bin.extend_from_slice(&[c[0], c[1], c[2], 255]);
+        for channel in [c[0], c[1], c[2]] {
+            bin.extend_from_slice(&srgb_to_linear_u16(channel).to_le_bytes());
+        }
+        bin.extend_from_slice(&u16::MAX.to_le_bytes());
     }
     let index_offset = bin.len();
     for t in &mesh.triangles {
@@ -239,7 +256,7 @@ pub fn tile_glb(node: &LodNode) -> Result<Vec<u8>, TilesError> {
         "accessors": [
             { "bufferView": 0, "componentType": 5126, "count": n, "type": "VEC3",
               "min": lo, "max": hi },
-            { "bufferView": 1, "componentType": 5121, "normalized": true, "count": n,
+            { "bufferView": 1, "componentType": 5123, "normalized": true, "count": n,
               "type": "VEC4" },
             { "bufferView": 2, "componentType": 5125, "count": mesh.triangle_count() * 3,
               "type": "SCALAR" }
@@ -257,4 +274,23 @@ pub fn tile_glb(node: &LodNode) -> Result<Vec<u8>, TilesError> {
         serde_json::to_vec(&json).unwrap_or_default(),
         bin,
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::srgb_to_linear_u16;
+
+    #[test]
+    fn srgb_decodes_to_linear_at_the_standard_points() {
+        assert_eq!(srgb_to_linear_u16(0), 0);
+        assert_eq!(srgb_to_linear_u16(255), 65535);
+        // sRGB 0.5 (128 of 255) is linear 0.2158 (IEC 61966-2-1).
+        let mid = f64::from(srgb_to_linear_u16(128)) / 65535.0;
+        assert!((mid - 0.2158605).abs() < 1e-4, "{mid}");
+        // The linear segment below 0.04045.
+        let low = f64::from(srgb_to_linear_u16(10)) / 65535.0;
+        assert!((low - 10.0 / 255.0 / 12.92).abs() < 1e-5, "{low}");
+        // Monotone.
+        assert!((1..=255u8).all(|v| srgb_to_linear_u16(v) > srgb_to_linear_u16(v - 1)));
+    }
 }

@@ -34,6 +34,11 @@ pub enum Path {
         jitter_position_m: f64,
         jitter_rotation_deg: f64,
         seed: u64,
+        /// A sweep of the view about world +z:
+        /// `amplitude · sin(2π t / period + phase)`.
+        pan_amplitude_deg: f64,
+        pan_period_s: f64,
+        pan_phase_deg: f64,
     },
 }
 
@@ -113,6 +118,9 @@ impl Trajectory {
                 jitter_position_m,
                 jitter_rotation_deg,
                 seed,
+                pan_amplitude_deg,
+                pan_period_s,
+                pan_phase_deg,
             } => {
                 let s = speed_m_per_s * t_s;
                 let eye = point_along(waypoints, s);
@@ -124,6 +132,19 @@ impl Trajectory {
                         look_at(eye, eye + (ahead - behind), Vector3::z())
                     }
                 };
+                // The sweep turns the view about the vertical through the eye. Guard:
+                // the period is validated positive; a zero one would pan not at all.
+                let pan = if *pan_period_s > 0.0 {
+                    pan_amplitude_deg.to_radians()
+                        * (std::f64::consts::TAU * t_s / pan_period_s + pan_phase_deg.to_radians())
+                            .sin()
+                } else {
+                    0.0
+                };
+                let nominal = Pose::from_parts(
+                    nominal.translation,
+                    UnitQuaternion::from_axis_angle(&Vector3::z_axis(), pan) * nominal.rotation,
+                );
                 let dp = jitter(*seed, 0, t_s) * *jitter_position_m;
                 let dr = jitter(*seed, 3, t_s) * jitter_rotation_deg.to_radians();
                 let mut pose = nominal * UnitQuaternion::from_scaled_axis(dr);
@@ -229,6 +250,9 @@ mod tests {
                 jitter_position_m: 0.01,
                 jitter_rotation_deg: 0.5,
                 seed,
+                pan_amplitude_deg: 0.0,
+                pan_period_s: 1.0,
+                pan_phase_deg: 0.0,
             },
             rate_hz: 10.0,
             frames: 40,
@@ -239,5 +263,41 @@ mod tests {
         assert!(da < 1e-3 && dt < 2e-3, "{da} {dt}");
         assert_ne!(a.pose_at(1.0), make(2).pose_at(1.0));
         assert_eq!(a.pose_at(1.0), make(1).pose_at(1.0));
+    }
+
+    #[test]
+    fn a_pan_sweeps_the_view_about_the_vertical_and_keeps_the_eye() {
+        let make = |amplitude| Trajectory {
+            path: Path::Handheld {
+                waypoints: vec![Point3::origin(), Point3::new(40.0, 0.0, 0.0)],
+                look_at: None,
+                speed_m_per_s: 1.0,
+                jitter_position_m: 0.0,
+                jitter_rotation_deg: 0.0,
+                seed: 0,
+                pan_amplitude_deg: amplitude,
+                pan_period_s: 8.0,
+                pan_phase_deg: 0.0,
+            },
+            rate_hz: 10.0,
+            frames: 40,
+            start_time_ns: 0,
+        };
+        let (still, panned) = (make(0.0), make(30.0));
+        // A quarter period in: the full amplitude, about +z, the eye unmoved.
+        let (a, b) = (still.pose_at(2.0), panned.pose_at(2.0));
+        assert!((a.translation.vector - b.translation.vector).norm() < 1e-12);
+        let forward = |p: &Pose| p.rotation * Vector3::z();
+        let (fa, fb) = (forward(&a), forward(&b));
+        assert!(fa.z.abs() < 1e-12 && fb.z.abs() < 1e-12);
+        let yaw = fa.y.atan2(fa.x) - fb.y.atan2(fb.x);
+        assert!(
+            (yaw.abs().to_degrees() - 30.0).abs() < 1e-9,
+            "{}",
+            yaw.to_degrees()
+        );
+        // Half a period in: back on the path.
+        let (fa, fb) = (forward(&still.pose_at(4.0)), forward(&panned.pose_at(4.0)));
+        assert!((fa - fb).norm() < 1e-9);
     }
 }

@@ -43,7 +43,8 @@ fn every_shipped_scene_loads_and_renders() {
             "lab",
             "lab-walk",
             "long-hall",
-            "plane"
+            "plane",
+            "street"
         ]
     );
 }

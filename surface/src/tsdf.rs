@@ -266,7 +266,13 @@ impl Tsdf {
                 }
                 let (key, slot) = split(index);
                 let voxel = &mut self.blocks.entry(key).or_insert_with(Block::new).voxels[slot];
-                fuse_into(voxel, sdf as f32, weight * weight, sample.colour, max_weight);
+                fuse_into(
+                    voxel,
+                    sdf as f32,
+                    weight * weight,
+                    sample.colour,
+                    max_weight,
+                );
                 updates += 1;
             }
         }

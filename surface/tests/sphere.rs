@@ -124,7 +124,11 @@ fn fit_rms(mesh: &SurfaceMesh, centre: [f64; 3], radius: f64) -> (f64, f64, f64)
             n.iter().zip(c).map(|(a, b)| a * b).sum::<f64>() > 0.0
         })
         .count();
-    (worst, rms, outward as f64 / mesh.triangle_count().max(1) as f64)
+    (
+        worst,
+        rms,
+        outward as f64 / mesh.triangle_count().max(1) as f64,
+    )
 }
 
 #[test]

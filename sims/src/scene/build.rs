@@ -818,6 +818,19 @@ fn handheld(
     {
         return Err(ctx.err(Some(h.span()), key, "jitter values must be finite and >= 0"));
     }
+    if let Some(pan) = v.pan
+        && !(pan.amplitude_deg.is_finite()
+            && (0.0..=180.0).contains(&pan.amplitude_deg)
+            && pan.period_s.is_finite()
+            && pan.period_s >= 0.1
+            && pan.phase_deg.is_finite())
+    {
+        return Err(ctx.err(
+            Some(h.span()),
+            format!("{key}.pan"),
+            "needs amplitude_deg in [0, 180], period_s of at least 0.1 and a finite phase_deg",
+        ));
+    }
     let waypoints: Vec<Point3<f64>> = v.waypoints.iter().map(|w| Point3::from(*w)).collect();
     let seconds = path_length(&waypoints) / v.speed_m_per_s;
     let natural = (seconds * rate_hz).floor() + 1.0;
@@ -836,6 +849,9 @@ fn handheld(
             jitter_position_m: v.jitter_position_m,
             jitter_rotation_deg: v.jitter_rotation_deg,
             seed: v.seed,
+            pan_amplitude_deg: v.pan.map_or(0.0, |p| p.amplitude_deg),
+            pan_period_s: v.pan.map_or(1.0, |p| p.period_s),
+            pan_phase_deg: v.pan.map_or(0.0, |p| p.phase_deg),
         },
         natural as usize,
     ))

@@ -97,6 +97,19 @@ pub(crate) struct HandheldFile {
     pub jitter_rotation_deg: f64,
     #[serde(default)]
     pub seed: u64,
+    /// The operator sweeping the camera left and right about the vertical.
+    #[serde(default)]
+    pub pan: Option<PanFile>,
+}
+
+#[derive(Debug, Deserialize, Clone, Copy)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct PanFile {
+    pub amplitude_deg: f64,
+    pub period_s: f64,
+    /// Where in the sweep the walk starts: 90 starts fully to the left.
+    #[serde(default)]
+    pub phase_deg: f64,
 }
 
 #[derive(Debug, Deserialize)]
