@@ -171,6 +171,19 @@ impl LodBuilder {
         texel_surface::integrate_scan(&mut self.field, scan, world_from_scan)
     }
 
+    /// Moves a scan whose pose was revised: out at `old`, in at `new` (loop closure
+    /// revises poses while the model is being built).
+    pub fn revise_scan(&mut self, scan: &TexelScan, old: &Pose, new: &Pose) -> usize {
+        texel_surface::remove_scan(&mut self.field, scan, old)
+            + texel_surface::integrate_scan(&mut self.field, scan, new)
+    }
+
+    /// Takes a scan out (it leaves the model).
+    pub fn remove_scan(&mut self, scan: &TexelScan, world_from_scan: &Pose) -> usize {
+        self.scans = self.scans.saturating_sub(1);
+        texel_surface::remove_scan(&mut self.field, scan, world_from_scan)
+    }
+
     pub fn scans(&self) -> usize {
         self.scans
     }

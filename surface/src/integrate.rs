@@ -52,3 +52,10 @@ pub fn scan_samples(scan: &TexelScan, world_from_scan: &Pose) -> Vec<Sample> {
 pub fn integrate_scan(tsdf: &mut Tsdf, scan: &TexelScan, world_from_scan: &Pose) -> usize {
     tsdf.integrate(&scan_samples(scan, world_from_scan))
 }
+
+/// Takes one registered scan back out of `tsdf` (it must have been fused at this
+/// pose); returns the number of voxel updates. A revised pose moves a scan: out at
+/// the old pose, in at the new.
+pub fn remove_scan(tsdf: &mut Tsdf, scan: &TexelScan, world_from_scan: &Pose) -> usize {
+    tsdf.remove(&scan_samples(scan, world_from_scan))
+}

@@ -11,7 +11,7 @@ pub mod mesh;
 pub mod nets;
 pub mod tsdf;
 
-pub use integrate::{integrate_scan, scan_samples};
+pub use integrate::{integrate_scan, remove_scan, scan_samples};
 pub use mesh::{SimplifyOutcome, SurfaceMesh, simplify};
 pub use nets::{VoxelRegion, extract};
 pub use tsdf::{Sample, Tsdf, TsdfConfig, TsdfError, VoxelIndex};

@@ -63,8 +63,6 @@ pub struct TsdfConfig {
     /// voxels cover the range noise of a scan seen at the voxel size, and the
     /// neighbouring voxels that surface extraction interpolates between.
     pub truncation_voxels: f64,
-    /// Cap on a voxel's accumulated weight, so late observations still move it.
-    pub max_weight: f32,
 }
 
 impl Default for TsdfConfig {
@@ -72,7 +70,6 @@ impl Default for TsdfConfig {
         Self {
             voxel_m: 0.05,
             truncation_voxels: 3.0,
-            max_weight: 128.0,
         }
     }
 }
@@ -126,13 +123,6 @@ impl Tsdf {
                 "truncation_voxels",
                 "in [1, 64]",
                 config.truncation_voxels,
-            ));
-        }
-        if !(config.max_weight.is_finite() && config.max_weight >= 1.0) {
-            return Err(bad(
-                "max_weight",
-                "at least 1",
-                f64::from(config.max_weight),
             ));
         }
         Ok(Self {
@@ -225,9 +215,22 @@ impl Tsdf {
     /// stretched by the same factor (at most fourfold) so the band keeps its width
     /// across the surface there.
     pub fn integrate(&mut self, samples: &[Sample]) -> usize {
+        self.apply(samples, Direction::Add)
+    }
+
+    /// Takes `samples` back out (de-integration): the exact inverse of
+    /// [`Self::integrate`] with the same samples, up to rounding. A voxel whose weight
+    /// falls to nothing becomes unobserved again, and blocks left with no observed
+    /// voxel are freed. This is how a scan whose pose was revised moves: out at its
+    /// old pose, in at its new one. Returns the number of voxel updates.
+    pub fn remove(&mut self, samples: &[Sample]) -> usize {
+        self.apply(samples, Direction::Remove)
+    }
+
+    fn apply(&mut self, samples: &[Sample], direction: Direction) -> usize {
         let voxel_m = self.config.voxel_m;
         let truncation_m = self.truncation_m();
-        let max_weight = self.config.max_weight;
+        let mut touched: Vec<[i64; 3]> = Vec::new();
         let mut updates = 0usize;
         for sample in samples {
             let Some(dir) = unit_ray(sample) else {
@@ -265,23 +268,41 @@ impl Tsdf {
                     continue;
                 }
                 let (key, slot) = split(index);
-                let voxel = &mut self.blocks.entry(key).or_insert_with(Block::new).voxels[slot];
-                fuse_into(
-                    voxel,
-                    sdf as f32,
-                    weight * weight,
-                    sample.colour,
-                    max_weight,
-                );
+                match direction {
+                    Direction::Add => {
+                        let block = self.blocks.entry(key).or_insert_with(Block::new);
+                        fuse_into(&mut block.voxels[slot], sdf as f32, weight * weight, sample.colour);
+                    }
+                    Direction::Remove => {
+                        let Some(block) = self.blocks.get_mut(&key) else {
+                            continue;
+                        };
+                        unfuse(&mut block.voxels[slot], sdf as f32, weight * weight, sample.colour);
+                        if touched.last() != Some(&key) {
+                            touched.push(key);
+                        }
+                    }
+                }
                 updates += 1;
+            }
+        }
+        touched.sort_unstable();
+        touched.dedup();
+        for key in touched {
+            let empty = self
+                .blocks
+                .get(&key)
+                .is_some_and(|b| b.voxels.iter().all(|v| v.weight <= 0.0));
+            if empty {
+                self.blocks.remove(&key);
             }
         }
         updates
     }
 
     /// The field at twice the voxel size, from the same origin: each coarse voxel is
-    /// the weighted mean of its eight children (their centres average to its centre, so a planar field
-    /// stays exact). The truncation band keeps its width in metres where it can
+    /// the weighted mean of its eight children (their centres average to its centre,
+    /// so a planar field stays exact). The truncation band keeps its width in metres where it can
     /// (at least one coarse voxel).
     pub fn downsampled(&self) -> Tsdf {
         let voxel_m = self.config.voxel_m * 2.0;
@@ -290,7 +311,6 @@ impl Tsdf {
             config: TsdfConfig {
                 voxel_m,
                 truncation_voxels,
-                max_weight: self.config.max_weight,
             },
             origin_m: self.origin_m,
             blocks: HashMap::new(),
@@ -374,25 +394,50 @@ fn unit_ray(sample: &Sample) -> Option<[f64; 3]> {
     Some(d.map(|x| x / len))
 }
 
-/// The weighted running mean of Curless & Levoy (1996), eq. 1-2, with the weight
-/// capped.
-fn fuse_into(voxel: &mut Voxel, sdf_m: f32, weight: f32, colour: Option<[u8; 3]>, cap: f32) {
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Direction {
+    Add,
+    Remove,
+}
+
+/// The weighted running mean of Curless & Levoy (1996), eq. 1-2. Weights are not
+/// capped, so a sample can be taken out again exactly ([`unfuse`]).
+fn fuse_into(voxel: &mut Voxel, sdf_m: f32, weight: f32, colour: Option<[u8; 3]>) {
     let w = voxel.weight + weight;
     // w > 0: weight > 0.
     voxel.sdf_m = (voxel.sdf_m * voxel.weight + sdf_m * weight) / w;
-    voxel.weight = w.min(cap);
+    voxel.weight = w;
     if let Some(c) = colour {
         // Weighted like the distance: the most reliable views colour the surface.
         for (sum, channel) in voxel.colour_sum.iter_mut().zip(c) {
             *sum += f32::from(channel) * weight;
         }
         voxel.colour_weight += weight;
-        if voxel.colour_weight > cap {
-            let scale = cap / voxel.colour_weight;
-            for sum in &mut voxel.colour_sum {
-                *sum *= scale;
-            }
-            voxel.colour_weight = cap;
+    }
+}
+
+/// Weights below this share of a sample's own are rounding left-overs: the voxel has
+/// no observation left.
+const EMPTY_WEIGHT: f32 = 1e-4;
+
+/// The inverse of [`fuse_into`]: the running mean without the sample.
+fn unfuse(voxel: &mut Voxel, sdf_m: f32, weight: f32, colour: Option<[u8; 3]>) {
+    let w = voxel.weight - weight;
+    // Guard: a voxel left with (almost) no weight has no mean; it is unobserved.
+    if w <= EMPTY_WEIGHT * weight {
+        *voxel = Voxel::default();
+        return;
+    }
+    voxel.sdf_m = (voxel.sdf_m * voxel.weight - sdf_m * weight) / w;
+    voxel.weight = w;
+    if let Some(c) = colour {
+        for (sum, channel) in voxel.colour_sum.iter_mut().zip(c) {
+            *sum -= f32::from(channel) * weight;
+        }
+        voxel.colour_weight -= weight;
+        if voxel.colour_weight <= EMPTY_WEIGHT * weight {
+            voxel.colour_sum = [0.0; 3];
+            voxel.colour_weight = 0.0;
         }
     }
 }
@@ -469,6 +514,45 @@ mod tests {
         assert_eq!(moved.voxel([24, 8, 0]), Some(&before));
         assert_eq!(moved.index_of([2.01, 0.0, 0.0]), [24, 8, 0]);
         assert!(tsdf.reanchored([3, 0, 0]).is_err());
+    }
+
+    #[test]
+    fn removing_samples_undoes_adding_them() {
+        let wall = |x: f64, colour: [u8; 3]| -> Vec<Sample> {
+            (-20..20)
+                .flat_map(|y| (-20..20).map(move |z| (y, z)))
+                .map(|(y, z)| Sample {
+                    point_m: [x, f64::from(y) * 0.02, f64::from(z) * 0.02],
+                    centre_m: [0.0, f64::from(y) * 0.013, f64::from(z) * 0.017],
+                    weight: 0.8,
+                    colour: Some(colour),
+                })
+                .collect()
+        };
+        let (a, b) = (wall(2.01, [200, 100, 50]), wall(2.07, [10, 20, 30]));
+        let mut only_a = Tsdf::new(TsdfConfig::default()).unwrap();
+        only_a.integrate(&a);
+        let mut both = Tsdf::new(TsdfConfig::default()).unwrap();
+        both.integrate(&a);
+        both.integrate(&b);
+        assert!(both.block_count() >= only_a.block_count());
+        both.remove(&b);
+        assert_eq!(both.block_count(), only_a.block_count());
+        for (key, block) in &only_a.blocks {
+            let other = &both.blocks[key];
+            for (x, y) in block.voxels.iter().zip(other.voxels.iter()) {
+                assert!((x.sdf_m - y.sdf_m).abs() < 1e-5, "{x:?} vs {y:?}");
+                assert!((x.weight - y.weight).abs() < 1e-4, "{x:?} vs {y:?}");
+                assert_eq!(x.colour(), y.colour());
+            }
+        }
+        // Taking everything out leaves nothing, blocks included.
+        both.remove(&a);
+        assert_eq!(both.block_count(), 0);
+        // Removing what was never added changes nothing.
+        let mut untouched = only_a.clone();
+        untouched.remove(&wall(9.0, [0, 0, 0]));
+        assert_eq!(untouched.block_count(), only_a.block_count());
     }
 
     #[test]
