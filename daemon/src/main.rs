@@ -236,7 +236,7 @@ fn export_tiles(
                 s.placement.scans,
                 s.placement.frames,
                 s.tiles,
-                u32::from(s.depth) + 1,
+                s.levels,
                 s.triangles,
                 s.bytes,
                 s.field_bytes / (1 << 20),

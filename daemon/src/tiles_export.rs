@@ -6,7 +6,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use texel_lod::{GeoReference, LodBuilder, LodConfig, tileset_files};
+use texel_lod::{GeoReference, LodConfig, LodModel, tileset_files};
 use texel_register::RegistrationConfig;
 
 use crate::export::ExportCommandError;
@@ -17,10 +17,11 @@ use crate::model_export::{Placement, for_each_placed};
 pub struct TilesExportSummary {
     pub placement: Placement,
     pub tiles: usize,
-    pub depth: u8,
+    /// Levels from the finest to the top.
+    pub levels: u8,
     pub triangles: usize,
     pub bytes: u64,
-    /// Bytes of the leaf field at its largest.
+    /// Bytes of the fields of every level.
     pub field_bytes: usize,
     pub fuse_s: f64,
     pub build_s: f64,
@@ -71,14 +72,15 @@ pub fn export_tiles(
     geo: Option<&GeoReference>,
 ) -> Result<TilesExportSummary, ExportCommandError> {
     let started = Instant::now();
-    let mut builder = LodBuilder::new(*lod)?;
+    let mut model = LodModel::new(*lod)?;
     let placement = for_each_placed(capture, registration, &mut |scan, pose| {
-        builder.add_scan(scan, pose);
+        model.add_scan(scan, pose);
     })?;
-    let field_bytes = builder.heap_bytes();
     let fuse_s = started.elapsed().as_secs_f64();
     let built = Instant::now();
-    let hierarchy = builder.build()?;
+    model.rebuild(usize::MAX);
+    let field_bytes = model.field_bytes();
+    let hierarchy = model.hierarchy()?;
     let files = tileset_files(&hierarchy, geo)?;
     let build_s = built.elapsed().as_secs_f64();
     let io = |path: PathBuf| move |source| ExportCommandError::Io { path, source };
@@ -106,7 +108,7 @@ pub fn export_tiles(
     Ok(TilesExportSummary {
         placement,
         tiles: hierarchy.nodes.len(),
-        depth: hierarchy.layout.depth,
+        levels: hierarchy.top_lod + 1,
         triangles: hierarchy.triangle_count(),
         bytes,
         field_bytes,

@@ -1,14 +1,13 @@
-//! Building the hierarchy: every registered scan fused into one leaf-resolution field,
-//! the field halved in resolution level by level, and each tile of each level cut from
-//! its level's field and simplified to one triangle budget (Liu 2014 §4.1.2, §4.2).
+//! What the hierarchy is made of: its configuration, its tiles (a merged, simplified
+//! mesh each, Liu 2014 §4.2) and the tree they form; and how one tile is cut from its
+//! level's field.
 
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::BTreeMap;
 
-use texel::{Pose, TexelScan};
 use texel_surface::{SurfaceMesh, Tsdf, TsdfConfig, TsdfError, VoxelRegion, extract, simplify};
 use thiserror::Error;
 
-use crate::tree::{Layout, TileId};
+use crate::tree::{Grid, MAX_LOD, TileId};
 
 /// How fine the hierarchy is and what a tile may cost. TOML overrides the defaults;
 /// unknown keys are errors.
@@ -26,6 +25,9 @@ pub struct LodConfig {
     pub simplify_error_voxels: f64,
     /// Half-width of the TSDF band, in leaf voxels.
     pub truncation_voxels: f64,
+    /// The coarsest level kept: tiles of `tile_voxels · leaf_voxel_m · 2^max_lod`
+    /// (12.8 m · 2^10 ≈ 13 km with the defaults).
+    pub max_lod: u8,
 }
 
 impl Default for LodConfig {
@@ -36,6 +38,7 @@ impl Default for LodConfig {
             tile_triangle_budget: 16_384,
             simplify_error_voxels: 1.0,
             truncation_voxels: 3.0,
+            max_lod: 10,
         }
     }
 }
@@ -52,6 +55,8 @@ pub enum LodError {
     },
     #[error("nothing to build: no scan left a usable return in the field")]
     Empty,
+    #[error("the field to build from starts at {origin_m:?}, not at the world origin")]
+    FieldNotAnchored { origin_m: [f64; 3] },
 }
 
 impl LodConfig {
@@ -89,6 +94,9 @@ impl LodConfig {
                 self.truncation_voxels,
             ));
         }
+        if self.max_lod > MAX_LOD {
+            return Err(bad("max_lod", "at most 24", f64::from(self.max_lod)));
+        }
         if !(self.simplify_error_voxels.is_finite() && self.simplify_error_voxels >= 0.0) {
             return Err(bad(
                 "simplify_error_voxels",
@@ -99,11 +107,17 @@ impl LodConfig {
         Ok(())
     }
 
-    fn field(&self) -> TsdfConfig {
+    pub(crate) fn grid(&self) -> Grid {
+        Grid {
+            leaf_voxel_m: self.leaf_voxel_m,
+            tile_voxels: self.tile_voxels,
+        }
+    }
+
+    pub(crate) fn field(&self) -> TsdfConfig {
         TsdfConfig {
             voxel_m: self.leaf_voxel_m,
             truncation_voxels: self.truncation_voxels,
-            ..TsdfConfig::default()
         }
     }
 }
@@ -113,15 +127,15 @@ impl LodConfig {
 #[derive(Debug, Clone, PartialEq)]
 pub struct LodNode {
     pub id: TileId,
-    /// The surface in the tile, origin at the centre of its bounds.
+    /// The surface in the tile, origin at the middle of its bounds.
     pub mesh: SurfaceMesh,
-    /// World bounds of the mesh and of every descendant's (the footprint where all
-    /// are empty).
+    /// World bounds of the mesh and, in a [`Hierarchy`], of every descendant's (the
+    /// footprint where all are empty).
     pub bounds_min_m: [f64; 3],
     pub bounds_max_m: [f64; 3],
     /// How far, in metres, drawing this tile instead of its children can move the
     /// surface: half its voxel (surface extraction) plus the simplification's error,
-    /// and never less than any child's.
+    /// and, in a [`Hierarchy`], never less than any child's.
     pub geometric_error_m: f64,
     /// The voxel size the tile was merged at.
     pub voxel_m: f64,
@@ -129,149 +143,96 @@ pub struct LodNode {
     pub merged_triangles: usize,
 }
 
-/// The whole tree: every tile that holds surface, by id.
+/// A snapshot of the tree: every tile that holds surface up to the top level, by id.
+/// The top level's tiles (at most four) hang under one root without content.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Hierarchy {
-    pub layout: Layout,
+    pub grid: Grid,
+    pub top_lod: u8,
     pub nodes: BTreeMap<TileId, LodNode>,
 }
 
 impl Hierarchy {
+    /// Tiles of the top level.
+    pub fn roots(&self) -> Vec<TileId> {
+        self.nodes
+            .keys()
+            .filter(|id| id.lod == self.top_lod)
+            .copied()
+            .collect()
+    }
+
     /// The children of `id` that hold surface.
     pub fn children(&self, id: TileId) -> impl Iterator<Item = &LodNode> + '_ {
-        id.children().into_iter().filter_map(|c| self.nodes.get(&c))
+        id.children()
+            .into_iter()
+            .flatten()
+            .filter_map(|c| self.nodes.get(&c))
     }
 
     pub fn triangle_count(&self) -> usize {
         self.nodes.values().map(|n| n.mesh.triangle_count()).sum()
     }
-}
 
-/// Fuses registered scans into the leaf field, then builds the hierarchy from it.
-#[derive(Debug, Clone)]
-pub struct LodBuilder {
-    config: LodConfig,
-    field: Tsdf,
-    scans: usize,
-}
-
-impl LodBuilder {
-    pub fn new(config: LodConfig) -> Result<Self, LodError> {
-        config.validate()?;
-        Ok(Self {
-            field: Tsdf::new(config.field())?,
-            config,
-            scans: 0,
-        })
-    }
-
-    /// Fuses one registered scan; returns the voxel updates it made.
-    pub fn add_scan(&mut self, scan: &TexelScan, world_from_scan: &Pose) -> usize {
-        self.scans += 1;
-        texel_surface::integrate_scan(&mut self.field, scan, world_from_scan)
-    }
-
-    /// Moves a scan whose pose was revised: out at `old`, in at `new` (loop closure
-    /// revises poses while the model is being built).
-    pub fn revise_scan(&mut self, scan: &TexelScan, old: &Pose, new: &Pose) -> usize {
-        texel_surface::remove_scan(&mut self.field, scan, old)
-            + texel_surface::integrate_scan(&mut self.field, scan, new)
-    }
-
-    /// Takes a scan out (it leaves the model).
-    pub fn remove_scan(&mut self, scan: &TexelScan, world_from_scan: &Pose) -> usize {
-        self.scans = self.scans.saturating_sub(1);
-        texel_surface::remove_scan(&mut self.field, scan, world_from_scan)
-    }
-
-    pub fn scans(&self) -> usize {
-        self.scans
-    }
-
-    /// Bytes the leaf field holds.
-    pub fn heap_bytes(&self) -> usize {
-        self.field.heap_bytes()
-    }
-
-    pub fn field(&self) -> &Tsdf {
-        &self.field
-    }
-
-    /// The hierarchy of everything fused so far.
-    pub fn build(self) -> Result<Hierarchy, LodError> {
-        build_from_field(self.field, &self.config)
-    }
-}
-
-/// The hierarchy over a leaf field.
-pub fn build_from_field(field: Tsdf, config: &LodConfig) -> Result<Hierarchy, LodError> {
-    config.validate()?;
-    // 1. The tree that covers the field, and the field renamed so column [0, 0] is
-    //    the root's corner (Liu §4.1.2: a quadtree over a regular grid of tiles).
-    let (lo, hi) = field.bounds().ok_or(LodError::Empty)?;
-    let layout = Layout::covering(
-        [lo[0], lo[1]],
-        [hi[0] + 1, hi[1] + 1],
-        field.voxel_m(),
-        config.tile_voxels,
-    );
-    let corner = layout.corner_leaf_voxels;
-    let mut level_field = field.reanchored([corner[0], corner[1], 0])?;
-    // 2. From the leaves up: cut each tile from its level's field and simplify it to
-    //    the budget, so every level costs the same per tile (Liu §4.2); then halve
-    //    the field's resolution for the level above.
-    let mut nodes = BTreeMap::new();
-    for level in (0..=layout.depth).rev() {
-        for id in occupied_tiles(&level_field, &layout, level) {
-            nodes.insert(id, build_tile(&level_field, &layout, id, config));
+    /// The tree over `built` tiles up to level `top_lod`: a parent's error is at least its children's (3D Tiles
+    /// requires it, and selection by screen-space error relies on it to refine
+    /// monotonically) and its box holds theirs (a child is never in view while its
+    /// parent is culled).
+    pub fn over(
+        grid: Grid,
+        built: &BTreeMap<TileId, LodNode>,
+        top_lod: u8,
+    ) -> Result<Hierarchy, LodError> {
+        if !built.keys().any(|id| id.lod <= top_lod) {
+            return Err(LodError::Empty);
         }
-        if level > 0 {
-            level_field = level_field.downsampled();
-        }
-    }
-    // 3. A parent bounds its children: its error is at least theirs (3D Tiles
-    //    requires it, and selection by screen-space error relies on it to refine
-    //    monotonically) and its box holds theirs (so a child is never in view
-    //    while its parent is culled).
-    for level in (0..layout.depth).rev() {
-        let ids: Vec<TileId> = nodes
-            .keys()
-            .filter(|id| id.level == level)
-            .copied()
+        let mut nodes: BTreeMap<TileId, LodNode> = built
+            .iter()
+            .filter(|(id, _)| id.lod <= top_lod)
+            .map(|(id, n)| (*id, n.clone()))
             .collect();
-        for id in ids {
-            let children: Vec<(f64, [f64; 3], [f64; 3])> = id
-                .children()
-                .iter()
-                .filter_map(|c| nodes.get(c))
-                .map(|c| (c.geometric_error_m, c.bounds_min_m, c.bounds_max_m))
-                .collect();
-            if let Some(node) = nodes.get_mut(&id) {
-                for (error, lo, hi) in children {
-                    node.geometric_error_m = node.geometric_error_m.max(error);
-                    for a in 0..3 {
-                        node.bounds_min_m[a] = node.bounds_min_m[a].min(lo[a]);
-                        node.bounds_max_m[a] = node.bounds_max_m[a].max(hi[a]);
+        for lod in 1..=top_lod {
+            let ids: Vec<TileId> = nodes.keys().filter(|id| id.lod == lod).copied().collect();
+            for id in ids {
+                let children: Vec<(f64, [f64; 3], [f64; 3])> = id
+                    .children()
+                    .into_iter()
+                    .flatten()
+                    .filter_map(|c| nodes.get(&c))
+                    .map(|c| (c.geometric_error_m, c.bounds_min_m, c.bounds_max_m))
+                    .collect();
+                if let Some(node) = nodes.get_mut(&id) {
+                    for (error, lo, hi) in children {
+                        node.geometric_error_m = node.geometric_error_m.max(error);
+                        for a in 0..3 {
+                            node.bounds_min_m[a] = node.bounds_min_m[a].min(lo[a]);
+                            node.bounds_max_m[a] = node.bounds_max_m[a].max(hi[a]);
+                        }
                     }
                 }
             }
         }
+        Ok(Hierarchy {
+            grid,
+            top_lod,
+            nodes,
+        })
     }
-    Ok(Hierarchy { layout, nodes })
 }
 
-/// Tiles of `level` whose columns hold observed voxels. A block of the field lies in
-/// one tile: tiles are whole blocks wide and the field is anchored on a tile border.
-fn occupied_tiles(field: &Tsdf, layout: &Layout, level: u8) -> BTreeSet<TileId> {
-    field
-        .block_corners()
-        .filter_map(|c| layout.tile_of_column(level, [c[0], c[1]]))
-        .collect()
+/// The hierarchy over a leaf field (anchored at the world origin, as
+/// [`Tsdf::new`] makes it).
+pub fn build_from_field(field: Tsdf, config: &LodConfig) -> Result<Hierarchy, LodError> {
+    let mut model = crate::model::LodModel::from_field(field, config)?;
+    model.rebuild(usize::MAX);
+    model.hierarchy()
 }
 
-fn build_tile(field: &Tsdf, layout: &Layout, id: TileId, config: &LodConfig) -> LodNode {
-    let (lo, hi) = layout.columns(id);
-    let (foot_lo, foot_hi) = layout.footprint(id);
+/// Cuts tile `id` from its level's field and simplifies it to the budget, so every
+/// level costs the same per tile (Liu §4.2).
+pub(crate) fn build_tile(field: &Tsdf, grid: &Grid, id: TileId, config: &LodConfig) -> LodNode {
+    let (lo, hi) = grid.columns(id);
+    let (foot_lo, foot_hi) = grid.footprint(id);
     let centre = [
         0.5 * (foot_lo[0] + foot_hi[0]),
         0.5 * (foot_lo[1] + foot_hi[1]),

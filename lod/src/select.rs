@@ -19,12 +19,18 @@ pub struct TileInfo {
     pub geometric_error_m: f64,
 }
 
-/// The tree as selection sees it: which tiles exist and their bounds and errors.
+/// The tree as selection sees it: its top tiles, which tiles exist and their bounds
+/// and errors.
 pub trait TileIndex {
+    fn roots(&self) -> Vec<TileId>;
     fn tile(&self, id: TileId) -> Option<TileInfo>;
 }
 
 impl TileIndex for crate::build::Hierarchy {
+    fn roots(&self) -> Vec<TileId> {
+        crate::build::Hierarchy::roots(self)
+    }
+
     fn tile(&self, id: TileId) -> Option<TileInfo> {
         self.nodes.get(&id).map(|n| TileInfo {
             bounds_min_m: n.bounds_min_m,
@@ -167,14 +173,19 @@ pub fn select(
 ) -> Selection {
     let mut out = Selection::default();
     let mut wanted: Vec<(f64, TileId)> = Vec::new();
-    let Some(root) = index.tile(TileId::ROOT) else {
-        return out;
-    };
-    if !resident(TileId::ROOT) {
-        out.wanted.push(TileId::ROOT);
-        return out;
+    // The top tiles have no parent to stand in for them: until one is resident its
+    // ground stays empty (only while a viewer starts).
+    let mut stack = Vec::new();
+    for id in index.roots() {
+        let Some(info) = index.tile(id) else {
+            continue;
+        };
+        if resident(id) {
+            stack.push((id, info));
+        } else if in_frustum(view, &info) {
+            wanted.push((f64::INFINITY, id));
+        }
     }
-    let mut stack = vec![(TileId::ROOT, root)];
     while let Some((id, info)) = stack.pop() {
         if !in_frustum(view, &info) {
             continue;
@@ -188,6 +199,7 @@ pub fn select(
         let children: Vec<(TileId, TileInfo)> = id
             .children()
             .into_iter()
+            .flatten()
             .filter_map(|c| index.tile(c).map(|i| (c, i)))
             .collect();
         if error_px <= threshold || children.is_empty() {

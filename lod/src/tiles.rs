@@ -123,21 +123,36 @@ pub fn tileset_files(
             bytes: tile_glb(node)?,
         });
     }
-    let mut root = tile_json(hierarchy, TileId::ROOT);
+    // The top level's tiles (at most four) under one root without content, whose
+    // box holds theirs and whose error is that of drawing nothing: its extent.
+    let roots = hierarchy.roots();
+    let mut lo = [f64::INFINITY; 3];
+    let mut hi = [f64::NEG_INFINITY; 3];
+    let mut worst: f64 = 0.0;
+    for node in roots.iter().filter_map(|id| hierarchy.nodes.get(id)) {
+        for a in 0..3 {
+            lo[a] = lo[a].min(node.bounds_min_m[a]);
+            hi[a] = hi[a].max(node.bounds_max_m[a]);
+        }
+        worst = worst.max(node.geometric_error_m);
+    }
+    if roots.is_empty() {
+        lo = [0.0; 3];
+        hi = [0.0; 3];
+    }
+    let extent = (0..3).map(|a| (hi[a] - lo[a]).powi(2)).sum::<f64>().sqrt();
+    let mut root = json!({
+        "boundingVolume": { "box": box_of(lo, hi) },
+        "geometricError": extent.max(worst),
+        "refine": "REPLACE",
+        "children": roots.iter().map(|id| tile_json(hierarchy, *id)).collect::<Vec<_>>(),
+    });
     if let (Some(g), Some(obj)) = (geo, root.as_object_mut()) {
         obj.insert("transform".into(), json!(g.ecef_from_world().to_vec()));
     }
-    let root_node = hierarchy.nodes.get(&TileId::ROOT);
-    // The error of drawing nothing at all: the root's whole extent.
-    let extent = root_node.map_or(0.0, |n| {
-        (0..3)
-            .map(|a| (n.bounds_max_m[a] - n.bounds_min_m[a]).powi(2))
-            .sum::<f64>()
-            .sqrt()
-    });
     let tileset = json!({
         "asset": { "version": "1.1", "generator": "texel" },
-        "geometricError": extent.max(root_node.map_or(0.0, |n| n.geometric_error_m)),
+        "geometricError": extent.max(worst),
         "root": root,
     });
     files[0].bytes = serde_json::to_vec_pretty(&tileset).unwrap_or_default();
@@ -157,9 +172,6 @@ fn tile_json(hierarchy: &Hierarchy, id: TileId) -> Value {
         "boundingVolume": { "box": bounding_box(node) },
         "geometricError": node.geometric_error_m,
     });
-    if id == TileId::ROOT {
-        tile["refine"] = json!("REPLACE");
-    }
     if !node.mesh.is_empty() {
         tile["content"] = json!({ "uri": content_path(id) });
     }
@@ -173,11 +185,16 @@ fn tile_json(hierarchy: &Hierarchy, id: TileId) -> Value {
     tile
 }
 
-/// The 3D Tiles oriented box of a node's world bounds: centre and three half axes.
-/// Half axes are at least a centimetre: a flat tile still has a volume.
+/// The 3D Tiles oriented box of a node's world bounds.
 fn bounding_box(node: &LodNode) -> Vec<f64> {
-    let c = [0, 1, 2].map(|a| 0.5 * (node.bounds_min_m[a] + node.bounds_max_m[a]));
-    let h = [0, 1, 2].map(|a| (0.5 * (node.bounds_max_m[a] - node.bounds_min_m[a])).max(0.01));
+    box_of(node.bounds_min_m, node.bounds_max_m)
+}
+
+/// An axis-aligned box as 3D Tiles writes it: centre and three half axes. Half axes
+/// are at least a centimetre: a flat tile still has a volume.
+fn box_of(lo: [f64; 3], hi: [f64; 3]) -> Vec<f64> {
+    let c = [0, 1, 2].map(|a| 0.5 * (lo[a] + hi[a]));
+    let h = [0, 1, 2].map(|a| (0.5 * (hi[a] - lo[a])).max(0.01));
     vec![
         c[0], c[1], c[2], h[0], 0.0, 0.0, 0.0, h[1], 0.0, 0.0, 0.0, h[2],
     ]

@@ -7,7 +7,7 @@
 
 mod support;
 
-use texel_lod::{LodConfig, TileId};
+use texel_lod::LodConfig;
 
 const FAR: [f64; 3] = [5.0e6, 4.2e6, 120.0];
 
@@ -23,8 +23,9 @@ fn config() -> LodConfig {
 fn every_tile_lies_on_the_true_surface_within_its_geometric_error() {
     for offset in [[0.0; 3], FAR] {
         let h = support::street(60.0, offset, &config());
-        assert!(h.layout.depth >= 2, "depth {}", h.layout.depth);
-        assert!(h.nodes.contains_key(&TileId::ROOT));
+        assert!(h.top_lod >= 2, "top level {}", h.top_lod);
+        let roots = h.roots();
+        assert!(!roots.is_empty() && roots.len() <= 4, "{roots:?}");
         for node in h.nodes.values() {
             let mut worst: f64 = 0.0;
             for v in 0..node.mesh.vertex_count() {
@@ -54,7 +55,7 @@ fn every_tile_lies_on_the_true_surface_within_its_geometric_error() {
 fn errors_and_boxes_nest_and_levels_partition_the_surface() {
     let h = support::street(60.0, [0.0; 3], &config());
     for node in h.nodes.values() {
-        if let Some(parent) = node.id.parent() {
+        if let Some(parent) = node.id.parent().filter(|p| p.lod <= h.top_lod) {
             let p = h.nodes.get(&parent).expect("every tile's parent exists");
             assert!(p.geometric_error_m >= node.geometric_error_m);
             for a in 0..3 {
@@ -65,7 +66,7 @@ fn errors_and_boxes_nest_and_levels_partition_the_surface() {
         }
         // A tile's surface stays within its footprint (one voxel of slack: a cell
         // vertex on the border may sit in the neighbour's half of the cell).
-        let (lo, hi) = h.layout.footprint(node.id);
+        let (lo, hi) = h.grid.footprint(node.id);
         for v in 0..node.mesh.vertex_count() {
             let p = node.mesh.world(v).unwrap();
             for a in 0..2 {
@@ -78,16 +79,16 @@ fn errors_and_boxes_nest_and_levels_partition_the_surface() {
     let merged = |level: u8| -> usize {
         h.nodes
             .values()
-            .filter(|n| n.id.level == level)
+            .filter(|n| n.id.lod == level)
             .map(|n| n.merged_triangles)
             .sum()
     };
-    let depth = h.layout.depth;
+    let top = h.top_lod;
     assert!(
-        merged(0) < merged(depth) / 4,
+        merged(top) < merged(0) / 4,
         "{} vs {}",
-        merged(0),
-        merged(depth)
+        merged(top),
+        merged(0)
     );
 }
 
@@ -95,9 +96,8 @@ fn errors_and_boxes_nest_and_levels_partition_the_surface() {
 fn triangle_counts_stay_comparable_across_levels() {
     let config = config();
     let h = support::street(120.0, [0.0; 3], &config);
-    let depth = h.layout.depth;
-    for level in 0..=depth {
-        let tiles: Vec<_> = h.nodes.values().filter(|n| n.id.level == level).collect();
+    for level in 0..=h.top_lod {
+        let tiles: Vec<_> = h.nodes.values().filter(|n| n.id.lod == level).collect();
         let most = tiles.iter().map(|n| n.mesh.triangle_count()).max().unwrap();
         // Simplification stops at its error bound (one voxel) before the budget where
         // the borders of unseen patches, which stay locked, hold it: half over at
@@ -111,10 +111,14 @@ fn triangle_counts_stay_comparable_across_levels() {
     let leaves: usize = h
         .nodes
         .values()
-        .filter(|n| n.id.level == depth)
+        .filter(|n| n.id.lod == 0)
         .map(|n| n.mesh.triangle_count())
         .sum();
-    let root = h.nodes[&TileId::ROOT].mesh.triangle_count();
+    let root: usize = h
+        .roots()
+        .iter()
+        .map(|id| h.nodes[id].mesh.triangle_count())
+        .sum();
     assert!(root * 4 < leaves, "root {root}, leaves {leaves}");
 }
 
@@ -125,7 +129,7 @@ fn bad_configs_and_empty_fields_are_refused() {
         ..LodConfig::default()
     };
     assert!(
-        texel_lod::LodBuilder::new(bad)
+        texel_lod::LodModel::new(bad)
             .unwrap_err()
             .to_string()
             .contains("tile_voxels")

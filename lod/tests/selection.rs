@@ -60,9 +60,8 @@ fn check(h: &Hierarchy, v: &View, resident: &BTreeSet<TileId>, config: &SelectCo
         assert!(!resident.contains(id), "{id:?} wanted but resident");
     }
     // No hole: every leaf in view is covered by exactly one drawn tile (itself or an
-    // ancestor), as long as the root is in.
-    let depth = h.layout.depth;
-    for leaf in h.nodes.keys().filter(|id| id.level == depth) {
+    // ancestor), as long as the top tiles are in.
+    for leaf in h.nodes.keys().filter(|id| id.lod == 0) {
         if !in_frustum(v, &h.tile(*leaf).unwrap()) {
             continue;
         }
@@ -78,7 +77,7 @@ fn an_overview_draws_the_root_and_a_close_view_draws_leaves_where_it_looks() {
     let config = SelectConfig::default();
     let far = view([60.0, -3_000.0, 2_000.0], [60.0, 0.0, 0.0]);
     let sel = select(h, &far, &|id| all.contains(&id), &BTreeSet::new(), &config);
-    assert_eq!(sel.draw, vec![TileId::ROOT]);
+    assert_eq!(sel.draw, h.roots());
     let close = view([60.0, 0.0, 1.6], [70.0, 0.0, 1.6]);
     let sel = select(
         h,
@@ -87,10 +86,9 @@ fn an_overview_draws_the_root_and_a_close_view_draws_leaves_where_it_looks() {
         &BTreeSet::new(),
         &config,
     );
-    let depth = h.layout.depth;
     // The tile under the eye is a leaf; far down the street coarser tiles stand in.
-    assert!(sel.draw.iter().any(|id| id.level == depth));
-    assert!(sel.draw.iter().any(|id| id.level < depth), "{:?}", sel.draw);
+    assert!(sel.draw.iter().any(|id| id.lod == 0));
+    assert!(sel.draw.iter().any(|id| id.lod > 0), "{:?}", sel.draw);
     check(h, &close, &all, &config);
 }
 
@@ -99,8 +97,15 @@ fn a_parent_stays_until_every_child_in_view_is_resident() {
     let h = street();
     let close = view([60.0, 0.0, 1.6], [70.0, 0.0, 1.6]);
     let config = SelectConfig::default();
-    // Only the root and level 1 are in: level 1 tiles are drawn, level 2 wanted.
-    let resident: BTreeSet<TileId> = h.nodes.keys().filter(|id| id.level <= 1).copied().collect();
+    // Only the top two levels are in: they are drawn, the level below is wanted.
+    let top = h.top_lod;
+    assert!(top >= 2);
+    let resident: BTreeSet<TileId> = h
+        .nodes
+        .keys()
+        .filter(|id| id.lod + 1 >= top)
+        .copied()
+        .collect();
     let sel = select(
         h,
         &close,
@@ -108,13 +113,18 @@ fn a_parent_stays_until_every_child_in_view_is_resident() {
         &BTreeSet::new(),
         &config,
     );
-    assert!(sel.draw.iter().all(|id| id.level <= 1));
-    assert!(sel.wanted.iter().all(|id| id.level == 2) && !sel.wanted.is_empty());
+    assert!(sel.draw.iter().all(|id| id.lod + 1 >= top));
+    assert!(sel.wanted.iter().all(|id| id.lod + 2 == top) && !sel.wanted.is_empty());
     check(h, &close, &resident, &config);
-    // With nothing in, the root is wanted first.
+    // With nothing in, only the top tiles in view are wanted.
     let sel = select(h, &close, &|_| false, &BTreeSet::new(), &config);
     assert!(sel.draw.is_empty());
-    assert_eq!(sel.wanted, vec![TileId::ROOT]);
+    assert!(!sel.wanted.is_empty());
+    assert!(
+        sel.wanted.iter().all(|id| id.lod == top),
+        "{:?}",
+        sel.wanted
+    );
 }
 
 #[test]
@@ -122,7 +132,8 @@ fn hysteresis_holds_a_refined_tile_between_the_thresholds() {
     let h = street();
     let all: BTreeSet<TileId> = h.nodes.keys().copied().collect();
     let config = SelectConfig::default();
-    let root = h.tile(TileId::ROOT).unwrap();
+    let root_id = h.roots()[0];
+    let root = h.tile(root_id).unwrap();
     // Walk back along a line until the root's projected error is just under the
     // threshold (but over threshold / hysteresis).
     let mut chosen = None;
@@ -137,16 +148,16 @@ fn hysteresis_holds_a_refined_tile_between_the_thresholds() {
     }
     let v = chosen.expect("a distance between the thresholds");
     let fresh = select(h, &v, &|id| all.contains(&id), &BTreeSet::new(), &config);
-    assert_eq!(fresh.draw, vec![TileId::ROOT]);
+    assert!(fresh.draw.contains(&root_id));
     let held = select(
         h,
         &v,
         &|id| all.contains(&id),
-        &BTreeSet::from([TileId::ROOT]),
+        &BTreeSet::from([root_id]),
         &config,
     );
-    assert!(held.refined.contains(&TileId::ROOT));
-    assert!(held.draw.iter().all(|id| id.level > 0));
+    assert!(held.refined.contains(&root_id));
+    assert!(!held.draw.contains(&root_id));
 }
 
 proptest! {
@@ -167,7 +178,7 @@ proptest! {
             .nodes
             .keys()
             .enumerate()
-            .filter(|(i, id)| **id == TileId::ROOT || keep[i % keep.len()])
+            .filter(|(i, id)| id.lod == h.top_lod || keep[i % keep.len()])
             .map(|(_, id)| *id)
             .collect();
         let config = SelectConfig { max_error_px, ..SelectConfig::default() };

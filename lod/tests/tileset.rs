@@ -56,9 +56,22 @@ fn the_tileset_is_the_hierarchy_and_every_content_decodes_to_its_mesh() {
     assert_eq!(tileset["asset"]["version"], "1.1");
     assert_eq!(tileset["root"]["refine"], "REPLACE");
     assert!(tileset["root"].get("transform").is_none());
+    assert!(tileset["root"].get("content").is_none());
+    let root_error = tileset["root"]["geometricError"].as_f64().unwrap();
+    let top: Vec<&Value> = tileset["root"]["children"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .collect();
+    assert_eq!(top.len(), h.roots().len());
     let mut seen = 0;
     // Walk the JSON tree alongside the hierarchy.
-    let mut stack = vec![(TileId::ROOT, &tileset["root"], f64::INFINITY)];
+    let mut stack: Vec<(TileId, &Value, f64)> = h
+        .roots()
+        .into_iter()
+        .zip(top)
+        .map(|(id, tile)| (id, tile, root_error))
+        .collect();
     while let Some((id, tile, parent_error)) = stack.pop() {
         seen += 1;
         let node = &h.nodes[&id];

@@ -6,8 +6,17 @@ use std::collections::HashMap;
 
 use thiserror::Error;
 
-/// A voxel's integer index: its centre is at `(index + 0.5) * voxel_m` in the world.
+/// A voxel's integer index: its centre is at `origin + (index + 0.5) * voxel_m` in
+/// the world.
 pub type VoxelIndex = [i64; 3];
+
+/// A block of 8³ voxels: its lowest voxel is `key * 8`.
+pub type BlockKey = [i64; 3];
+
+/// The block of the field at twice the voxel size that holds block `key`'s voxels.
+pub fn parent_block(key: BlockKey) -> BlockKey {
+    key.map(|k| k.div_euclid(2))
+}
 
 const BLOCK_SIDE: i64 = 8;
 const BLOCK_VOXELS: usize = 512;
@@ -215,7 +224,25 @@ impl Tsdf {
     /// stretched by the same factor (at most fourfold) so the band keeps its width
     /// across the surface there.
     pub fn integrate(&mut self, samples: &[Sample]) -> usize {
-        self.apply(samples, Direction::Add)
+        self.apply(samples, Direction::Add, None)
+    }
+
+    /// [`Self::integrate`], adding the keys of the blocks it changed to `changed`.
+    pub fn integrate_marking(
+        &mut self,
+        samples: &[Sample],
+        changed: &mut std::collections::BTreeSet<BlockKey>,
+    ) -> usize {
+        self.apply(samples, Direction::Add, Some(changed))
+    }
+
+    /// [`Self::remove`], adding the keys of the blocks it changed to `changed`.
+    pub fn remove_marking(
+        &mut self,
+        samples: &[Sample],
+        changed: &mut std::collections::BTreeSet<BlockKey>,
+    ) -> usize {
+        self.apply(samples, Direction::Remove, Some(changed))
     }
 
     /// Takes `samples` back out (de-integration): the exact inverse of
@@ -224,10 +251,15 @@ impl Tsdf {
     /// voxel are freed. This is how a scan whose pose was revised moves: out at its
     /// old pose, in at its new one. Returns the number of voxel updates.
     pub fn remove(&mut self, samples: &[Sample]) -> usize {
-        self.apply(samples, Direction::Remove)
+        self.apply(samples, Direction::Remove, None)
     }
 
-    fn apply(&mut self, samples: &[Sample], direction: Direction) -> usize {
+    fn apply(
+        &mut self,
+        samples: &[Sample],
+        direction: Direction,
+        mut changed: Option<&mut std::collections::BTreeSet<BlockKey>>,
+    ) -> usize {
         let voxel_m = self.config.voxel_m;
         let truncation_m = self.truncation_m();
         let mut touched: Vec<[i64; 3]> = Vec::new();
@@ -268,16 +300,31 @@ impl Tsdf {
                     continue;
                 }
                 let (key, slot) = split(index);
+                if let Some(changed) = changed.as_deref_mut()
+                    && (direction == Direction::Add || self.blocks.contains_key(&key))
+                {
+                    changed.insert(key);
+                }
                 match direction {
                     Direction::Add => {
                         let block = self.blocks.entry(key).or_insert_with(Block::new);
-                        fuse_into(&mut block.voxels[slot], sdf as f32, weight * weight, sample.colour);
+                        fuse_into(
+                            &mut block.voxels[slot],
+                            sdf as f32,
+                            weight * weight,
+                            sample.colour,
+                        );
                     }
                     Direction::Remove => {
                         let Some(block) = self.blocks.get_mut(&key) else {
                             continue;
                         };
-                        unfuse(&mut block.voxels[slot], sdf as f32, weight * weight, sample.colour);
+                        unfuse(
+                            &mut block.voxels[slot],
+                            sdf as f32,
+                            weight * weight,
+                            sample.colour,
+                        );
                         if touched.last() != Some(&key) {
                             touched.push(key);
                         }
@@ -305,36 +352,70 @@ impl Tsdf {
     /// so a planar field stays exact). The truncation band keeps its width in metres where it can
     /// (at least one coarse voxel).
     pub fn downsampled(&self) -> Tsdf {
+        let mut coarse = self.coarser_empty();
+        let parents: std::collections::BTreeSet<BlockKey> =
+            self.blocks.keys().map(|k| parent_block(*k)).collect();
+        for key in parents {
+            coarse.resample_block(self, key);
+        }
+        coarse
+    }
+
+    /// An empty field at twice this one's voxel size, from the same origin, with the
+    /// truncation band's width in metres kept where it can be (at least one voxel).
+    pub fn coarser_empty(&self) -> Tsdf {
         let voxel_m = self.config.voxel_m * 2.0;
-        let truncation_voxels = (self.truncation_m() / voxel_m).max(1.0);
-        let mut coarse = Tsdf {
+        Tsdf {
             config: TsdfConfig {
                 voxel_m,
-                truncation_voxels,
+                truncation_voxels: (self.truncation_m() / voxel_m).max(1.0),
             },
             origin_m: self.origin_m,
             blocks: HashMap::new(),
-        };
-        for (key, block) in &self.blocks {
-            for (slot, child) in block.voxels.iter().enumerate() {
-                if child.weight <= 0.0 {
+        }
+    }
+
+    /// Recomputes block `key` of this field from `fine`, the field at half its voxel
+    /// size (the one it was made coarser from): each voxel the weighted mean of its
+    /// eight children, summed in a fixed order so one field always gives the same
+    /// bits. A block left with no observed voxel is freed. This is how a coarse field
+    /// follows its fine one incrementally: only the blocks above changed ones.
+    pub fn resample_block(&mut self, fine: &Tsdf, key: BlockKey) {
+        let mut block = Block::new();
+        let mut observed = false;
+        for child in 0..8usize {
+            let child_key = [0, 1, 2].map(|a| key[a] * 2 + ((child >> a) & 1) as i64);
+            let Some(fine_block) = fine.blocks.get(&child_key) else {
+                continue;
+            };
+            for (slot, v) in fine_block.voxels.iter().enumerate() {
+                if v.weight <= 0.0 {
                     continue;
                 }
-                let index = join(*key, slot);
-                let parent = index.map(|i| i.div_euclid(2));
-                let (pkey, pslot) = split(parent);
-                let voxel = &mut coarse.blocks.entry(pkey).or_insert_with(Block::new).voxels[pslot];
-                let w = voxel.weight + child.weight;
-                // w > 0: child.weight > 0.
-                voxel.sdf_m = (voxel.sdf_m * voxel.weight + child.sdf_m * child.weight) / w;
+                let parent = join(child_key, slot).map(|i| i.div_euclid(2));
+                let (_, pslot) = split(parent);
+                let voxel = &mut block.voxels[pslot];
+                let w = voxel.weight + v.weight;
+                // w > 0: v.weight > 0.
+                voxel.sdf_m = (voxel.sdf_m * voxel.weight + v.sdf_m * v.weight) / w;
                 voxel.weight = w;
-                for k in 0..3 {
-                    voxel.colour_sum[k] += child.colour_sum[k];
+                for (sum, c) in voxel.colour_sum.iter_mut().zip(v.colour_sum) {
+                    *sum += c;
                 }
-                voxel.colour_weight += child.colour_weight;
+                voxel.colour_weight += v.colour_weight;
+                observed = true;
             }
         }
-        coarse
+        if observed {
+            self.blocks.insert(key, block);
+        } else {
+            self.blocks.remove(&key);
+        }
+    }
+
+    /// Keys of the blocks that hold observed voxels.
+    pub fn block_keys(&self) -> impl Iterator<Item = BlockKey> + '_ {
+        self.blocks.keys().copied()
     }
 
     /// Inclusive bounds of the observed voxels, `None` when nothing was fused.

@@ -28,9 +28,15 @@ fn colour_at(p: [f64; 3]) -> [u8; 3] {
 /// Samples from a camera at 1.5 m height every `step_m` along `length_m`, each a fan
 /// of rays cut where they meet the ground or a facade within 12 m.
 pub fn street_samples(length_m: f64, step_m: f64, offset: [f64; 3]) -> Vec<Sample> {
-    let mut samples = Vec::new();
+    street_stops(length_m, step_m, offset).concat()
+}
+
+/// [`street_samples`] stop by stop: one "scan" per camera position.
+pub fn street_stops(length_m: f64, step_m: f64, offset: [f64; 3]) -> Vec<Vec<Sample>> {
+    let mut stops_out = Vec::new();
     let stops = (length_m / step_m).floor() as i64;
     for s in 0..=stops {
+        let mut samples = Vec::new();
         let eye = [s as f64 * step_m, 0.0, 1.5];
         for i in 0..240 {
             let azimuth = f64::from(i) / 240.0 * std::f64::consts::TAU;
@@ -72,15 +78,15 @@ pub fn street_samples(length_m: f64, step_m: f64, offset: [f64; 3]) -> Vec<Sampl
                 });
             }
         }
+        stops_out.push(samples);
     }
-    samples
+    stops_out
 }
 
 pub fn street_field(length_m: f64, offset: [f64; 3], config: &LodConfig) -> Tsdf {
     let mut field = Tsdf::new(TsdfConfig {
         voxel_m: config.leaf_voxel_m,
         truncation_voxels: config.truncation_voxels,
-        ..TsdfConfig::default()
     })
     .expect("valid field");
     field.integrate(&street_samples(length_m, 1.0, offset));

@@ -1,0 +1,217 @@
+//! The hierarchy built as scans arrive: one field per level, the finest fed by the
+//! scans, each coarser one following the level below block by block; tiles whose
+//! blocks changed wait in a queue and are rebuilt a bounded number at a time, so the
+//! daemon can keep the hierarchy current off the ingest path and report how far it
+//! lags.
+//!
+//! A scan whose pose is revised (loop closure) is taken out of the finest field at
+//! its old pose and fused in at its new one; every tile it touched, at every level, is
+//! rebuilt.
+
+use std::collections::{BTreeMap, BTreeSet};
+
+use texel::{Pose, TexelScan};
+use texel_surface::{BlockKey, Sample, Tsdf, parent_block, scan_samples};
+
+use crate::build::{Hierarchy, LodConfig, LodError, LodNode, build_tile};
+use crate::tree::{Grid, TileId};
+
+/// The level-of-detail model of a growing scan model.
+#[derive(Debug, Clone)]
+pub struct LodModel {
+    config: LodConfig,
+    grid: Grid,
+    /// One field per level, finest first.
+    fields: Vec<Tsdf>,
+    /// Blocks of the finest field changed since the levels above last followed.
+    changed: BTreeSet<BlockKey>,
+    /// Tiles waiting to be rebuilt.
+    dirty: BTreeSet<TileId>,
+    /// Built tiles, each with its own error and bounds (the tree adds its
+    /// descendants').
+    nodes: BTreeMap<TileId, LodNode>,
+    scans: usize,
+}
+
+impl LodModel {
+    pub fn new(config: LodConfig) -> Result<Self, LodError> {
+        config.validate()?;
+        let mut fields = vec![Tsdf::new(config.field())?];
+        for _ in 0..config.max_lod {
+            let coarser = fields.last().map(Tsdf::coarser_empty);
+            fields.extend(coarser);
+        }
+        Ok(Self {
+            grid: config.grid(),
+            config,
+            fields,
+            changed: BTreeSet::new(),
+            dirty: BTreeSet::new(),
+            nodes: BTreeMap::new(),
+            scans: 0,
+        })
+    }
+
+    /// A model over an existing finest field (anchored at the world origin, at the
+    /// config's leaf voxel size); every tile is queued.
+    pub fn from_field(field: Tsdf, config: &LodConfig) -> Result<Self, LodError> {
+        if field.origin_m() != [0.0; 3] {
+            return Err(LodError::FieldNotAnchored {
+                origin_m: field.origin_m(),
+            });
+        }
+        let mut config = *config;
+        config.leaf_voxel_m = field.voxel_m();
+        config.truncation_voxels = field.config().truncation_voxels;
+        let mut model = Self::new(config)?;
+        model.changed = field.block_keys().collect();
+        model.fields[0] = field;
+        Ok(model)
+    }
+
+    pub fn config(&self) -> &LodConfig {
+        &self.config
+    }
+
+    pub fn grid(&self) -> Grid {
+        self.grid
+    }
+
+    /// Fuses one registered scan; returns the voxel updates it made.
+    pub fn add_scan(&mut self, scan: &TexelScan, world_from_scan: &Pose) -> usize {
+        self.scans += 1;
+        self.add_samples(&scan_samples(scan, world_from_scan))
+    }
+
+    /// Takes a scan out (it leaves the model).
+    pub fn remove_scan(&mut self, scan: &TexelScan, world_from_scan: &Pose) -> usize {
+        self.scans = self.scans.saturating_sub(1);
+        self.remove_samples(&scan_samples(scan, world_from_scan))
+    }
+
+    /// Moves a scan whose pose was revised: out at `old`, in at `new`.
+    pub fn revise_scan(&mut self, scan: &TexelScan, old: &Pose, new: &Pose) -> usize {
+        self.remove_samples(&scan_samples(scan, old)) + self.add_samples(&scan_samples(scan, new))
+    }
+
+    /// Fuses samples into the finest field.
+    pub fn add_samples(&mut self, samples: &[Sample]) -> usize {
+        self.fields[0].integrate_marking(samples, &mut self.changed)
+    }
+
+    /// Takes samples out of the finest field.
+    pub fn remove_samples(&mut self, samples: &[Sample]) -> usize {
+        self.fields[0].remove_marking(samples, &mut self.changed)
+    }
+
+    pub fn scans(&self) -> usize {
+        self.scans
+    }
+
+    /// Tiles waiting to be rebuilt (after the levels follow the finest field's
+    /// pending changes, which [`Self::rebuild`] does first): how far the hierarchy
+    /// lags behind the scans.
+    pub fn pending_tiles(&self) -> usize {
+        let top = self.top_lod();
+        self.dirty.range(..=last_of_level(top)).count() + usize::from(!self.changed.is_empty())
+    }
+
+    /// Bytes the fields hold.
+    pub fn field_bytes(&self) -> usize {
+        self.fields.iter().map(Tsdf::heap_bytes).sum()
+    }
+
+    /// Bytes the built tiles' meshes hold.
+    pub fn mesh_bytes(&self) -> usize {
+        self.nodes.values().map(|n| n.mesh.heap_bytes()).sum()
+    }
+
+    /// The field of level `lod`.
+    pub fn field(&self, lod: u8) -> Option<&Tsdf> {
+        self.fields.get(usize::from(lod))
+    }
+
+    /// Brings every level up to the finest field's changes (recomputing only the
+    /// blocks above changed ones), then rebuilds at most `max_tiles` queued tiles up
+    /// to the top of the tree, coarsest first (an overview first, then detail).
+    /// Tiles above the top wait until the model grows into them. Returns the tiles
+    /// rebuilt.
+    pub fn rebuild(&mut self, max_tiles: usize) -> usize {
+        self.follow_changes();
+        let top = self.top_lod();
+        let mut rebuilt = 0;
+        while rebuilt < max_tiles {
+            // Ids order by level first: the last up to the top is the coarsest.
+            let Some(id) = self.dirty.range(..=last_of_level(top)).next_back().copied() else {
+                break;
+            };
+            self.dirty.remove(&id);
+            let field = &self.fields[usize::from(id.lod)];
+            let (lo, hi) = self.grid.columns(id);
+            if field.voxels_in_columns(lo, hi).next().is_none() {
+                self.nodes.remove(&id);
+            } else {
+                self.nodes
+                    .insert(id, build_tile(field, &self.grid, id, &self.config));
+            }
+            rebuilt += 1;
+        }
+        rebuilt
+    }
+
+    /// The tiles rebuilt so far as a tree.
+    pub fn hierarchy(&self) -> Result<Hierarchy, LodError> {
+        Hierarchy::over(self.grid, &self.nodes, self.top_lod())
+    }
+
+    /// The top of the tree: the finest level whose field lies in at most four tiles
+    /// (so the root above them has at most four children), else `max_lod`.
+    pub fn top_lod(&self) -> u8 {
+        for (lod, field) in self.fields.iter().enumerate() {
+            let lod = lod as u8;
+            let mut tiles = BTreeSet::new();
+            for corner in field.block_corners() {
+                tiles.insert(self.grid.tile_of_column(lod, [corner[0], corner[1]]));
+                if tiles.len() > 4 {
+                    break;
+                }
+            }
+            if tiles.len() <= 4 {
+                return lod;
+            }
+        }
+        self.config.max_lod
+    }
+
+    /// Each level recomputes the blocks above the level below's changed ones, and
+    /// queues the tiles they lie in.
+    fn follow_changes(&mut self) {
+        let mut changed = std::mem::take(&mut self.changed);
+        for lod in 0..self.fields.len() {
+            for key in &changed {
+                let tile = self
+                    .grid
+                    .tile_of_column(lod as u8, [key[0] * 8, key[1] * 8]);
+                self.dirty.insert(tile);
+            }
+            if lod + 1 == self.fields.len() {
+                break;
+            }
+            let parents: BTreeSet<BlockKey> = changed.iter().map(|k| parent_block(*k)).collect();
+            let (fine, coarse) = self.fields.split_at_mut(lod + 1);
+            for key in &parents {
+                coarse[0].resample_block(&fine[lod], *key);
+            }
+            changed = parents;
+        }
+    }
+}
+
+/// The greatest id of level `lod`: ranges up to it hold every tile up to that level.
+fn last_of_level(lod: u8) -> TileId {
+    TileId {
+        lod,
+        x: i64::MAX,
+        y: i64::MAX,
+    }
+}
