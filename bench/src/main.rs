@@ -87,6 +87,8 @@ enum TradeoffsCommand {
     Calibration(tradeoffs::calibration::Args),
     /// Retirement: held-out image quality against scans kept and memory held.
     Retirement(tradeoffs::retirement::RetirementArgs),
+    /// Level of detail: build cost, size and distance from the truth per setting.
+    Lod(tradeoffs::lod::LodArgs),
 }
 
 fn main() -> ExitCode {
@@ -137,6 +139,9 @@ fn main() -> ExitCode {
         }
         Command::Tradeoffs(TradeoffsCommand::Retirement(args)) => {
             ("tradeoffs retirement", tradeoffs::retirement::run(&args))
+        }
+        Command::Tradeoffs(TradeoffsCommand::Lod(args)) => {
+            ("tradeoffs lod", tradeoffs::lod::run(&args))
         }
         Command::Calib(command) => ("calib", texel_bench::calibration::commands::run(command)),
     };

@@ -86,6 +86,10 @@ enum Command {
         /// truncation_voxels).
         #[arg(long)]
         lod_config: Option<PathBuf>,
+        /// Which poses place the scans of a whole-model export: texel (/texel/pose, or
+        /// registered now) or truth (/truth/pose of a simulated capture).
+        #[arg(long, value_enum, default_value = "texel")]
+        poses: texel_daemon::model_export::PoseChoice,
         #[arg(long)]
         out: PathBuf,
     },
@@ -157,6 +161,7 @@ fn main() -> ExitCode {
             world,
             georef,
             lod_config,
+            poses,
             out,
         } => {
             if (georef.is_some() || lod_config.is_some())
@@ -169,9 +174,9 @@ fn main() -> ExitCode {
             }
             let Some(frame) = frame else {
                 if format == texel_daemon::export::ExportFormat::Tiles3d {
-                    return export_tiles(&capture, &out, georef.as_ref(), lod_config.as_deref());
+                    return export_tiles(&capture, &out, georef.as_ref(), lod_config.as_deref(), poses);
                 }
-                return export_model(&capture, format, &out);
+                return export_model(&capture, format, &out, poses);
             };
             export_frame(&capture, frame, format, world, &out)
         }
@@ -219,6 +224,7 @@ fn export_tiles(
     out: &std::path::Path,
     georef: Option<&texel_lod::GeoReference>,
     lod_config: Option<&std::path::Path>,
+    poses: texel_daemon::model_export::PoseChoice,
 ) -> ExitCode {
     let registration = texel_register::RegistrationConfig::default();
     let lod = match lod_config.map(texel_daemon::tiles_export::load_lod_config) {
@@ -229,7 +235,8 @@ fn export_tiles(
             return ExitCode::FAILURE;
         }
     };
-    match texel_daemon::tiles_export::export_tiles(capture, out, &registration, &lod, georef) {
+    match texel_daemon::tiles_export::export_tiles(capture, out, &registration, &lod, georef, poses)
+    {
         Ok(s) => {
             println!(
                 "exported the model as 3D Tiles: {} scans of {} frames, {} tiles in {} levels, {} triangles, {} bytes (field {} MiB; fused in {:.1} s, built in {:.1} s) -> {}",
@@ -257,9 +264,10 @@ fn export_model(
     capture: &std::path::Path,
     format: texel_daemon::export::ExportFormat,
     out: &std::path::Path,
+    poses: texel_daemon::model_export::PoseChoice,
 ) -> ExitCode {
     let config = texel_register::RegistrationConfig::default();
-    match texel_daemon::model_export::export_model(capture, format, out, &config) {
+    match texel_daemon::model_export::export_model(capture, format, out, &config, poses) {
         Ok(s) => {
             println!(
                 "exported the model: {} scans of {} frames ({} left out, poses {}): {} vertices, {} triangles -> {}",
@@ -269,6 +277,7 @@ fn export_model(
                 match s.poses {
                     texel_daemon::model_export::PoseSource::Capture => "from /texel/pose",
                     texel_daemon::model_export::PoseSource::Registered => "registered now",
+                    texel_daemon::model_export::PoseSource::Truth => "from /truth/pose",
                 },
                 s.vertices,
                 s.usable_triangles,

@@ -24,6 +24,19 @@ pub enum PoseSource {
     Capture,
     /// Registered during the export.
     Registered,
+    /// The capture's `/truth/pose` (a simulated capture's ground truth).
+    Truth,
+}
+
+/// Which poses place the scans of an export.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
+pub enum PoseChoice {
+    /// `/texel/pose`, or registered now when the capture has none.
+    #[default]
+    Texel,
+    /// `/truth/pose`: the simulator's ground truth, to look at a model apart from
+    /// registration.
+    Truth,
 }
 
 /// What was exported.
@@ -54,7 +67,21 @@ pub fn for_each_placed(
     registration: &RegistrationConfig,
     visit: &mut dyn FnMut(&Arc<TexelScan>, &Pose),
 ) -> Result<Placement, ExportCommandError> {
+    for_each_placed_by(capture, registration, PoseChoice::Texel, visit)
+}
+
+/// [`for_each_placed`] with the poses chosen: with [`PoseChoice::Truth`] every frame
+/// with a `/truth/pose` streams through placed by it.
+pub fn for_each_placed_by(
+    capture: &Path,
+    registration: &RegistrationConfig,
+    choice: PoseChoice,
+    visit: &mut dyn FnMut(&Arc<TexelScan>, &Pose),
+) -> Result<Placement, ExportCommandError> {
     let poses = CapturePoses::from_capture(capture)?;
+    if choice == PoseChoice::Truth {
+        return for_each_truth_placed(capture, &poses, visit);
+    }
     let registered = poses.texel_count() > 0;
     let mut sensors = SensorCache::new();
     let mut registrar: Option<Registrar> = None;
@@ -137,9 +164,10 @@ pub fn export_model(
     format: ExportFormat,
     out: &Path,
     registration: &RegistrationConfig,
+    poses: PoseChoice,
 ) -> Result<ModelExportSummary, ExportCommandError> {
     let mut placed: Vec<(Arc<TexelScan>, Pose)> = Vec::new();
-    let placement = for_each_placed(capture, registration, &mut |scan, pose| {
+    let placement = for_each_placed_by(capture, registration, poses, &mut |scan, pose| {
         placed.push((Arc::clone(scan), *pose));
     })?;
     let scans: Vec<ExportScan<'_>> = placed
@@ -161,5 +189,46 @@ pub fn export_model(
         usable_triangles: placed.iter().map(|(s, _)| s.usable_triangle_count()).sum(),
         poses: placement.poses,
         left_out: placement.frames - placed.len(),
+    })
+}
+
+fn for_each_truth_placed(
+    capture: &Path,
+    poses: &CapturePoses,
+    visit: &mut dyn FnMut(&Arc<TexelScan>, &Pose),
+) -> Result<Placement, ExportCommandError> {
+    let truth = poses.truth_poses();
+    let mut sensors = SensorCache::new();
+    let fuse_config = FuseConfig::default();
+    let (mut frames, mut placed) = (0usize, 0usize);
+    for item in open_texel_frames(capture)? {
+        let (pair, model) = match item {
+            Err(e) if e.is_fatal() => return Err(e.into()),
+            Ok(TexelItem::Pair { pair, sensor }) => (pair, sensor),
+            _ => continue,
+        };
+        let index = frames;
+        frames += 1;
+        let Some(pose) = truth.get(&pair.timestamp_ns()).copied() else {
+            continue;
+        };
+        match sensors.fuse(pair, &model, &fuse_config) {
+            Ok(scan) => {
+                visit(&Arc::new(scan), &pose);
+                placed += 1;
+            }
+            Err(e) => tracing::warn!("frame {index} not fused: {e}"),
+        }
+    }
+    if placed == 0 {
+        return Err(ExportCommandError::NothingToExport {
+            path: capture.display().to_string(),
+            frames,
+        });
+    }
+    Ok(Placement {
+        frames,
+        scans: placed,
+        poses: PoseSource::Truth,
     })
 }

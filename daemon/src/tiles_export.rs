@@ -10,7 +10,7 @@ use texel_lod::{GeoReference, LodConfig, LodModel, tileset_files};
 use texel_register::RegistrationConfig;
 
 use crate::export::ExportCommandError;
-use crate::model_export::{Placement, for_each_placed};
+use crate::model_export::{Placement, PoseChoice, for_each_placed_by};
 
 /// What the export wrote and what it cost.
 #[derive(Debug)]
@@ -70,10 +70,11 @@ pub fn export_tiles(
     registration: &RegistrationConfig,
     lod: &LodConfig,
     geo: Option<&GeoReference>,
+    poses: PoseChoice,
 ) -> Result<TilesExportSummary, ExportCommandError> {
     let started = Instant::now();
     let mut model = LodModel::new(*lod)?;
-    let placement = for_each_placed(capture, registration, &mut |scan, pose| {
+    let placement = for_each_placed_by(capture, registration, poses, &mut |scan, pose| {
         model.add_scan(scan, pose);
     })?;
     let fuse_s = started.elapsed().as_secs_f64();

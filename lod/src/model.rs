@@ -113,7 +113,17 @@ impl LodModel {
     /// lags behind the scans.
     pub fn pending_tiles(&self) -> usize {
         let top = self.top_lod();
-        self.dirty.range(..=last_of_level(top)).count() + usize::from(!self.changed.is_empty())
+        let mut pending: BTreeSet<TileId> =
+            self.dirty.range(..=last_of_level(top)).copied().collect();
+        // The tiles the finest field's unpropagated changes will queue, level by level.
+        let mut changed: BTreeSet<BlockKey> = self.changed.clone();
+        for lod in 0..=top {
+            for key in &changed {
+                pending.insert(self.grid.tile_of_column(lod, [key[0] * 8, key[1] * 8]));
+            }
+            changed = changed.iter().map(|k| parent_block(*k)).collect();
+        }
+        pending.len()
     }
 
     /// Bytes the fields hold.
@@ -165,13 +175,17 @@ impl LodModel {
     }
 
     /// The top of the tree: the finest level whose field lies in at most four tiles
-    /// (so the root above them has at most four children), else `max_lod`.
+    /// (so the root above them has at most four children), else `max_lod`. Read from
+    /// the finest field (a coarse block exists exactly above fine ones), so it does not
+    /// wait for the coarser fields to follow.
     pub fn top_lod(&self) -> u8 {
-        for (lod, field) in self.fields.iter().enumerate() {
-            let lod = lod as u8;
+        let keys: Vec<BlockKey> = self.fields[0].block_keys().collect();
+        for lod in 0..=self.config.max_lod {
             let mut tiles = BTreeSet::new();
-            for corner in field.block_corners() {
-                tiles.insert(self.grid.tile_of_column(lod, [corner[0], corner[1]]));
+            for key in &keys {
+                let shift = 1i64 << lod.min(62);
+                let column = [key[0].div_euclid(shift) * 8, key[1].div_euclid(shift) * 8];
+                tiles.insert(self.grid.tile_of_column(lod, column));
                 if tiles.len() > 4 {
                     break;
                 }

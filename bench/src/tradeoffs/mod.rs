@@ -5,6 +5,7 @@
 //! markers.
 
 pub mod calibration;
+pub mod lod;
 pub mod plot;
 pub mod registration;
 pub mod rendering;

@@ -1,0 +1,294 @@
+//! `texel-bench tradeoffs lod`: what the level-of-detail hierarchy costs and how
+//! close it stays to the truth, per setting, on the street scene. A capture is
+//! rendered and registered (cached), every registered scan is fused into a
+//! `LodModel`, the hierarchy is rebuilt, and each setting reports: fusion time per
+//! scan, rebuild time per tile, the tiles queued per second of a 30 Hz walk against
+//! what one rebuild thread clears, tiles and triangles per level, bytes per tile as
+//! 3D Tiles content, the fields' memory, and the distance of the finest and coarsest
+//! tiles' vertices from the simulator's true surface. Writes the "Level of detail"
+//! section of `docs/tradeoffs.md`.
+
+use std::fmt::Write;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use nalgebra::{Point3, Vector3};
+use texel::{Pose, TexelScan};
+use texel_lod::{Hierarchy, LodConfig, LodModel, tileset_files};
+
+use crate::tradeoffs::registration::data::{SequenceSpec, cached_capture};
+use crate::tradeoffs::rendering::report::replace_or_append;
+
+#[derive(Debug, Clone, clap::Args)]
+pub struct LodArgs {
+    /// Fewer frames and settings, for a quick look (docs/ is left alone).
+    #[arg(long)]
+    pub quick: bool,
+    /// Frames of the street walk (30 Hz).
+    #[arg(long, default_value_t = 1800)]
+    pub frames: usize,
+    /// The repository root (scenes are read and the docs written under it).
+    #[arg(long, default_value = ".")]
+    pub repo: PathBuf,
+    /// Where captures and their registrations are kept between runs.
+    #[arg(long, default_value = "target/tradeoffs-cache")]
+    pub cache: PathBuf,
+    /// Simulator seed.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Measure and print, but leave docs/tradeoffs.md alone.
+    #[arg(long)]
+    pub no_write: bool,
+}
+
+/// One setting's figures.
+struct Row {
+    label: String,
+    scans: usize,
+    fuse_ms_per_scan: f64,
+    rebuild_ms_per_tile: f64,
+    tiles_per_s_queued: f64,
+    tiles: usize,
+    levels: u8,
+    leaf_triangles: usize,
+    top_triangles: usize,
+    bytes_mean: f64,
+    bytes_max: usize,
+    field_mib: f64,
+    leaf_error: (f64, f64),
+    top_error: (f64, f64),
+}
+
+fn settings(quick: bool) -> Vec<(String, LodConfig)> {
+    let base = LodConfig::default();
+    let with = |label: &str, leaf_voxel_m: f64, tile_triangle_budget: usize| {
+        (
+            label.to_string(),
+            LodConfig {
+                leaf_voxel_m,
+                tile_triangle_budget,
+                ..base
+            },
+        )
+    };
+    if quick {
+        return vec![with("voxel 0.1 m, 16k", 0.1, 16_384)];
+    }
+    vec![
+        with("voxel 0.05 m, 16k", 0.05, 16_384),
+        with("voxel 0.1 m, 16k (default)", 0.1, 16_384),
+        with("voxel 0.2 m, 16k", 0.2, 16_384),
+        with("voxel 0.1 m, 4k", 0.1, 4_096),
+        with("voxel 0.1 m, 64k", 0.1, 65_536),
+    ]
+}
+
+pub fn run(args: &LodArgs) -> Result<()> {
+    let frames = if args.quick { args.frames.min(300) } else { args.frames };
+    let scenes = args.repo.join("configs").join("scenes");
+    let spec = SequenceSpec {
+        scene: "street",
+        frames,
+        seed: args.seed,
+        orbit_period_frames: None,
+    };
+    let capture = cached_capture(&scenes, &args.cache, &spec)?;
+    let scene = sims::Scene::load(&scenes.join("street.toml")).context("loading the street")?;
+    // The true poses: what the hierarchy costs and keeps, apart from registration
+    // (which is measured in its own section).
+    let placed = truth_placed_scans(&capture)?;
+    eprintln!("{} placed scans of {frames} frames", placed.len());
+    let mut rows = Vec::new();
+    for (label, config) in settings(args.quick) {
+        let row = measure(&label, &config, &placed, &scene)?;
+        println!(
+            "{label}: fuse {:.2} ms/scan, rebuild {:.1} ms/tile, {:.1} tiles/s queued at 30 Hz, {} tiles in {} levels, leaf error median {:.3} p95 {:.3} m",
+            row.fuse_ms_per_scan,
+            row.rebuild_ms_per_tile,
+            row.tiles_per_s_queued,
+            row.tiles,
+            row.levels,
+            row.leaf_error.0,
+            row.leaf_error.1
+        );
+        rows.push(row);
+    }
+    let body = markdown(&rows, frames);
+    println!("{body}");
+    if args.no_write || args.quick {
+        return Ok(());
+    }
+    let doc = args.repo.join("docs").join("tradeoffs.md");
+    let text = std::fs::read_to_string(&doc).with_context(|| format!("reading {}", doc.display()))?;
+    let updated = replace_or_append(&text, "lod", &body);
+    std::fs::write(&doc, updated).with_context(|| format!("writing {}", doc.display()))?;
+    Ok(())
+}
+
+/// Every texel frame of the capture fused and placed by its `/truth/pose`.
+fn truth_placed_scans(capture: &Path) -> Result<Vec<(Arc<TexelScan>, Pose)>> {
+    use texel::capture::{SensorCache, TexelItem, open_texel_frames};
+    let poses = texel_register::placement::CapturePoses::from_capture(capture)
+        .with_context(|| format!("reading the poses of {}", capture.display()))?;
+    let truth = poses.truth_poses();
+    let mut sensors = SensorCache::new();
+    let mut placed = Vec::new();
+    for item in open_texel_frames(capture)? {
+        let (pair, model) = match item {
+            Err(e) if e.is_fatal() => return Err(e.into()),
+            Ok(TexelItem::Pair { pair, sensor }) => (pair, sensor),
+            _ => continue,
+        };
+        let Some(pose) = truth.get(&pair.timestamp_ns()).copied() else {
+            continue;
+        };
+        let scan = sensors.fuse(pair, &model, &texel::FuseConfig::default())?;
+        placed.push((Arc::new(scan), pose));
+    }
+    Ok(placed)
+}
+
+fn measure(
+    label: &str,
+    config: &LodConfig,
+    placed: &[(Arc<TexelScan>, Pose)],
+    scene: &sims::Scene,
+) -> Result<Row> {
+    let mut model = LodModel::new(*config)?;
+    // Fusion, and the tiles each second of a 30 Hz walk queues: the queue after
+    // every 30 scans, rebuilt as it goes so each count is of new work.
+    let mut fuse_s = 0.0;
+    let mut rebuild_s = 0.0;
+    let mut queued = 0usize;
+    let mut rebuilt = 0usize;
+    for (i, (scan, pose)) in placed.iter().enumerate() {
+        let t = Instant::now();
+        model.add_scan(scan, pose);
+        fuse_s += t.elapsed().as_secs_f64();
+        if (i + 1) % 30 == 0 || i + 1 == placed.len() {
+            let pending = model.pending_tiles();
+            let t = Instant::now();
+            let done = model.rebuild(usize::MAX);
+            rebuild_s += t.elapsed().as_secs_f64();
+            debug_assert_eq!(pending, done);
+            queued += done;
+            rebuilt += done;
+        }
+    }
+    let hierarchy = model.hierarchy()?;
+    let files = tileset_files(&hierarchy, None)?;
+    let glbs: Vec<usize> = files.iter().skip(1).map(|f| f.bytes.len()).collect();
+    let seconds = placed.len() as f64 / 30.0;
+    let level_triangles = |lod: u8| -> usize {
+        hierarchy
+            .nodes
+            .values()
+            .filter(|n| n.id.lod == lod)
+            .map(|n| n.mesh.triangle_count())
+            .sum()
+    };
+    eprintln!("{label}: measuring distances to the truth");
+    Ok(Row {
+        label: label.to_string(),
+        scans: placed.len(),
+        fuse_ms_per_scan: 1e3 * fuse_s / placed.len().max(1) as f64,
+        rebuild_ms_per_tile: 1e3 * rebuild_s / rebuilt.max(1) as f64,
+        tiles_per_s_queued: queued as f64 / seconds.max(1e-9),
+        tiles: hierarchy.nodes.len(),
+        levels: hierarchy.top_lod + 1,
+        leaf_triangles: level_triangles(0),
+        top_triangles: level_triangles(hierarchy.top_lod),
+        bytes_mean: glbs.iter().sum::<usize>() as f64 / glbs.len().max(1) as f64,
+        bytes_max: glbs.iter().copied().max().unwrap_or(0),
+        field_mib: model.field_bytes() as f64 / f64::from(1u32 << 20),
+        leaf_error: distances(&hierarchy, 0, scene),
+        top_error: distances(&hierarchy, hierarchy.top_lod, scene),
+    })
+}
+
+/// Median and 95th percentile distance, metres, of a level's vertices from the true
+/// surface: rays cast both ways along each vertex's normal (area-weighted over its
+/// triangles) from half a metre out; the nearer hit counts. Vertices with no hit
+/// within a metre (surface the walk never reached) are left out.
+fn distances(h: &Hierarchy, lod: u8, scene: &sims::Scene) -> (f64, f64) {
+    let mut d = Vec::new();
+    for node in h.nodes.values().filter(|n| n.id.lod == lod) {
+        let mesh = &node.mesh;
+        let mut normals = vec![Vector3::<f64>::zeros(); mesh.vertex_count()];
+        for t in &mesh.triangles {
+            let p = t.map(|i| {
+                let q = mesh.positions[i as usize];
+                Vector3::new(f64::from(q[0]), f64::from(q[1]), f64::from(q[2]))
+            });
+            let n = (p[1] - p[0]).cross(&(p[2] - p[0]));
+            for &i in t {
+                normals[i as usize] += n;
+            }
+        }
+        // Every 7th vertex: the distribution, not every sample.
+        for v in (0..mesh.vertex_count()).step_by(7) {
+            let (Some(w), Some(n)) = (mesh.world(v), normals[v].try_normalize(1e-12)) else {
+                continue;
+            };
+            let p = Point3::from(w);
+            let nearest = [n, -n]
+                .iter()
+                .filter_map(|dir| {
+                    let hit = scene.cast_ray(p - dir * 0.5, *dir)?;
+                    (hit.distance_m < 1.0).then(|| (hit.distance_m - 0.5).abs())
+                })
+                .fold(f64::INFINITY, f64::min);
+            if nearest.is_finite() {
+                d.push(nearest);
+            }
+        }
+    }
+    if d.is_empty() {
+        return (f64::NAN, f64::NAN);
+    }
+    d.sort_by(f64::total_cmp);
+    let at = |q: f64| d[((d.len() - 1) as f64 * q).round() as usize];
+    (at(0.5), at(0.95))
+}
+
+fn markdown(rows: &[Row], frames: usize) -> String {
+    let mut s = String::new();
+    let _ = writeln!(s, "## Level of detail\n");
+    let _ = writeln!(
+        s,
+        "`cargo run --release -p texel-bench -- tradeoffs lod` (street, the first {frames} frames of the walk at 30 Hz, placed by their true poses so that registration, measured in its own section, does not enter; {} scans). Each setting fuses every scan into a `texel_lod::LodModel` and rebuilds the tiles a 30 Hz walk queues each second. Error: distance of a level's vertices from the simulator's true surface along their normals (median / 95th percentile). Bytes: one tile as 3D Tiles content (binary glTF, uncompressed). One core.\n",
+        rows.first().map_or(0, |r| r.scans)
+    );
+    let _ = writeln!(
+        s,
+        "| setting | fuse ms/scan | rebuild ms/tile | tiles queued/s | rebuild load | tiles | levels | finest-level triangles | top-level triangles | bytes/tile mean / max | fields MiB | finest error m | top error m |"
+    );
+    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    for r in rows {
+        // The share of one core the rebuilds take at 30 Hz: above 1, the queue grows.
+        let load = r.tiles_per_s_queued * r.rebuild_ms_per_tile / 1e3;
+        let _ = writeln!(
+            s,
+            "| {} | {:.2} | {:.1} | {:.1} | {:.2} | {} | {} | {} | {} | {:.0} / {} | {:.0} | {:.3} / {:.3} | {:.3} / {:.3} |",
+            r.label,
+            r.fuse_ms_per_scan,
+            r.rebuild_ms_per_tile,
+            r.tiles_per_s_queued,
+            load,
+            r.tiles,
+            r.levels,
+            r.leaf_triangles,
+            r.top_triangles,
+            r.bytes_mean,
+            r.bytes_max,
+            r.field_mib,
+            r.leaf_error.0,
+            r.leaf_error.1,
+            r.top_error.0,
+            r.top_error.1
+        );
+    }
+    s
+}
