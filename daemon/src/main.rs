@@ -174,7 +174,13 @@ fn main() -> ExitCode {
             }
             let Some(frame) = frame else {
                 if format == texel_daemon::export::ExportFormat::Tiles3d {
-                    return export_tiles(&capture, &out, georef.as_ref(), lod_config.as_deref(), poses);
+                    return export_tiles(
+                        &capture,
+                        &out,
+                        georef.as_ref(),
+                        lod_config.as_deref(),
+                        poses,
+                    );
                 }
                 return export_model(&capture, format, &out, poses);
             };

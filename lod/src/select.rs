@@ -1,9 +1,9 @@
-//! Choosing the tiles to draw for a view (Liu 2014 §4.3): walk the tree from the root,
-//! refine a tile while its projected geometric error exceeds a pixel threshold
+//! Choosing the tiles to draw for a view (Liu 2014 §4.3): walk the tree from its top
+//! tiles, refine a tile while its projected geometric error exceeds a pixel threshold
 //! (modulated towards the screen's centre, §4.3.1, with hysteresis against flicker),
 //! cull tiles outside the frustum (§4.3.4), and replace a parent only once all its
 //! children are resident, so the drawn set never has a hole (§4.3.2). Loading is the
-//! caller's: selection only says what it wants, nearest need first.
+//! caller's: selection only says what it wants, largest error first.
 
 use std::collections::BTreeSet;
 

@@ -86,7 +86,11 @@ fn settings(quick: bool) -> Vec<(String, LodConfig)> {
 }
 
 pub fn run(args: &LodArgs) -> Result<()> {
-    let frames = if args.quick { args.frames.min(300) } else { args.frames };
+    let frames = if args.quick {
+        args.frames.min(300)
+    } else {
+        args.frames
+    };
     let scenes = args.repo.join("configs").join("scenes");
     let spec = SequenceSpec {
         scene: "street",
@@ -121,7 +125,8 @@ pub fn run(args: &LodArgs) -> Result<()> {
         return Ok(());
     }
     let doc = args.repo.join("docs").join("tradeoffs.md");
-    let text = std::fs::read_to_string(&doc).with_context(|| format!("reading {}", doc.display()))?;
+    let text =
+        std::fs::read_to_string(&doc).with_context(|| format!("reading {}", doc.display()))?;
     let updated = replace_or_append(&text, "lod", &body);
     std::fs::write(&doc, updated).with_context(|| format!("writing {}", doc.display()))?;
     Ok(())
