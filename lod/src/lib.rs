@@ -4,12 +4,14 @@
 //! and the hierarchy as an OGC 3D Tiles 1.1 tileset. Pure, synchronous, I/O-free.
 
 pub mod build;
+pub mod codec;
 pub mod model;
 pub mod select;
 pub mod tiles;
 pub mod tree;
 
 pub use build::{Hierarchy, LodConfig, LodError, LodNode, build_from_field};
+pub use codec::{TileCodecError, decode_tile, encode_tile};
 pub use model::LodModel;
 pub use select::{Lens, SelectConfig, Selection, TileIndex, TileInfo, View, select};
 pub use tiles::{GeoReference, TileFile, TilesError, tileset_files};

@@ -45,7 +45,8 @@ pub fn extract(tsdf: &Tsdf, region: VoxelRegion, origin_m: [f64; 3]) -> SurfaceM
     for (a, axis, behind_first) in crossed {
         nets.quad(a, axis, behind_first);
     }
-    nets.mesh
+    // A quad abandoned at an unobserved cell may have left its first vertices unused.
+    nets.mesh.compacted()
 }
 
 /// Where along the edge from `a` to `b` the field crosses zero, in [0, 1], if it does.
@@ -67,7 +68,8 @@ fn crossing(tsdf: &Tsdf, a: &Voxel, b: &Voxel) -> Option<f64> {
 struct Nets<'a> {
     tsdf: &'a Tsdf,
     origin_m: [f64; 3],
-    cells: HashMap<VoxelIndex, u32>,
+    /// Each cell's vertex, `None` for a cell with an unobserved corner.
+    cells: HashMap<VoxelIndex, Option<u32>>,
     mesh: SurfaceMesh,
 }
 
@@ -85,7 +87,13 @@ impl Nets<'_> {
         let corners = [cell(0, 0), cell(1, 0), cell(1, 1), cell(0, 1)];
         let mut ids = [0u32; 4];
         for (id, c) in ids.iter_mut().zip(corners) {
-            *id = self.vertex(c);
+            // A cell with an unobserved corner has no vertex: at the edge of what
+            // was seen its only crossing would be this edge's, and the four cells
+            // around it would meet in one point (a quad of zero area).
+            let Some(vertex) = self.vertex(c) else {
+                return;
+            };
+            *id = vertex;
         }
         // (0,0), (1,0), (1,1), (0,1) step along -u then -v: their normal is
         // (-e_u) x (-e_v) = e_axis, from `a` towards `a + e_axis`.
@@ -107,8 +115,9 @@ impl Nets<'_> {
 
     /// The vertex of the cell whose lowest corner is voxel `c`: the mean of the zero
     /// crossings on its twelve edges (the cell centre if none qualifies, which a cell
-    /// next to a crossed edge cannot be, but the guard keeps the output finite).
-    fn vertex(&mut self, c: VoxelIndex) -> u32 {
+    /// next to a crossed edge cannot be, but the guard keeps the output finite);
+    /// `None` when a corner was never observed.
+    fn vertex(&mut self, c: VoxelIndex) -> Option<u32> {
         if let Some(&id) = self.cells.get(&c) {
             return id;
         }
@@ -120,6 +129,10 @@ impl Nets<'_> {
             ]
         };
         let voxels: [Option<&Voxel>; 8] = std::array::from_fn(|k| self.tsdf.voxel(corner(k)));
+        if voxels.iter().any(Option::is_none) {
+            self.cells.insert(c, None);
+            return None;
+        }
         let mut sum = [0.0f64; 3];
         let mut count = 0u32;
         for k in 0..8usize {
@@ -156,8 +169,8 @@ impl Nets<'_> {
             .positions
             .push([0, 1, 2].map(|a| (position[a] - self.origin_m[a]) as f32));
         self.mesh.colours.push(colour);
-        self.cells.insert(c, id);
-        id
+        self.cells.insert(c, Some(id));
+        Some(id)
     }
 }
 

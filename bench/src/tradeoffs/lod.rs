@@ -56,6 +56,7 @@ struct Row {
     top_triangles: usize,
     bytes_mean: f64,
     bytes_max: usize,
+    wire_bytes_mean: f64,
     field_mib: f64,
     leaf_error: (f64, f64),
     top_error: (f64, f64),
@@ -185,6 +186,12 @@ fn measure(
     let hierarchy = model.hierarchy()?;
     let files = tileset_files(&hierarchy, None)?;
     let glbs: Vec<usize> = files.iter().skip(1).map(|f| f.bytes.len()).collect();
+    let wire: Vec<usize> = hierarchy
+        .nodes
+        .values()
+        .filter(|n| !n.mesh.is_empty())
+        .map(|n| texel_lod::encode_tile(n).len())
+        .collect();
     let seconds = placed.len() as f64 / 30.0;
     let level_triangles = |lod: u8| -> usize {
         hierarchy
@@ -207,6 +214,7 @@ fn measure(
         top_triangles: level_triangles(hierarchy.top_lod),
         bytes_mean: glbs.iter().sum::<usize>() as f64 / glbs.len().max(1) as f64,
         bytes_max: glbs.iter().copied().max().unwrap_or(0),
+        wire_bytes_mean: wire.iter().sum::<usize>() as f64 / wire.len().max(1) as f64,
         field_mib: model.field_bytes() as f64 / f64::from(1u32 << 20),
         leaf_error: distances(&hierarchy, 0, scene),
         top_error: distances(&hierarchy, hierarchy.top_lod, scene),
@@ -263,20 +271,23 @@ fn markdown(rows: &[Row], frames: usize) -> String {
     let _ = writeln!(s, "## Level of detail\n");
     let _ = writeln!(
         s,
-        "`cargo run --release -p texel-bench -- tradeoffs lod` (street, the first {frames} frames of the walk at 30 Hz, placed by their true poses so that registration, measured in its own section, does not enter; {} scans). Each setting fuses every scan into a `texel_lod::LodModel` and rebuilds the tiles a 30 Hz walk queues each second. Error: distance of a level's vertices from the simulator's true surface along their normals (median / 95th percentile). Bytes: one tile as 3D Tiles content (binary glTF, uncompressed). One core.\n",
+        "`cargo run --release -p texel-bench -- tradeoffs lod` (street, the first {frames} frames of the walk at 30 Hz, placed by their true poses so that registration, measured in its own section, does not enter; {} scans). Each setting fuses every scan into a `texel_lod::LodModel` and rebuilds the tiles a 30 Hz walk queues each second. Error: distance of a level's vertices from the simulator's true surface along their normals (median / 95th percentile). Bytes: one tile as 3D Tiles content (binary glTF, uncompressed) and through `texel_lod::encode_tile` (16-bit positions, meshoptimizer's vertex and index codecs), the form a tile is to travel in. One core.\n",
         rows.first().map_or(0, |r| r.scans)
     );
     let _ = writeln!(
         s,
-        "| setting | fuse ms/scan | rebuild ms/tile | tiles queued/s | rebuild load | tiles | levels | finest-level triangles | top-level triangles | bytes/tile mean / max | fields MiB | finest error m | top error m |"
+        "| setting | fuse ms/scan | rebuild ms/tile | tiles queued/s | rebuild load | tiles | levels | finest-level triangles | top-level triangles | glTF bytes/tile mean / max | encoded bytes/tile mean | fields MiB | finest error m | top error m |"
     );
-    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    let _ = writeln!(
+        s,
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+    );
     for r in rows {
         // The share of one core the rebuilds take at 30 Hz: above 1, the queue grows.
         let load = r.tiles_per_s_queued * r.rebuild_ms_per_tile / 1e3;
         let _ = writeln!(
             s,
-            "| {} | {:.2} | {:.1} | {:.1} | {:.2} | {} | {} | {} | {} | {:.0} / {} | {:.0} | {:.3} / {:.3} | {:.3} / {:.3} |",
+            "| {} | {:.2} | {:.1} | {:.1} | {:.2} | {} | {} | {} | {} | {:.0} / {} | {:.0} | {:.0} | {:.3} / {:.3} | {:.3} / {:.3} |",
             r.label,
             r.fuse_ms_per_scan,
             r.rebuild_ms_per_tile,
@@ -288,6 +299,7 @@ fn markdown(rows: &[Row], frames: usize) -> String {
             r.top_triangles,
             r.bytes_mean,
             r.bytes_max,
+            r.wire_bytes_mean,
             r.field_mib,
             r.leaf_error.0,
             r.leaf_error.1,
