@@ -5,6 +5,7 @@
 //! bounding volume. The checks are shown to fail on a broken tileset and a broken tile.
 //! CesiumJS in headless Chromium opens a street's tileset and shows the model in the
 //! colours the tiles hold.
+#![cfg(feature = "sim")]
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests panic on failure by design
 #![allow(clippy::needless_range_loop)] // r, g and b side by side read clearer indexed
 
