@@ -3,6 +3,7 @@
 //! its glTF bytes; corrupt, truncated or hostile bytes are errors, never a panic or
 //! an index out of range.
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests panic on failure by design
+#![allow(clippy::needless_range_loop)] // x, y and z side by side read clearer indexed
 
 mod support;
 
