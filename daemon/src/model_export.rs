@@ -79,10 +79,17 @@ pub fn for_each_placed_by(
     visit: &mut dyn FnMut(&Arc<TexelScan>, &Pose),
 ) -> Result<Placement, ExportCommandError> {
     let poses = CapturePoses::from_capture(capture)?;
-    if choice == PoseChoice::Truth {
-        return for_each_truth_placed(capture, &poses, visit);
-    }
-    let registered = poses.texel_count() > 0;
+    let source = match choice {
+        PoseChoice::Truth => PoseSource::Truth,
+        PoseChoice::Texel if poses.texel_count() > 0 => PoseSource::Capture,
+        PoseChoice::Texel => PoseSource::Registered,
+    };
+    // The pose a frame is placed by, unless the capture is registered now.
+    let given = |timestamp_ns: u64| match source {
+        PoseSource::Truth => poses.truth_poses().get(&timestamp_ns).copied(),
+        PoseSource::Capture => poses.texel_pose(timestamp_ns),
+        PoseSource::Registered => None,
+    };
     let mut sensors = SensorCache::new();
     let mut registrar: Option<Registrar> = None;
     let mut scans_by_id: Vec<Arc<TexelScan>> = Vec::new();
@@ -98,7 +105,8 @@ pub fn for_each_placed_by(
         let index = frames;
         frames += 1;
         let timestamp_ns = pair.timestamp_ns();
-        if registered && poses.texel_pose(timestamp_ns).is_none() {
+        let pose = given(timestamp_ns);
+        if source != PoseSource::Registered && pose.is_none() {
             continue;
         }
         let scan = match sensors.fuse(pair, &model, &fuse_config) {
@@ -108,11 +116,9 @@ pub fn for_each_placed_by(
                 continue;
             }
         };
-        if registered {
-            if let Some(pose) = poses.texel_pose(timestamp_ns) {
-                visit(&scan, &pose);
-                placed += 1;
-            }
+        if let Some(pose) = pose {
+            visit(&scan, &pose);
+            placed += 1;
             continue;
         }
         let registrar = registrar.get_or_insert_with(|| {
@@ -149,11 +155,7 @@ pub fn for_each_placed_by(
     Ok(Placement {
         frames,
         scans: placed,
-        poses: if registered {
-            PoseSource::Capture
-        } else {
-            PoseSource::Registered
-        },
+        poses: source,
     })
 }
 
@@ -189,46 +191,5 @@ pub fn export_model(
         usable_triangles: placed.iter().map(|(s, _)| s.usable_triangle_count()).sum(),
         poses: placement.poses,
         left_out: placement.frames - placed.len(),
-    })
-}
-
-fn for_each_truth_placed(
-    capture: &Path,
-    poses: &CapturePoses,
-    visit: &mut dyn FnMut(&Arc<TexelScan>, &Pose),
-) -> Result<Placement, ExportCommandError> {
-    let truth = poses.truth_poses();
-    let mut sensors = SensorCache::new();
-    let fuse_config = FuseConfig::default();
-    let (mut frames, mut placed) = (0usize, 0usize);
-    for item in open_texel_frames(capture)? {
-        let (pair, model) = match item {
-            Err(e) if e.is_fatal() => return Err(e.into()),
-            Ok(TexelItem::Pair { pair, sensor }) => (pair, sensor),
-            _ => continue,
-        };
-        let index = frames;
-        frames += 1;
-        let Some(pose) = truth.get(&pair.timestamp_ns()).copied() else {
-            continue;
-        };
-        match sensors.fuse(pair, &model, &fuse_config) {
-            Ok(scan) => {
-                visit(&Arc::new(scan), &pose);
-                placed += 1;
-            }
-            Err(e) => tracing::warn!("frame {index} not fused: {e}"),
-        }
-    }
-    if placed == 0 {
-        return Err(ExportCommandError::NothingToExport {
-            path: capture.display().to_string(),
-            frames,
-        });
-    }
-    Ok(Placement {
-        frames,
-        scans: placed,
-        poses: PoseSource::Truth,
     })
 }

@@ -54,6 +54,19 @@ fn texeld(args: &[&OsStr]) -> (bool, String, String) {
     )
 }
 
+/// `texeld export CAPTURE --format 3dtiles EXTRA --out OUT`.
+fn export_3dtiles(capture: &Path, out: &Path, extra: &[&OsStr]) -> (bool, String, String) {
+    let mut args = vec![
+        OsStr::new("export"),
+        capture.as_os_str(),
+        OsStr::new("--format"),
+        OsStr::new("3dtiles"),
+    ];
+    args.extend_from_slice(extra);
+    args.extend([OsStr::new("--out"), out.as_os_str()]);
+    texeld(&args)
+}
+
 fn schema_dir() -> PathBuf {
     texel_e2e::repo_root().join("lod/tests/schema/3d-tiles-1.1")
 }
@@ -112,18 +125,16 @@ fn a_3d_tiles_export_passes_the_schema_the_gltf_validator_and_loaders_gl() {
     )
     .unwrap();
     let tiles = dir.path().join("tiles");
-    let (ok, stdout, stderr) = texeld(&[
-        OsStr::new("export"),
-        capture.as_os_str(),
-        OsStr::new("--format"),
-        OsStr::new("3dtiles"),
-        OsStr::new("--lod-config"),
-        lod.as_os_str(),
-        OsStr::new("--georef"),
-        OsStr::new("47.3769,8.5417,408"),
-        OsStr::new("--out"),
-        tiles.as_os_str(),
-    ]);
+    let (ok, stdout, stderr) = export_3dtiles(
+        &capture,
+        &tiles,
+        &[
+            OsStr::new("--lod-config"),
+            lod.as_os_str(),
+            OsStr::new("--georef"),
+            OsStr::new("47.3769,8.5417,408"),
+        ],
+    );
     assert!(ok, "{stderr}");
     assert!(
         stdout.contains("exported the model as 3D Tiles"),
@@ -190,43 +201,24 @@ fn bad_3d_tiles_arguments_are_refused_by_name() {
     let capture = dir.path().join("hall.mcap");
     render_hall(&capture, 3);
     let out = dir.path().join("t");
-    let (ok, _, stderr) = texeld(&[
-        OsStr::new("export"),
-        capture.as_os_str(),
-        OsStr::new("--format"),
-        OsStr::new("3dtiles"),
-        OsStr::new("--georef"),
-        OsStr::new("95,8,400"),
-        OsStr::new("--out"),
-        out.as_os_str(),
-    ]);
+    let (ok, _, stderr) = export_3dtiles(
+        &capture,
+        &out,
+        &[OsStr::new("--georef"), OsStr::new("95,8,400")],
+    );
     assert!(!ok && stderr.contains("latitude"), "{stderr}");
     let lod = dir.path().join("lod.toml");
     std::fs::write(&lod, "tile_voxel = 16\n").unwrap();
-    let (ok, _, stderr) = texeld(&[
-        OsStr::new("export"),
-        capture.as_os_str(),
-        OsStr::new("--format"),
-        OsStr::new("3dtiles"),
-        OsStr::new("--lod-config"),
-        lod.as_os_str(),
-        OsStr::new("--out"),
-        out.as_os_str(),
-    ]);
+    let (ok, _, stderr) = export_3dtiles(
+        &capture,
+        &out,
+        &[OsStr::new("--lod-config"), lod.as_os_str()],
+    );
     assert!(
         !ok && stderr.contains("tile_voxel") && stderr.contains("lod.toml"),
         "{stderr}"
     );
-    let (ok, _, stderr) = texeld(&[
-        OsStr::new("export"),
-        capture.as_os_str(),
-        OsStr::new("--frame"),
-        OsStr::new("0"),
-        OsStr::new("--format"),
-        OsStr::new("3dtiles"),
-        OsStr::new("--out"),
-        out.as_os_str(),
-    ]);
+    let (ok, _, stderr) = export_3dtiles(&capture, &out, &[OsStr::new("--frame"), OsStr::new("0")]);
     assert!(!ok && stderr.contains("whole model"), "{stderr}");
     assert!(!out.join("tileset.json").exists());
 }
@@ -278,16 +270,11 @@ fn cesium_opens_a_street_tileset_and_shows_the_model_in_its_colours() {
     // Two seconds of the street: the camera pans from the road to the left facades.
     render("street", &capture, 60);
     let tiles = dir.path().join("tiles");
-    let (ok, stdout, stderr) = texeld(&[
-        OsStr::new("export"),
-        capture.as_os_str(),
-        OsStr::new("--format"),
-        OsStr::new("3dtiles"),
-        OsStr::new("--georef"),
-        OsStr::new("47.3769,8.5417,408"),
-        OsStr::new("--out"),
-        tiles.as_os_str(),
-    ]);
+    let (ok, stdout, stderr) = export_3dtiles(
+        &capture,
+        &tiles,
+        &[OsStr::new("--georef"), OsStr::new("47.3769,8.5417,408")],
+    );
     assert!(ok, "{stderr}");
     let tileset: Value =
         serde_json::from_slice(&std::fs::read(tiles.join("tileset.json")).unwrap()).unwrap();

@@ -179,10 +179,9 @@ impl LodModel {
     /// the finest field (a coarse block exists exactly above fine ones), so it does not
     /// wait for the coarser fields to follow.
     pub fn top_lod(&self) -> u8 {
-        let keys: Vec<BlockKey> = self.fields[0].block_keys().collect();
         for lod in 0..=self.config.max_lod {
             let mut tiles = BTreeSet::new();
-            for key in &keys {
+            for key in self.fields[0].block_keys() {
                 let shift = 1i64 << lod.min(62);
                 let column = [key[0].div_euclid(shift) * 8, key[1].div_euclid(shift) * 8];
                 tiles.insert(self.grid.tile_of_column(lod, column));

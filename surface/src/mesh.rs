@@ -44,15 +44,7 @@ impl SurfaceMesh {
     /// Axis-aligned bounds of the positions (offsets from the origin), `None` when the
     /// mesh has no vertex.
     pub fn local_bounds(&self) -> Option<([f32; 3], [f32; 3])> {
-        let mut it = self.positions.iter();
-        let first = *it.next()?;
-        Some(it.fold((first, first), |(mut lo, mut hi), p| {
-            for k in 0..3 {
-                lo[k] = lo[k].min(p[k]);
-                hi[k] = hi[k].max(p[k]);
-            }
-            (lo, hi)
-        }))
+        texel::scan::bounds_of(&self.positions)
     }
 
     /// Bytes held by the arrays.

@@ -15,14 +15,17 @@ pub fn repo_root() -> PathBuf {
 /// The venv that `scripts/setup.sh` creates: `$TEXEL_VENV`, else
 /// `$XDG_CACHE_HOME/texel/venv`, else `~/.cache/texel/venv`.
 pub fn venv_dir() -> PathBuf {
-    if let Some(v) = std::env::var_os("TEXEL_VENV") {
-        return PathBuf::from(v);
-    }
-    let cache = std::env::var_os("XDG_CACHE_HOME")
+    std::env::var_os("TEXEL_VENV").map_or_else(|| texel_cache().join("venv"), PathBuf::from)
+}
+
+/// Where `scripts/setup.sh` keeps the peer tools: `$XDG_CACHE_HOME/texel`, else
+/// `~/.cache/texel`.
+fn texel_cache() -> PathBuf {
+    std::env::var_os("XDG_CACHE_HOME")
         .map(PathBuf::from)
         .or_else(|| std::env::var_os("HOME").map(|h| PathBuf::from(h).join(".cache")))
-        .unwrap_or_else(|| PathBuf::from(".cache"));
-    cache.join("texel").join("venv")
+        .unwrap_or_else(|| PathBuf::from(".cache"))
+        .join("texel")
 }
 
 /// The venv's Python. Panics with the set-up command when it is missing: the
@@ -58,14 +61,7 @@ pub fn run_python(script: &str, args: &[&std::ffi::OsStr]) -> Output {
 /// The Node.js peer checks that `scripts/setup.sh` installs: `$TEXEL_NODE_DIR`, else
 /// `$XDG_CACHE_HOME/texel/node`, else `~/.cache/texel/node`.
 pub fn node_dir() -> PathBuf {
-    if let Some(v) = std::env::var_os("TEXEL_NODE_DIR") {
-        return PathBuf::from(v);
-    }
-    let cache = std::env::var_os("XDG_CACHE_HOME")
-        .map(PathBuf::from)
-        .or_else(|| std::env::var_os("HOME").map(|h| PathBuf::from(h).join(".cache")))
-        .unwrap_or_else(|| PathBuf::from(".cache"));
-    cache.join("texel").join("node")
+    std::env::var_os("TEXEL_NODE_DIR").map_or_else(|| texel_cache().join("node"), PathBuf::from)
 }
 
 /// Runs `scripts/node/<script>` with Node.js, its packages resolved from

@@ -116,15 +116,7 @@ impl TexelScan {
 
     /// Axis-aligned bounds of the vertices in the scan frame, `None` for an empty scan.
     pub fn bounds(&self) -> Option<([f32; 3], [f32; 3])> {
-        let mut it = self.vertices.iter();
-        let first = *it.next()?;
-        Some(it.fold((first, first), |(mut lo, mut hi), p| {
-            for k in 0..3 {
-                lo[k] = lo[k].min(p[k]);
-                hi[k] = hi[k].max(p[k]);
-            }
-            (lo, hi)
-        }))
+        bounds_of(&self.vertices)
     }
 
     /// Bytes held by the scan's arrays and texture (for memory accounting).
@@ -139,4 +131,17 @@ impl TexelScan {
             + self.triangle_flags.len()
             + self.texture.rgb.len()
     }
+}
+
+/// Axis-aligned bounds (minimum, maximum) of points, `None` for no point.
+pub fn bounds_of(points: &[[f32; 3]]) -> Option<([f32; 3], [f32; 3])> {
+    let mut it = points.iter();
+    let first = *it.next()?;
+    Some(it.fold((first, first), |(mut lo, mut hi), p| {
+        for k in 0..3 {
+            lo[k] = lo[k].min(p[k]);
+            hi[k] = hi[k].max(p[k]);
+        }
+        (lo, hi)
+    }))
 }

@@ -133,26 +133,17 @@ pub fn run(args: &LodArgs) -> Result<()> {
     Ok(())
 }
 
-/// Every texel frame of the capture fused and placed by its `/truth/pose`.
+/// Every texel frame of the capture fused and placed by its `/truth/pose` (the
+/// export's own reading).
 fn truth_placed_scans(capture: &Path) -> Result<Vec<(Arc<TexelScan>, Pose)>> {
-    use texel::capture::{SensorCache, TexelItem, open_texel_frames};
-    let poses = texel_register::placement::CapturePoses::from_capture(capture)
-        .with_context(|| format!("reading the poses of {}", capture.display()))?;
-    let truth = poses.truth_poses();
-    let mut sensors = SensorCache::new();
     let mut placed = Vec::new();
-    for item in open_texel_frames(capture)? {
-        let (pair, model) = match item {
-            Err(e) if e.is_fatal() => return Err(e.into()),
-            Ok(TexelItem::Pair { pair, sensor }) => (pair, sensor),
-            _ => continue,
-        };
-        let Some(pose) = truth.get(&pair.timestamp_ns()).copied() else {
-            continue;
-        };
-        let scan = sensors.fuse(pair, &model, &texel::FuseConfig::default())?;
-        placed.push((Arc::new(scan), pose));
-    }
+    texel_daemon::model_export::for_each_placed_by(
+        capture,
+        &texel_register::RegistrationConfig::default(),
+        texel_daemon::model_export::PoseChoice::Truth,
+        &mut |scan, pose| placed.push((Arc::clone(scan), *pose)),
+    )
+    .with_context(|| format!("reading {}", capture.display()))?;
     Ok(placed)
 }
 
