@@ -5,7 +5,7 @@ use texel::wire::{DEFAULT_MAX_IN_FLIGHT, FetchPlan, Message};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{TcpStream, ToSocketAddrs};
 
-use crate::{ClientError, FrameReader, ServerInfo, hello, request, welcome};
+use crate::{ClientError, FrameReader, ServerInfo, hello, request, request_tile, welcome};
 
 /// An async connection to a daemon; it requests the listed scans it lacks as it
 /// reads (see the crate's documentation).
@@ -60,6 +60,11 @@ impl Client {
     /// Asks for scan `id`'s data (answered by `ScanAdded` or `ScanUnavailable`).
     pub async fn request_scan(&mut self, id: ScanId) -> Result<(), ClientError> {
         self.send_raw(&request(id)?).await
+    }
+
+    /// Asks for tile `id`'s data (answered by `TileData` or `TileUnavailable`).
+    pub async fn request_tile(&mut self, id: texel::tile::TileId) -> Result<(), ClientError> {
+        self.send_raw(&request_tile(id)?).await
     }
 
     /// Writes bytes as they are (a test's hostile or hand-made frames).

@@ -14,9 +14,9 @@ use std::time::Duration;
 use texel::wire::Message;
 pub use texel::wire::client::{
     Applied, ClientError, FrameReader, Replica, ReplicaError, ServerInfo, Update, hello, request,
-    update, welcome,
+    request_tile, update, welcome,
 };
-pub use texel::wire::{DEFAULT_MAX_IN_FLIGHT, FetchPlan};
+pub use texel::wire::{DEFAULT_MAX_IN_FLIGHT, FetchPlan, TileCatalog, TileEvent};
 
 #[cfg(feature = "tokio")]
 mod async_client;
@@ -85,6 +85,14 @@ impl BlockingClient {
         use std::io::Write;
         self.stream
             .write_all(&request(id)?)
+            .map_err(ClientError::Io)
+    }
+
+    /// Asks for tile `id`'s data (answered by `TileData` or `TileUnavailable`).
+    pub fn request_tile(&mut self, id: texel::tile::TileId) -> Result<(), ClientError> {
+        use std::io::Write;
+        self.stream
+            .write_all(&request_tile(id)?)
             .map_err(ClientError::Io)
     }
 

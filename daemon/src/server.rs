@@ -19,7 +19,7 @@ use std::sync::{Arc, Weak};
 use std::time::{Duration, Instant};
 
 use bytes::BytesMut;
-use texel::wire::{Message, PROTOCOL_VERSION};
+use texel::wire::Message;
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::Semaphore;
 use tokio::task::JoinSet;
@@ -181,7 +181,7 @@ async fn connection(
     drop(ticket);
     let refusal = match outcome {
         HelloOutcome::Hello(hello) => match handshake::admit(hello, options.token.as_deref()) {
-            Ok(client_name) => {
+            Ok(admitted) => {
                 let Ok(slot) = Arc::clone(&shared.slots).try_acquire_owned() else {
                     metrics.add(Counter::ClientsRefused, 1);
                     tracing::warn!(%peer, "refused: {} viewers already connected", options.max_clients);
@@ -190,7 +190,7 @@ async fn connection(
                     return;
                 };
                 metrics.clients.fetch_add(1, Ordering::Relaxed);
-                serve_viewer(&mut rd, &mut wr, &mut inbuf, peer, &client_name, shared).await;
+                serve_viewer(&mut rd, &mut wr, &mut inbuf, peer, &admitted, shared).await;
                 metrics.clients.fetch_sub(1, Ordering::Relaxed);
                 drop(slot);
                 return;
@@ -224,9 +224,10 @@ async fn serve_viewer(
     wr: &mut tokio::net::tcp::OwnedWriteHalf,
     inbuf: &mut BytesMut,
     peer: SocketAddr,
-    client_name: &str,
+    admitted: &handshake::Admitted,
     shared: &Shared,
 ) {
+    let client_name = &admitted.client_name;
     let (options, metrics) = (&shared.options, &shared.metrics);
     let settings = StreamSettings {
         slow_client: options.slow_client,
@@ -234,9 +235,11 @@ async fn serve_viewer(
         write_timeout: options.write_timeout,
         shutdown: &shared.hard_stop,
         max_requests_in_flight: options.max_requests_in_flight,
+        tiles: admitted.version >= 3,
     };
+    // The stream speaks the client's version (each one this server serves).
     let welcome = Message::ServerHello {
-        version: PROTOCOL_VERSION,
+        version: admitted.version,
         server_name: options.server_name.clone(),
         session_name: options.session_name.clone(),
     };

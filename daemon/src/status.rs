@@ -368,6 +368,7 @@ impl Metrics {
             recording,
             clients: self.clients.load(Ordering::Relaxed),
             model: None,
+            lod: None,
         }
     }
 }
@@ -425,6 +426,12 @@ pub fn status_line(s: &Status) -> String {
             m.on_disk,
             m.memory_bytes as f64 / 1048576.0,
             m.memory_budget_bytes as f64 / 1048576.0
+        ));
+    }
+    if let Some(l) = &s.lod {
+        line.push_str(&format!(
+            "; lod {} tiles (top {}), {} scans and {} tiles pending, lag {:.1} s, {:.0} B/tile",
+            l.tiles, l.top_lod, l.pending_scans, l.pending_tiles, l.lag_s, l.mean_tile_bytes
         ));
     }
     line.push_str(&format!("; clients {}", s.clients));

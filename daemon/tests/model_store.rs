@@ -47,6 +47,7 @@ fn memory_stays_within_the_budget_and_evicted_frames_read_back_byte_for_byte() {
             store: Some(Arc::clone(&store)),
             coverage: None,
             shelf: None,
+            ..ModelOptions::default()
         },
     );
     let mut frames = Vec::new();
@@ -118,6 +119,7 @@ fn redundant_scan_returns(shelved: bool) {
             store: Some(Arc::clone(&store)),
             coverage: Some(config),
             shelf: shelf(dir.path(), shelved),
+            ..ModelOptions::default()
         },
     );
     let mut sub = hub.subscribe().unwrap();
@@ -194,6 +196,7 @@ fn signature_read_back(shelved: bool) {
             store: Some(Arc::clone(&store)),
             coverage: Some(config),
             shelf: shelf(dir.path(), shelved),
+            ..ModelOptions::default()
         },
     );
     let s = scan(3);
@@ -236,6 +239,7 @@ fn with_a_shelf_retired_scans_leave_memory_and_keep_their_poses() {
                 store: Some(Arc::clone(&store)),
                 coverage: Some(config),
                 shelf: shelf(dir.path(), shelved),
+                ..ModelOptions::default()
             },
         );
         let s = scan(3);

@@ -7,6 +7,7 @@ use std::collections::BTreeMap;
 use texel_surface::{SurfaceMesh, Tsdf, TsdfConfig, TsdfError, VoxelRegion, extract, simplify};
 use thiserror::Error;
 
+use crate::select::TileInfo;
 use crate::tree::{Grid, MAX_LOD, TileId};
 
 /// How fine the hierarchy is and what a tile may cost. TOML overrides the defaults;
@@ -152,6 +153,17 @@ pub struct Hierarchy {
     pub nodes: BTreeMap<TileId, LodNode>,
 }
 
+impl LodNode {
+    /// What selection needs of the tile: its bounds and error.
+    pub fn info(&self) -> TileInfo {
+        TileInfo {
+            bounds_min_m: self.bounds_min_m,
+            bounds_max_m: self.bounds_max_m,
+            geometric_error_m: self.geometric_error_m,
+        }
+    }
+}
+
 impl Hierarchy {
     /// Tiles of the top level.
     pub fn roots(&self) -> Vec<TileId> {
@@ -191,25 +203,15 @@ impl Hierarchy {
             .filter(|(id, _)| id.lod <= top_lod)
             .map(|(id, n)| (*id, n.clone()))
             .collect();
-        for lod in 1..=top_lod {
-            let ids: Vec<TileId> = nodes.keys().filter(|id| id.lod == lod).copied().collect();
-            for id in ids {
-                let children: Vec<(f64, [f64; 3], [f64; 3])> = id
-                    .children()
-                    .into_iter()
-                    .flatten()
-                    .filter_map(|c| nodes.get(&c))
-                    .map(|c| (c.geometric_error_m, c.bounds_min_m, c.bounds_max_m))
-                    .collect();
-                if let Some(node) = nodes.get_mut(&id) {
-                    for (error, lo, hi) in children {
-                        node.geometric_error_m = node.geometric_error_m.max(error);
-                        for a in 0..3 {
-                            node.bounds_min_m[a] = node.bounds_min_m[a].min(lo[a]);
-                            node.bounds_max_m[a] = node.bounds_max_m[a].max(hi[a]);
-                        }
-                    }
-                }
+        let nested = nest(
+            nodes.iter().map(|(id, n)| (*id, n.info())).collect(),
+            top_lod,
+        );
+        for (id, info) in nested {
+            if let Some(node) = nodes.get_mut(&id) {
+                node.bounds_min_m = info.bounds_min_m;
+                node.bounds_max_m = info.bounds_max_m;
+                node.geometric_error_m = info.geometric_error_m;
             }
         }
         Ok(Hierarchy {
@@ -218,6 +220,33 @@ impl Hierarchy {
             nodes,
         })
     }
+}
+
+/// Nests tiles' bounds and errors up to `top_lod`, finest first: a parent's error
+/// becomes at least each child's and its box grows to hold theirs.
+pub fn nest(mut infos: BTreeMap<TileId, TileInfo>, top_lod: u8) -> BTreeMap<TileId, TileInfo> {
+    infos.retain(|id, _| id.lod <= top_lod);
+    for lod in 1..=top_lod {
+        let ids: Vec<TileId> = infos.keys().filter(|id| id.lod == lod).copied().collect();
+        for id in ids {
+            let children: Vec<TileInfo> = id
+                .children()
+                .into_iter()
+                .flatten()
+                .filter_map(|c| infos.get(&c).copied())
+                .collect();
+            if let Some(info) = infos.get_mut(&id) {
+                for child in children {
+                    info.geometric_error_m = info.geometric_error_m.max(child.geometric_error_m);
+                    for a in 0..3 {
+                        info.bounds_min_m[a] = info.bounds_min_m[a].min(child.bounds_min_m[a]);
+                        info.bounds_max_m[a] = info.bounds_max_m[a].max(child.bounds_max_m[a]);
+                    }
+                }
+            }
+        }
+    }
+    infos
 }
 
 /// The hierarchy over a leaf field (anchored at the world origin, as

@@ -13,7 +13,8 @@ use std::collections::{BTreeMap, BTreeSet};
 use texel::{Pose, TexelScan};
 use texel_surface::{BlockKey, Sample, Tsdf, parent_block, scan_samples};
 
-use crate::build::{Hierarchy, LodConfig, LodError, LodNode, build_tile};
+use crate::build::{Hierarchy, LodConfig, LodError, LodNode, build_tile, nest};
+use crate::select::TileInfo;
 use crate::tree::{Grid, TileId};
 
 /// The level-of-detail model of a growing scan model.
@@ -30,6 +31,8 @@ pub struct LodModel {
     /// Built tiles, each with its own error and bounds (the tree adds its
     /// descendants').
     nodes: BTreeMap<TileId, LodNode>,
+    /// Tiles rebuilt (or emptied) since [`Self::take_rebuilt`] was last called.
+    rebuilt: BTreeSet<TileId>,
     scans: usize,
 }
 
@@ -48,6 +51,7 @@ impl LodModel {
             changed: BTreeSet::new(),
             dirty: BTreeSet::new(),
             nodes: BTreeMap::new(),
+            rebuilt: BTreeSet::new(),
             scans: 0,
         })
     }
@@ -164,9 +168,30 @@ impl LodModel {
                 self.nodes
                     .insert(id, build_tile(field, &self.grid, id, &self.config));
             }
+            self.rebuilt.insert(id);
             rebuilt += 1;
         }
         rebuilt
+    }
+
+    /// The tiles rebuilt since the last call (a tile rebuilt empty is among them and
+    /// no longer in [`Self::node`]): what a server publishes anew.
+    pub fn take_rebuilt(&mut self) -> BTreeSet<TileId> {
+        std::mem::take(&mut self.rebuilt)
+    }
+
+    /// A built tile as it was built (its own bounds and error).
+    pub fn node(&self, id: TileId) -> Option<&LodNode> {
+        self.nodes.get(&id)
+    }
+
+    /// Every built tile up to the top of the tree with its nested bounds and error
+    /// (as in [`Self::hierarchy`], without copying a mesh).
+    pub fn tree_infos(&self) -> BTreeMap<TileId, TileInfo> {
+        nest(
+            self.nodes.iter().map(|(id, n)| (*id, n.info())).collect(),
+            self.top_lod(),
+        )
     }
 
     /// The tiles rebuilt so far as a tree.

@@ -14,66 +14,7 @@
 
 use serde::{Deserialize, Serialize};
 
-/// A tile of the grid: `lod` levels above the finest, column `x` and row `y` (tile
-/// `(x, y)` of level `lod` spans `[x, x + 1) × [y, y + 1)` tile edges from the world
-/// origin).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
-pub struct TileId {
-    pub lod: u8,
-    pub x: i64,
-    pub y: i64,
-}
-
-/// The highest level a grid has: 2^24 finest tiles across is beyond any walk.
-pub const MAX_LOD: u8 = 24;
-
-impl TileId {
-    /// The four tiles of the level below that make this one, in a fixed order;
-    /// `None` at the finest level.
-    pub fn children(self) -> Option<[TileId; 4]> {
-        let lod = self.lod.checked_sub(1)?;
-        let (x, y) = (self.x * 2, self.y * 2);
-        Some([
-            TileId { lod, x, y },
-            TileId { lod, x: x + 1, y },
-            TileId { lod, x, y: y + 1 },
-            TileId {
-                lod,
-                x: x + 1,
-                y: y + 1,
-            },
-        ])
-    }
-
-    /// The tile of the level above that holds this one, `None` at [`MAX_LOD`].
-    pub fn parent(self) -> Option<TileId> {
-        (self.lod < MAX_LOD).then(|| TileId {
-            lod: self.lod + 1,
-            x: self.x.div_euclid(2),
-            y: self.y.div_euclid(2),
-        })
-    }
-
-    /// The tile `levels` above (itself for 0), saturating at [`MAX_LOD`].
-    pub fn ancestor(self, lod: u8) -> TileId {
-        let up = u32::from(lod.saturating_sub(self.lod));
-        TileId {
-            lod: self.lod.max(lod),
-            x: self.x.div_euclid(1i64 << up.min(62)),
-            y: self.y.div_euclid(1i64 << up.min(62)),
-        }
-    }
-
-    /// Whether `self` is `other` or lies inside it.
-    pub fn is_within(self, other: TileId) -> bool {
-        self.lod <= other.lod && self.ancestor(other.lod) == other
-    }
-
-    /// A path-like name, `lod/x/y`.
-    pub fn path(self) -> String {
-        format!("{}/{}/{}", self.lod, self.x, self.y)
-    }
-}
+pub use texel::tile::{MAX_LOD, TileId};
 
 /// The grid's resolution: how fine the finest level is and how many voxels a tile
 /// has across at every level.

@@ -19,6 +19,7 @@ pub mod scan;
 pub mod sensor;
 pub mod stats;
 pub mod sync;
+pub mod tile;
 pub mod txl1;
 pub mod wire;
 

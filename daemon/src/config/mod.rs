@@ -15,7 +15,7 @@ use thiserror::Error;
 mod model;
 #[cfg(feature = "sim")]
 mod sim;
-pub use model::ModelSection;
+pub use model::{LodSection, ModelSection};
 #[cfg(feature = "sim")]
 pub use sim::{LatePolicy, SimConfig, SimSerialConfig, SimSetup};
 

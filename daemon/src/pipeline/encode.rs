@@ -21,6 +21,7 @@ use texel::{Pose, TexelScan};
 use tokio::sync::mpsc;
 
 use crate::hub::Hub;
+use crate::pipeline::lod::LodInbox;
 use crate::status::{Counter, Metrics, Stage};
 
 /// One change to publish.
@@ -48,6 +49,8 @@ pub struct Encoder {
     pub jpeg_quality: u8,
     /// How a scan's coverage is measured (its priority, and retirement's input).
     pub coverage: CoverageConfig,
+    /// The level-of-detail stage's inbox, when the tree is built.
+    pub lod: Option<Arc<LodInbox>>,
 }
 
 impl Encoder {
@@ -65,7 +68,12 @@ impl Encoder {
                     id,
                     world_from_scan,
                 } => match self.hub.revise_pose(id, world_from_scan) {
-                    Ok(()) => self.metrics.add(Counter::PoseRevisions, 1),
+                    Ok(()) => {
+                        self.metrics.add(Counter::PoseRevisions, 1);
+                        if let Some(lod) = &self.lod {
+                            lod.revision(id, world_from_scan);
+                        }
+                    }
                     Err(e) => tracing::warn!("pose revision of scan {id} refused: {e}"),
                 },
             }
@@ -101,6 +109,11 @@ impl Encoder {
         // what retirement tests it by.
         let coverage = ScanCoverage::of(&scan, &self.coverage);
         let listing = ScanListing::of_scan(&scan, frame.len() as u64, coverage.score() as f32);
+        // The tree fuses every scan, retired ones too: a redundant scan still
+        // averages the surface down, and it costs the tree nothing to keep.
+        if let Some(lod) = &self.lod {
+            lod.scan(id, &scan, world_from_scan);
+        }
         drop(scan);
         // Into the store first, so the hub may drop it from memory at any time.
         let stored = match self.hub.store() {

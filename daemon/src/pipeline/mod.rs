@@ -16,6 +16,7 @@
 
 pub mod encode;
 pub mod ingest;
+pub mod lod;
 mod restore;
 /// The registration stage lives with registration; the pipeline drives it.
 pub use texel_register::placement;
@@ -38,6 +39,7 @@ use tokio_util::sync::CancellationToken;
 
 use crate::config::{RegistrationMode, SessionConfig};
 use crate::hub::{Hub, ModelOptions};
+use self::lod::{LodInbox, LodStage};
 use crate::pages::FilePages;
 use crate::record::{RecordItem, RecordSummary, Recorder};
 use crate::resume::{self, ResumeError};
@@ -244,7 +246,18 @@ fn model_options(
     } else {
         None
     };
+    // Tile data beyond its budget waits in its own unlinked store beside the scans'.
+    let tile_store = if config.model.lod.enabled {
+        Some(Arc::new(
+            Store::create_unlinked_in(&spill_dir(config, recording), "tiles")
+                .map_err(|e| SessionError::Store(format!("tile store: {e}")))?,
+        ))
+    } else {
+        None
+    };
     Ok(ModelOptions {
+        tile_memory_budget_bytes: config.model.lod.tile_memory_budget_bytes(),
+        tile_store,
         memory_budget_bytes: config.model.memory_budget_bytes(),
         store: Some(Arc::new(store)),
         coverage: Some(config.model.retirement),
@@ -436,6 +449,13 @@ pub fn build_registration(config: &SessionConfig) -> Result<Box<dyn Registration
     }
 }
 
+/// The level-of-detail stage's last status.
+fn lock_status(s: &std::sync::Mutex<texel::wire::LodStatus>) -> texel::wire::LodStatus {
+    s.lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+        .clone()
+}
+
 fn depth_probe<T: Send + 'static>(name: &'static str, tx: &mpsc::Sender<T>) -> QueueProbe {
     let weak = tx.downgrade();
     QueueProbe {
@@ -516,7 +536,34 @@ async fn run(
         timestamp_pages: Some(word_pages(&config, "timestamps")?),
         hanging_pages: Some(word_pages(&config, "hanging")?),
     };
+    // The level-of-detail tree, off the ingest path.
+    let lod_status = Arc::new(std::sync::Mutex::new(texel::wire::LodStatus::default()));
+    let lod_stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let lod = if config.model.lod.enabled {
+        let inbox = LodInbox::new(config.model.lod.held_scans);
+        // Scans a resumed session restored are fused first (read back from the store).
+        for (id, pose) in hub.served_poses() {
+            inbox.revision(id, pose);
+        }
+        let stage = LodStage {
+            inbox: Arc::clone(&inbox),
+            hub: Arc::clone(&hub),
+            scans: hub.store().cloned(),
+            tiles: hub.tile_store().cloned(),
+            config: config.model.lod,
+            status: Arc::clone(&lod_status),
+            stop: Arc::clone(&lod_stop),
+        };
+        let thread = std::thread::Builder::new()
+            .name("texel-lod".into())
+            .spawn(move || stage.run())
+            .map_err(|e| SessionError::Thread(e.to_string()))?;
+        Some((inbox, thread))
+    } else {
+        None
+    };
     let encoder = Encoder {
+        lod: lod.as_ref().map(|(inbox, _)| Arc::clone(inbox)),
         rx: publish_rx,
         hub: Arc::clone(&hub),
         metrics: Arc::clone(&metrics),
@@ -554,6 +601,7 @@ async fn run(
     let status_stop = CancellationToken::new();
     {
         let (metrics, hub, stop) = (Arc::clone(&metrics), Arc::clone(&hub), status_stop.clone());
+        let lod_status = lod.is_some().then(|| Arc::clone(&lod_status));
         let period = Duration::from_millis(config.status.interval_ms);
         let log = config.status.log;
         tokio::spawn(async move {
@@ -566,6 +614,7 @@ async fn run(
                 }
                 let mut status = metrics.snapshot();
                 status.model = Some(hub.status());
+                status.lod = lod_status.as_ref().map(|s| lock_status(s));
                 if log {
                     tracing::info!("status: {}", status_line(&status));
                 }
@@ -645,8 +694,19 @@ async fn run(
         );
     }
     status_stop.cancel();
+    if let Some((inbox, thread)) = lod {
+        lod_stop.store(true, std::sync::atomic::Ordering::Release);
+        inbox.close();
+        let joined = tokio::task::spawn_blocking(move || thread.join())
+            .await
+            .map_err(|e| SessionError::Thread(e.to_string()))?;
+        if joined.is_err() {
+            tracing::error!("the level-of-detail thread panicked");
+        }
+    }
     let mut status = metrics.snapshot();
     status.model = Some(hub.status());
+    status.lod = config.model.lod.enabled.then(|| lock_status(&lod_status));
     tracing::info!("final status: {}", status_line(&status));
     hub.close("the daemon is shutting down");
     server_stop.cancel();

@@ -42,6 +42,8 @@ pub async fn restore_session(
         texture: config.serve.texture,
         jpeg_quality: config.serve.jpeg_quality,
         coverage: config.model.retirement,
+        // The session's tree fuses the restored scans once it starts (from the store).
+        lod: None,
     };
     let fuse = config.pipeline.fuse;
     let encode_thread = std::thread::Builder::new()

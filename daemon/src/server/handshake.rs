@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use bytes::BytesMut;
 use subtle::ConstantTimeEq;
-use texel::wire::{Limits, Message, PROTOCOL_VERSION, decode_frame};
+use texel::wire::{Limits, MIN_PROTOCOL_VERSION, Message, PROTOCOL_VERSION, decode_frame};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::tcp::{OwnedReadHalf, OwnedWriteHalf};
 use tokio_util::sync::CancellationToken;
@@ -62,8 +62,16 @@ async fn read_message(rd: &mut OwnedReadHalf, buf: &mut BytesMut) -> Result<Mess
     }
 }
 
+/// An admitted client: its name and the protocol version the stream speaks.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Admitted {
+    pub client_name: String,
+    pub version: u16,
+}
+
 /// Checks the hello: protocol version and token (required when `token` is set).
-pub fn admit(hello: Message, token: Option<&str>) -> Result<String, String> {
+/// Versions 2 and 3 are served (2 without the level-of-detail tree).
+pub fn admit(hello: Message, token: Option<&str>) -> Result<Admitted, String> {
     let Message::ClientHello {
         version,
         token: given,
@@ -73,15 +81,15 @@ pub fn admit(hello: Message, token: Option<&str>) -> Result<String, String> {
         return Err(format!("expected ClientHello, got {}", hello.kind_name()));
     };
     if version == 1 {
-        // Version 1 clients expect every scan's data in the snapshot; a version 2
-        // daemon lists scans and sends them on request.
+        // Version 1 clients expect every scan's data in the snapshot; this daemon
+        // lists scans and sends them on request.
         return Err(format!(
             "protocol version 1 is not served; this daemon speaks version {PROTOCOL_VERSION}: update the viewer"
         ));
     }
-    if version != PROTOCOL_VERSION {
+    if !(MIN_PROTOCOL_VERSION..=PROTOCOL_VERSION).contains(&version) {
         return Err(format!(
-            "protocol version {version} is not supported; this server speaks {PROTOCOL_VERSION}"
+            "protocol version {version} is not supported; this server speaks {MIN_PROTOCOL_VERSION} to {PROTOCOL_VERSION}"
         ));
     }
     if let Some(expected) = token {
@@ -91,7 +99,10 @@ pub fn admit(hello: Message, token: Option<&str>) -> Result<String, String> {
             return Err("wrong token".into());
         }
     }
-    Ok(client_name)
+    Ok(Admitted {
+        client_name,
+        version,
+    })
 }
 
 /// Sends `Refused { reason }` and closes, giving up after `timeout` (a client that

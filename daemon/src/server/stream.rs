@@ -23,6 +23,7 @@ use std::time::Duration;
 
 use bytes::{Bytes, BytesMut};
 use texel::model::ScanId;
+use texel::tile::TileId;
 use texel::wire::{Limits, MAX_REASON_LEN, Message, decode_frame};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::tcp::{OwnedReadHalf, OwnedWriteHalf};
@@ -74,8 +75,17 @@ pub struct StreamSettings<'a> {
     pub max_resyncs: u32,
     pub write_timeout: Duration,
     pub shutdown: &'a CancellationToken,
-    /// Scan requests a client may have outstanding.
+    /// Scan and tile requests a client may have outstanding.
     pub max_requests_in_flight: usize,
+    /// The client speaks version 3: it may request tiles.
+    pub tiles: bool,
+}
+
+/// A client's request for data.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Request {
+    Scan(ScanId),
+    Tile(TileId),
 }
 
 /// Writes one frame. Each write must hand the socket some bytes within
@@ -117,8 +127,8 @@ pub async fn goodbye(wr: &mut OwnedWriteHalf, reason: &str, timeout: Duration) {
     }
 }
 
-/// A request being answered: its id and the blocking fetch of its frame.
-type Fetching = Option<(ScanId, JoinHandle<Result<Bytes, FetchError>>)>;
+/// A request being answered: what was asked and the blocking fetch of its frame.
+type Fetching = Option<(Request, JoinHandle<Result<Bytes, FetchError>>)>;
 
 /// Streams the model to a viewer until it leaves, is dropped, or the hub closes.
 /// Resyncs are counted in `resynced`.
@@ -136,7 +146,15 @@ pub async fn stream_model(
     let outstanding = AtomicUsize::new(0);
     let (requests_tx, mut requests_rx) = mpsc::channel(limit);
     let (end_tx, mut end_rx) = oneshot::channel();
-    let reader = read_client(rd, inbuf, &outstanding, limit, requests_tx, end_tx);
+    let reader = read_client(
+        rd,
+        inbuf,
+        &outstanding,
+        limit,
+        settings.tiles,
+        requests_tx,
+        end_tx,
+    );
     let writer = write_stream(
         wr,
         hub,
@@ -160,7 +178,8 @@ async fn read_client(
     inbuf: &mut BytesMut,
     outstanding: &AtomicUsize,
     limit: usize,
-    requests: mpsc::Sender<ScanId>,
+    tiles: bool,
+    requests: mpsc::Sender<Request>,
     end_tx: oneshot::Sender<End>,
 ) {
     let end = 'read: loop {
@@ -170,16 +189,9 @@ async fn read_client(
             match decode_frame(inbuf, &Limits::FROM_CLIENT) {
                 Ok(Some((message, used))) => {
                     let _ = inbuf.split_to(used);
-                    match message {
-                        Message::RequestScan { id } => {
-                            if outstanding.load(Ordering::Acquire) >= limit {
-                                break 'read End::TooManyRequests(limit);
-                            }
-                            outstanding.fetch_add(1, Ordering::AcqRel);
-                            if requests.try_send(id).is_err() {
-                                break 'read End::TooManyRequests(limit);
-                            }
-                        }
+                    let request = match message {
+                        Message::RequestScan { id } => Request::Scan(id),
+                        Message::RequestTile { id } if tiles => Request::Tile(id),
                         Message::Goodbye { .. } => break 'read End::ClientLeft,
                         m => {
                             break 'read End::Error(format!(
@@ -187,6 +199,13 @@ async fn read_client(
                                 m.kind_name()
                             ));
                         }
+                    };
+                    if outstanding.load(Ordering::Acquire) >= limit {
+                        break 'read End::TooManyRequests(limit);
+                    }
+                    outstanding.fetch_add(1, Ordering::AcqRel);
+                    if requests.try_send(request).is_err() {
+                        break 'read End::TooManyRequests(limit);
                     }
                 }
                 Ok(None) => break,
@@ -214,7 +233,7 @@ async fn write_stream(
     hub: &Arc<Hub>,
     settings: &StreamSettings<'_>,
     outstanding: &AtomicUsize,
-    requests: &mut mpsc::Receiver<ScanId>,
+    requests: &mut mpsc::Receiver<Request>,
     end_rx: &mut oneshot::Receiver<End>,
     mut resynced: impl FnMut(),
 ) -> End {
@@ -222,7 +241,7 @@ async fn write_stream(
     let mut resyncs = 0u32;
     let mut fetching: Fetching = None;
     loop {
-        let mut sub = match hub.subscribe() {
+        let mut sub = match hub.subscribe_with(settings.tiles) {
             Ok(s) => s,
             Err(HubError::Closed) => return End::Shutdown,
             Err(e) => return End::Error(e.to_string()),
@@ -267,10 +286,13 @@ async fn write_stream(
                             None => return Err(End::Shutdown),
                         }
                     }
-                    Some(id) = requests.recv(), if idle => {
+                    Some(request) = requests.recv(), if idle => {
                         let hub = Arc::clone(hub);
-                        let task = tokio::task::spawn_blocking(move || hub.fetch_scan(id));
-                        fetching = Some((id, task));
+                        let task = tokio::task::spawn_blocking(move || match request {
+                            Request::Scan(id) => hub.fetch_scan(id),
+                            Request::Tile(id) => hub.fetch_tile(id),
+                        });
+                        fetching = Some((request, task));
                     }
                     fetched = async {
                         match fetching.as_mut() {
@@ -278,18 +300,24 @@ async fn write_stream(
                             None => std::future::pending().await,
                         }
                     }, if !idle => {
-                        let Some((id, _)) = fetching.take() else {
+                        let Some((request, _)) = fetching.take() else {
                             continue;
                         };
-                        let answer = match fetched {
-                            Ok(Ok(frame)) => hub.finish_fetch(id, frame),
-                            Ok(Err(e)) => Err(e),
-                            Err(e) => Err(FetchError::Failed {
-                                id,
+                        let answer = match (fetched, request) {
+                            (Ok(Ok(frame)), Request::Scan(id)) => hub.finish_fetch(id, frame),
+                            // A tile's data is complete in itself: a rebuild since is
+                            // listed with a newer revision, which the client fetches.
+                            (Ok(Ok(frame)), Request::Tile(_)) => {
+                                hub.note_tile_sent(frame.len());
+                                Ok(vec![frame])
+                            }
+                            (Ok(Err(e)), _) => Err(e),
+                            (Err(e), request) => Err(FetchError::Failed {
+                                what: describe(request),
                                 message: format!("the read failed: {e}"),
                             }),
                         };
-                        let written = answer_request(wr, id, answer, settings).await;
+                        let written = answer_request(wr, request, answer, settings).await;
                         // Counted until answered, as the client counts it.
                         outstanding.fetch_sub(1, Ordering::AcqRel);
                         written?;
@@ -317,10 +345,19 @@ async fn write_stream(
     }
 }
 
-/// Writes the answer to a request: the scan's frames, or why it is unavailable.
+/// "scan 7" or "tile 2/-1/3", for messages.
+fn describe(request: Request) -> String {
+    match request {
+        Request::Scan(id) => format!("scan {id}"),
+        Request::Tile(id) => format!("tile {}", id.path()),
+    }
+}
+
+/// Writes the answer to a request: the scan's or tile's frames, or why it is
+/// unavailable.
 async fn answer_request(
     wr: &mut OwnedWriteHalf,
-    id: ScanId,
+    request: Request,
     answer: Result<Vec<Bytes>, FetchError>,
     settings: &StreamSettings<'_>,
 ) -> Result<(), End> {
@@ -335,7 +372,11 @@ async fn answer_request(
         Err(FetchError::Closed) => Err(End::Shutdown),
         Err(e) => {
             let reason: String = e.to_string().chars().take(MAX_REASON_LEN / 4).collect();
-            let frame = Message::ScanUnavailable { id, reason }
+            let message = match request {
+                Request::Scan(id) => Message::ScanUnavailable { id, reason },
+                Request::Tile(id) => Message::TileUnavailable { id, reason },
+            };
+            let frame = message
                 .encode()
                 .map_err(|e| End::Error(format!("cannot encode an answer: {e}")))?;
             write_frame(wr, &frame, write_timeout, shutdown).await

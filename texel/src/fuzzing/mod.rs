@@ -556,6 +556,32 @@ pub fn sample_messages() -> Vec<Message> {
             reason: "scan 8 is not in the served model".into(),
         },
         Message::RequestScan { id: 8 },
+        Message::TileListed {
+            id: crate::tile::TileId { lod: 2, x: -3, y: 4 },
+            listing: crate::tile::TileListing {
+                revision: 5,
+                bounds_min_m: [-25.6, 51.2, -1.0],
+                bounds_max_m: [0.0, 76.8, 12.0],
+                geometric_error_m: 0.25,
+                triangles: 100,
+                encoded_bytes: 2000,
+            },
+        },
+        Message::TileWithdrawn {
+            id: crate::tile::TileId { lod: 0, x: 0, y: 0 },
+        },
+        Message::TileData(Box::new(wire::WireTile {
+            id: crate::tile::TileId { lod: 1, x: 9, y: -9 },
+            revision: 5,
+            data: b"TXLT".to_vec(),
+        })),
+        Message::TileUnavailable {
+            id: crate::tile::TileId { lod: 1, x: 9, y: -9 },
+            reason: "tile 1/9/-9 is not in the tree".into(),
+        },
+        Message::RequestTile {
+            id: crate::tile::TileId { lod: 1, x: 9, y: -9 },
+        },
     ]
 }
 

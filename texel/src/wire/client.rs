@@ -10,6 +10,8 @@ use std::time::Duration;
 use bytes::BytesMut;
 use thiserror::Error;
 
+use super::{TileCatalog, TileEvent};
+use crate::tile::TileId;
 use super::{FetchPlan, Limits, Message, PROTOCOL_VERSION, Status, WireError, decode_frame};
 use crate::model::{Model, ModelError, ModelEvent, ScanId};
 
@@ -74,6 +76,11 @@ pub fn request(id: ScanId) -> Result<Vec<u8>, ClientError> {
     Ok(Message::RequestScan { id }.encode()?)
 }
 
+/// A `RequestTile` frame.
+pub fn request_tile(id: TileId) -> Result<Vec<u8>, ClientError> {
+    Ok(Message::RequestTile { id }.encode()?)
+}
+
 /// The server's answer to the hello: who it is, or why it refused.
 pub fn welcome(message: Message) -> Result<ServerInfo, ClientError> {
     match message {
@@ -111,6 +118,8 @@ pub enum Applied {
         reason: String,
     },
     Status,
+    /// A tile of the level-of-detail tree was listed, withdrawn, answered or refused.
+    Tile(TileId),
     /// The server ends the stream.
     Goodbye(String),
     /// A message that does not change the model (a stray hello).
@@ -134,6 +143,8 @@ pub struct Replica {
     /// How many times the server reset the model (1 for the first snapshot).
     pub resets: u64,
     pub status: Option<Status>,
+    /// The level-of-detail tree's tiles (protocol version 3).
+    pub tiles: TileCatalog,
     /// Which listed scans are missing and which were requested.
     fetch: FetchPlan,
 }
@@ -169,6 +180,7 @@ impl Replica {
         Ok(match update(message)? {
             Update::Reset { scan_count } => {
                 self.model = Model::new();
+                self.tiles.clear();
                 self.live = false;
                 self.resets += 1;
                 Applied::Reset { scan_count }
@@ -193,6 +205,16 @@ impl Replica {
                 Applied::Status
             }
             Update::Unavailable { id, reason } => Applied::Unavailable { id, reason },
+            Update::Tile(event) => {
+                let id = match &event {
+                    TileEvent::Listed { id, .. }
+                    | TileEvent::Withdrawn { id }
+                    | TileEvent::Unavailable { id, .. } => *id,
+                    TileEvent::Data(tile) => tile.id,
+                };
+                self.tiles.apply(event);
+                Applied::Tile(id)
+            }
             Update::Goodbye(reason) => Applied::Goodbye(reason),
             Update::Ignored => Applied::Ignored,
         })
@@ -220,6 +242,8 @@ pub enum Update {
         reason: String,
     },
     Status(Box<Status>),
+    /// A change to the level-of-detail tree (version 3).
+    Tile(TileEvent),
     /// The server ends the stream (a goodbye, or a refusal after the handshake).
     Goodbye(String),
     /// A message that does not concern the model (a stray hello).
@@ -259,9 +283,16 @@ pub fn update(message: Message) -> Result<Update, WireError> {
         Message::ScanUnavailable { id, reason } => Update::Unavailable { id, reason },
         Message::Status(status) => Update::Status(status),
         Message::Goodbye { reason } | Message::Refused { reason } => Update::Goodbye(reason),
-        Message::ClientHello { .. } | Message::ServerHello { .. } | Message::RequestScan { .. } => {
-            Update::Ignored
+        Message::TileListed { id, listing } => Update::Tile(TileEvent::Listed { id, listing }),
+        Message::TileWithdrawn { id } => Update::Tile(TileEvent::Withdrawn { id }),
+        Message::TileData(tile) => Update::Tile(TileEvent::Data(tile)),
+        Message::TileUnavailable { id, reason } => {
+            Update::Tile(TileEvent::Unavailable { id, reason })
         }
+        Message::ClientHello { .. }
+        | Message::ServerHello { .. }
+        | Message::RequestScan { .. }
+        | Message::RequestTile { .. } => Update::Ignored,
     })
 }
 

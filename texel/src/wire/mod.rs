@@ -13,6 +13,8 @@ mod fetch;
 mod listing;
 mod scan;
 mod status;
+mod tile_catalog;
+mod tiles;
 
 pub use fetch::{DEFAULT_MAX_IN_FLIGHT, FetchPlan};
 pub use listing::LISTING_LEN;
@@ -20,16 +22,23 @@ pub use scan::{
     MAX_GRID_SIDE, MAX_TEXTURE_BYTES, Texture, TextureFormat, TextureRef, WireScan, WireScanRef,
     check_sendable,
 };
-pub use status::{ModelStatus, QueueStatus, RecordingStatus, SourceStatus, StageLatency, Status};
+pub use tile_catalog::{TileCatalog, TileEvent};
+pub use tiles::{MAX_TILE_DATA_BYTES, TILE_ID_LEN, TILE_LISTED_LEN, WireTile};
+pub use status::{LodStatus, ModelStatus, QueueStatus, RecordingStatus, SourceStatus, StageLatency, Status};
 
 use thiserror::Error;
 
 use crate::model::{ScanId, ScanListing};
 use crate::pose::{Pose, pose_from_parts, pose_to_parts};
+use crate::tile::{TileId, TileListing};
 use bytes_in::{BodyReader, PutLe};
 
-/// The protocol version this module speaks.
-pub const PROTOCOL_VERSION: u16 = 2;
+/// The protocol version this module speaks: 3 adds the level-of-detail tree's tiles
+/// to version 2.
+pub const PROTOCOL_VERSION: u16 = 3;
+/// The oldest version a server still serves (a version 2 client gets everything but
+/// the tiles).
+pub const MIN_PROTOCOL_VERSION: u16 = 2;
 /// Opens every client hello, so that a stray connection (HTTP, another protocol) is
 /// refused at its first bytes.
 pub const CLIENT_MAGIC: [u8; 4] = *b"TXLV";
@@ -77,9 +86,14 @@ mod kind {
     pub const SCAN_LISTED: u8 = 0x14;
     pub const SCAN_WITHDRAWN: u8 = 0x15;
     pub const SCAN_UNAVAILABLE: u8 = 0x16;
+    pub const TILE_LISTED: u8 = 0x17;
+    pub const TILE_WITHDRAWN: u8 = 0x18;
+    pub const TILE_DATA: u8 = 0x19;
+    pub const TILE_UNAVAILABLE: u8 = 0x1a;
     pub const STATUS: u8 = 0x20;
     pub const GOODBYE: u8 = 0x30;
     pub const REQUEST_SCAN: u8 = 0x40;
+    pub const REQUEST_TILE: u8 = 0x41;
 }
 
 /// Every message of the protocol.
@@ -124,6 +138,18 @@ pub enum Message {
     ScanUnavailable { id: ScanId, reason: String },
     /// Client -> server: send scan `id`'s data (a `ScanAdded`, or `ScanUnavailable`).
     RequestScan { id: ScanId },
+    /// Server -> client (version 3): a tile of the level-of-detail tree, new or
+    /// rebuilt (a new revision) or with new bounds; fetch its data with `RequestTile`.
+    TileListed { id: TileId, listing: TileListing },
+    /// Server -> client (version 3): the tile left the tree; forget it.
+    TileWithdrawn { id: TileId },
+    /// Server -> client (version 3): a tile's data, the answer to a `RequestTile`.
+    TileData(Box<WireTile>),
+    /// Server -> client (version 3): a `RequestTile` cannot be answered, and why.
+    TileUnavailable { id: TileId, reason: String },
+    /// Client -> server (version 3): send tile `id`'s data (a `TileData`, or
+    /// `TileUnavailable`).
+    RequestTile { id: TileId },
     /// Server -> client: the daemon's periodic status.
     Status(Box<Status>),
     /// Either way, then the sender closes: why the stream ends.
@@ -174,6 +200,11 @@ impl Message {
             Self::ScanWithdrawn { .. } => "ScanWithdrawn",
             Self::ScanUnavailable { .. } => "ScanUnavailable",
             Self::RequestScan { .. } => "RequestScan",
+            Self::TileListed { .. } => "TileListed",
+            Self::TileWithdrawn { .. } => "TileWithdrawn",
+            Self::TileData(_) => "TileData",
+            Self::TileUnavailable { .. } => "TileUnavailable",
+            Self::RequestTile { .. } => "RequestTile",
             Self::Status(_) => "Status",
             Self::Goodbye { .. } => "Goodbye",
         }
@@ -264,6 +295,26 @@ impl Message {
             Self::RequestScan { id } => {
                 out.put_u8(kind::REQUEST_SCAN);
                 out.put_u64(*id);
+            }
+            Self::TileListed { id, listing } => {
+                out.put_u8(kind::TILE_LISTED);
+                tiles::put_tile_listed(&mut out, *id, listing)?;
+            }
+            Self::TileWithdrawn { id } => {
+                out.put_u8(kind::TILE_WITHDRAWN);
+                tiles::put_tile_id(&mut out, *id);
+            }
+            Self::TileData(tile) => {
+                out.put_u8(kind::TILE_DATA);
+                tiles::put_tile_data(&mut out, tile)?;
+            }
+            Self::TileUnavailable { id, reason } => {
+                out.put_u8(kind::TILE_UNAVAILABLE);
+                tiles::put_tile_unavailable(&mut out, *id, reason)?;
+            }
+            Self::RequestTile { id } => {
+                out.put_u8(kind::REQUEST_TILE);
+                tiles::put_tile_id(&mut out, *id);
             }
             Self::Status(status) => {
                 out.put_u8(kind::STATUS);
@@ -409,6 +460,21 @@ fn decode_body(frame: &[u8]) -> Result<Message, WireError> {
         }
         kind::REQUEST_SCAN => Message::RequestScan {
             id: listing::read_id(body, "RequestScan")?,
+        },
+        kind::TILE_LISTED => {
+            let (id, listing) = tiles::read_tile_listed(body)?;
+            Message::TileListed { id, listing }
+        }
+        kind::TILE_WITHDRAWN => Message::TileWithdrawn {
+            id: tiles::read_tile_only(body, "TileWithdrawn")?,
+        },
+        kind::TILE_DATA => Message::TileData(Box::new(tiles::read_tile_data(body)?)),
+        kind::TILE_UNAVAILABLE => {
+            let (id, reason) = tiles::read_tile_unavailable(body)?;
+            Message::TileUnavailable { id, reason }
+        }
+        kind::REQUEST_TILE => Message::RequestTile {
+            id: tiles::read_tile_only(body, "RequestTile")?,
         },
         kind::STATUS => {
             let mut r = BodyReader::new(body, "Status");

@@ -95,4 +95,44 @@ pub struct Status {
     pub clients: u64,
     /// The served model (absent from daemons that predate it).
     pub model: Option<ModelStatus>,
+    /// The level-of-detail tree (absent when the daemon builds none).
+    pub lod: Option<LodStatus>,
+}
+
+/// The level-of-detail tree the daemon builds in the background: its size, how far
+/// it lags behind the scans, what its tiles cost on the wire.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct LodStatus {
+    /// Tiles served (holding surface, up to the top of the tree).
+    pub tiles: u64,
+    /// The top level of the tree (0: the finest).
+    pub top_lod: u64,
+    /// Scans waiting to be fused (new ones, and pose revisions past the threshold).
+    pub pending_scans: u64,
+    /// Tiles waiting to be rebuilt.
+    pub pending_tiles: u64,
+    /// Seconds since the oldest scan not yet reflected in the served tiles arrived
+    /// (0 when the tree is up to date).
+    pub lag_s: f64,
+    /// Scans fused so far, revisions applied (a scan moved out and in again), and
+    /// revisions under the threshold (too small to change a tile).
+    pub scans_fused: u64,
+    pub revisions_applied: u64,
+    pub revisions_skipped: u64,
+    /// Tiles rebuilt so far.
+    pub rebuilds: u64,
+    /// Bytes of a tile's data on the wire (`TileData` frame): the mean over the
+    /// served tiles, and the largest.
+    pub mean_tile_bytes: f64,
+    pub largest_tile_bytes: u64,
+    /// Tile data held in memory, and the fields the tree is merged from.
+    pub tile_memory_bytes: u64,
+    pub field_bytes: u64,
+    /// Tile data frames sent to viewers, and their bytes.
+    pub tiles_sent: u64,
+    pub tile_bytes_sent: u64,
+    /// Scans the stage could not read back (a damaged store entry); the first is
+    /// logged.
+    pub read_errors: u64,
 }

@@ -311,6 +311,9 @@ pub(super) fn forward(message: Message, tx: &SyncSender<ViewerEvent>) -> Result<
         // The consumer asked for it: it stops asking until the scan is listed again.
         Update::Unavailable { id, reason } => ViewerEvent::ScanUnavailable { id, reason },
         Update::Ignored => return Ok(true),
+        // The window does not draw the level-of-detail tree yet (`crate::tiles` does,
+        // headless): its events are not forwarded.
+        Update::Tile(_) => return Ok(true),
     };
     Ok(send(tx, event))
 }

@@ -25,8 +25,13 @@ use bytes::Bytes;
 use texel::Pose;
 use texel::coverage::{Changes, CoverageConfig, Retirement, ScanCoverage, Shelf};
 use texel::model::{ScanId, ScanListing};
+use texel::tile::TileId;
 use texel::wire::{Message, ModelStatus, WireError};
 use tokio::sync::mpsc;
+
+mod tiles;
+
+pub use tiles::{TileChange, TileCounts};
 
 use crate::serve_order::{REGION_M, Served, coarse_first};
 use crate::shelf::{DiskShelf, ShelfFiles, ShelfTable, ShelvedListing};
@@ -48,6 +53,8 @@ struct ClientSlot {
     id: u64,
     tx: mpsc::Sender<Bytes>,
     lagged: Arc<AtomicBool>,
+    /// Speaks protocol version 3: is sent the level-of-detail tree's tiles.
+    tiles: bool,
 }
 
 /// What the hub knows of one scan.
@@ -80,6 +87,11 @@ pub struct ModelOptions {
     /// Where retired scans' entries wait (the hub's and retirement's); `None` keeps
     /// them in memory.
     pub shelf: Option<Arc<ShelfFiles>>,
+    /// Tile frames held in memory beyond this are dropped to `tile_store` (least
+    /// recently used first) and read back on request.
+    pub tile_memory_budget_bytes: u64,
+    /// Where tile frames live beyond the budget, keyed by revision.
+    pub tile_store: Option<Arc<Store>>,
 }
 
 struct Inner {
@@ -102,6 +114,7 @@ struct Inner {
     retirement_work: RetirementWork,
     clients: Vec<ClientSlot>,
     next_client_id: u64,
+    tiles: tiles::TileTable,
     /// Set once the hub is closed: the reason clients are told.
     closed: Option<String>,
 }
@@ -130,10 +143,14 @@ pub enum FetchError {
     Store { id: ScanId, source: StoreError },
     #[error("scan {0} is neither in memory nor in a store")]
     Lost(ScanId),
+    #[error("tile {} is not in the served tree", .0.path())]
+    UnknownTile(TileId),
+    #[error("tile {} cannot be read back: {source}", .id.path())]
+    TileStore { id: TileId, source: StoreError },
     #[error("cannot encode scan {id}'s pose: {source}")]
     Wire { id: ScanId, source: WireError },
-    #[error("scan {id} cannot be read: {message}")]
-    Failed { id: ScanId, message: String },
+    #[error("{what} cannot be read: {message}")]
+    Failed { what: String, message: String },
     #[error("the hub is closed")]
     Closed,
 }
@@ -224,6 +241,7 @@ impl Hub {
                 retirement_work: RetirementWork::default(),
                 clients: Vec::new(),
                 next_client_id: 0,
+                tiles: tiles::TileTable::default(),
                 closed: None,
             }),
             client_queue: client_queue.max(1),
@@ -250,16 +268,24 @@ impl Hub {
 
     /// Offers a frame to every client; cuts off those whose queues are full.
     fn broadcast(inner: &mut Inner, frame: &Bytes) {
-        inner
-            .clients
-            .retain(|c| match c.tx.try_send(frame.clone()) {
+        Self::broadcast_where(inner, frame, |_| true);
+    }
+
+    /// Offers a frame to the clients `to` picks; cuts off those whose queues are full.
+    fn broadcast_where(inner: &mut Inner, frame: &Bytes, to: impl Fn(&ClientSlot) -> bool) {
+        inner.clients.retain(|c| {
+            if !to(c) {
+                return true;
+            }
+            match c.tx.try_send(frame.clone()) {
                 Ok(()) => true,
                 Err(mpsc::error::TrySendError::Full(_)) => {
                     c.lagged.store(true, Ordering::Release);
                     false
                 }
                 Err(mpsc::error::TrySendError::Closed(_)) => false,
-            });
+            }
+        });
     }
 
     /// Adds a scan, encoded as a `ScanAdded` frame with id `id` (already in the store
@@ -712,6 +738,13 @@ impl Hub {
     /// Subscribes a client: the snapshot and the live queue start at the same point,
     /// under one lock, so nothing is missed or seen twice.
     pub fn subscribe(&self) -> Result<Subscription, HubError> {
+        self.subscribe_with(true)
+    }
+
+    /// Subscribes a client that is (`tiles`) or is not sent the level-of-detail tree
+    /// (protocol version 3 or 2). The snapshot lists the tiles, coarsest first, before
+    /// the scans: a late joiner can ask for an overview at once.
+    pub fn subscribe_with(&self, tiles: bool) -> Result<Subscription, HubError> {
         let mut inner = self.lock();
         if inner.closed.is_some() {
             return Err(HubError::Closed);
@@ -730,6 +763,9 @@ impl Hub {
         let order = coarse_first(&served, REGION_M);
         let mut snapshot = Vec::with_capacity(order.len() + 2);
         snapshot.push(Bytes::from(Message::ModelReset { scan_count }.encode()?));
+        if tiles {
+            snapshot.extend(Self::tile_snapshot(&inner)?);
+        }
         for id in order {
             if let Some(e) = inner.entries.get(&id) {
                 snapshot.push(Bytes::from(
@@ -753,6 +789,7 @@ impl Hub {
             id: client_id,
             tx,
             lagged: Arc::clone(&lagged),
+            tiles,
         });
         Ok(Subscription {
             client_id,
@@ -790,6 +827,21 @@ impl Hub {
         let inner = self.lock();
         let retirement = inner.retirement.as_ref().map_or(0, |r| r.shelved() as u64);
         (inner.shelved, retirement)
+    }
+
+    /// Every served scan's id and current pose.
+    pub fn served_poses(&self) -> Vec<(ScanId, Pose)> {
+        self.lock()
+            .entries
+            .iter()
+            .filter(|(_, e)| !e.retired)
+            .map(|(id, e)| (*id, e.world_from_scan))
+            .collect()
+    }
+
+    /// The store tile data is written to, if any.
+    pub fn tile_store(&self) -> Option<&Arc<Store>> {
+        self.options.tile_store.as_ref()
     }
 
     /// Whether scan `id` is in the served model.
