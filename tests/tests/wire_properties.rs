@@ -18,8 +18,9 @@ use std::sync::Arc;
 use proptest::prelude::*;
 use texel::model::{Model, ScanListing};
 use texel::pose::pose_from_parts;
+use texel::tile::{MAX_LOD, TileId, TileListing};
 use texel::wire::{
-    Limits, MAX_NAME_LEN, Message, Status, Texture, TextureFormat, WireScan, decode_frame,
+    Limits, MAX_NAME_LEN, Message, Status, Texture, TextureFormat, WireScan, WireTile, decode_frame,
 };
 use texel::{EoFrame, FuseConfig, Pose, RangeNoise, Sensor, TriangleFlags, fuse};
 use texel_e2e::captures;
@@ -220,7 +221,48 @@ fn message_strategy() -> impl Strategy<Value = Message> {
         any::<u64>().prop_map(|id| Message::ScanWithdrawn { id }),
         (any::<u64>(), name()).prop_map(|(id, reason)| Message::ScanUnavailable { id, reason }),
         any::<u64>().prop_map(|id| Message::RequestScan { id }),
+        (tile_id_strategy(), tile_listing_strategy())
+            .prop_map(|(id, listing)| Message::TileListed { id, listing }),
+        tile_id_strategy().prop_map(|id| Message::TileWithdrawn { id }),
+        tile_id_strategy().prop_map(|id| Message::RequestTile { id }),
+        (tile_id_strategy(), name())
+            .prop_map(|(id, reason)| Message::TileUnavailable { id, reason }),
+        (
+            tile_id_strategy(),
+            any::<u64>(),
+            prop::collection::vec(any::<u8>(), 0..300)
+        )
+            .prop_map(|(id, revision, data)| Message::TileData(Box::new(WireTile {
+                id,
+                revision,
+                data
+            }))),
     ]
+}
+
+fn tile_id_strategy() -> impl Strategy<Value = TileId> {
+    (0..=MAX_LOD, any::<i64>(), any::<i64>()).prop_map(|(lod, x, y)| TileId { lod, x, y })
+}
+
+/// A tile listing with bounds in order and a non-negative error.
+fn tile_listing_strategy() -> impl Strategy<Value = TileListing> {
+    (
+        any::<u64>(),
+        prop::array::uniform3((-1e7f64..1e7, -1e7f64..1e7)),
+        0.0f64..1e4,
+        any::<u32>(),
+        any::<u64>(),
+    )
+        .prop_map(
+            |(revision, axes, geometric_error_m, triangles, encoded_bytes)| TileListing {
+                revision,
+                bounds_min_m: axes.map(|(a, b)| a.min(b)),
+                bounds_max_m: axes.map(|(a, b)| a.max(b)),
+                geometric_error_m,
+                triangles,
+                encoded_bytes,
+            },
+        )
 }
 
 /// A listing with bounds in order: each axis's two values sorted.

@@ -12,3 +12,4 @@ pub mod live;
 pub mod reliability;
 pub mod residency;
 pub mod scenes;
+pub mod tiles;

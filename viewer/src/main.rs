@@ -1,5 +1,6 @@
 //! `texel-viewer`: renders the texel model live from a daemon (`--connect`: a window,
-//! or snapshots to a folder without a display), headless (`render`), in a window on
+//! or snapshots to a folder without a display), headless (`render`; `render --lod`
+//! draws the level-of-detail tiles built from the scans instead), in a window on
 //! a replayed capture (`open`), and measures the renderer (`bench`, `tradeoffs`).
 
 use std::path::PathBuf;
@@ -240,6 +241,11 @@ struct RenderArgs {
     /// Output PNG (single view).
     #[arg(long, default_value = "view.png")]
     out: PathBuf,
+    /// Draw the level-of-detail hierarchy (texel-lod, default settings) built from
+    /// the model's scans instead of the scans: tiles selected for each view by
+    /// screen-space error, all loaded before it is drawn.
+    #[arg(long)]
+    lod: bool,
 }
 
 #[derive(Args)]
@@ -329,6 +335,9 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
         views.push((args.out.clone(), pose, args.fov_deg.unwrap_or(default_fov)));
     }
     let gpu = GpuContext::headless()?;
+    if args.lod {
+        return render_lod(&gpu, &loaded.model, &views, &args);
+    }
     let mut renderer = Renderer::new(&gpu);
     // Each view uploads what it needs within the budget (evicting what the previous
     // view needed and this one does not).
@@ -349,6 +358,67 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
             stats.culled_frustum,
             stats.culled_facing,
             resident.describe()
+        );
+    }
+    Ok(())
+}
+
+/// `render --lod`: the model's scans fused into a level-of-detail hierarchy, each
+/// view drawn from the tiles it selects (every wanted tile loaded first, no fade).
+fn render_lod(
+    gpu: &GpuContext,
+    model: &texel::model::Model,
+    views: &[(PathBuf, texel::Pose, f64)],
+    args: &RenderArgs,
+) -> anyhow::Result<()> {
+    use texel_viewer::tiles::source::MemorySource;
+    use texel_viewer::tiles::{TileRenderer, TileSettings};
+    let mut lod = texel_lod::LodModel::new(texel_lod::LodConfig::default())?;
+    for (s, scan) in model.resident() {
+        lod.add_scan(scan, &s.world_from_scan);
+    }
+    lod.rebuild(usize::MAX);
+    let hierarchy = lod.hierarchy()?;
+    eprintln!(
+        "hierarchy: {} tiles in {} levels, {} triangles",
+        hierarchy.nodes.len(),
+        hierarchy.top_lod + 1,
+        hierarchy.triangle_count()
+    );
+    let settings = TileSettings {
+        fade_s: 0.0,
+        budget_bytes: args.display.budget_bytes()?,
+        ..TileSettings::default()
+    };
+    let mut tiles = TileRenderer::new(gpu, MemorySource::new(&hierarchy), settings)?;
+    for (out, pose, fov) in views {
+        let camera = VirtualCamera::new(*pose, *fov, args.width, args.height)?;
+        // Select and load until the selection wants nothing more, or nothing more
+        // loads (failed tiles, the budget).
+        loop {
+            let stats = tiles.update(&camera, 0.0);
+            let loaded = tiles.finish_loads(std::time::Duration::from_secs(60));
+            if stats.tiles_wanted == 0 && stats.loads_in_flight == 0 {
+                break;
+            }
+            if loaded == 0 && stats.uploaded == 0 {
+                break;
+            }
+        }
+        for e in tiles.take_errors() {
+            eprintln!("{e}");
+        }
+        let (image, stats) = tiles.render_to_image(&camera, 0.0)?;
+        image
+            .save(out)
+            .with_context(|| format!("writing {}", out.display()))?;
+        eprintln!(
+            "{}: {} tiles drawn, {} triangles, {} tiles resident ({} bytes)",
+            out.display(),
+            stats.tiles_drawn,
+            stats.triangles_drawn,
+            stats.resident_tiles,
+            stats.resident_bytes
         );
     }
     Ok(())

@@ -207,3 +207,47 @@ fn bad_input_is_named() {
     assert!(stderr.contains("cut.mcap"), "{stderr}");
     let _ = scenes::tint(0);
 }
+
+/// `render --lod`: the capture's scans fused into a level-of-detail hierarchy and
+/// drawn from the tiles the view selects.
+#[test]
+fn renders_a_capture_as_level_of_detail_tiles() {
+    let dir = tempfile::tempdir().unwrap();
+    let capture = dir.path().join("box.mcap");
+    write_box_capture(&capture, PoseTopic::Truth);
+    let cam = box_camera(&texel::Pose::identity());
+    let (t, q) = pose_to_parts(&cam.world_from_eo);
+    let pose = format!(
+        "{} {} {} {} {} {} {}",
+        t[0], t[1], t[2], q[0], q[1], q[2], q[3]
+    );
+    let out = dir.path().join("lod.png");
+    let o = render(&[
+        "--capture",
+        capture.to_str().unwrap(),
+        "--pose",
+        &pose,
+        "--fov-deg",
+        "55",
+        "--width",
+        "160",
+        "--height",
+        "120",
+        "--lod",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{stderr}");
+    assert!(stderr.contains("hierarchy: "), "{stderr}");
+    assert!(stderr.contains("tiles drawn"), "{stderr}");
+    let img = image::open(&out).unwrap().to_rgba8();
+    let drawn = img
+        .pixels()
+        .filter(|p| p[0] != 0 || p[1] != 0 || p[2] != 0)
+        .count();
+    println!("{stderr}{drawn} pixels drawn");
+    // The box's fused surface (three scans at 0.1 m voxels) covers about a fifth of
+    // the view.
+    assert!(drawn > 160 * 120 / 10, "{drawn} pixels drawn");
+}

@@ -27,4 +27,9 @@ fn wgsl_modules_validate() {
     for want in ["vs_scan", "fs_painter", "fs_prepass", "fs_layer"] {
         assert!(names.contains(&want), "{want} in {names:?}");
     }
+    let tile = naga::front::wgsl::parse_str(&shaders::source(shaders::TILE)).unwrap();
+    let names: Vec<&str> = tile.entry_points.iter().map(|e| e.name.as_str()).collect();
+    for want in ["vs_tile", "fs_tile"] {
+        assert!(names.contains(&want), "{want} in {names:?}");
+    }
 }
