@@ -96,6 +96,12 @@ impl BlockingClient {
             .map_err(ClientError::Io)
     }
 
+    /// A second handle on the connection, for a thread that only writes requests
+    /// while this one blocks reading.
+    pub fn try_clone_stream(&self) -> Result<std::net::TcpStream, ClientError> {
+        self.stream.try_clone().map_err(ClientError::Io)
+    }
+
     /// The next message; `None` when the server closed the connection cleanly.
     /// Requests the listed scans it still lacks first (see the crate's documentation).
     pub fn next_message(&mut self) -> Result<Option<Message>, ClientError> {

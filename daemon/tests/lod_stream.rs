@@ -167,7 +167,10 @@ async fn run(fix: bool) -> Outcome {
             let node = decode_tile(&data.data).unwrap();
             assert_eq!(node.id, id);
             let listing = replica.tiles.listing(id).unwrap();
-            assert_eq!(listing.encoded_bytes as usize, data.data.len() + 4 + 1 + 17 + 8 + 4);
+            assert_eq!(
+                listing.encoded_bytes as usize,
+                data.data.len() + 4 + 1 + 17 + 8 + 4
+            );
             // The listing's box (nested over the children) holds the tile's own.
             for a in 0..3 {
                 assert!(listing.bounds_min_m[a] <= node.bounds_min_m[a] + 1e-9);
@@ -265,6 +268,9 @@ async fn the_daemon_serves_tiles_on_the_wall_and_rebuilds_them_after_a_revision(
     let ghost = run(false).await;
     let d = off_wall_m(&ghost.tiles);
     let ghosts = d.iter().filter(|&&x| x > 0.3).count();
-    eprintln!("unrevised: {ghosts} of {} vertices on the ghost wall", d.len());
+    eprintln!(
+        "unrevised: {ghosts} of {} vertices on the ghost wall",
+        d.len()
+    );
     assert!(ghosts > 50, "{ghosts}");
 }

@@ -74,7 +74,10 @@ impl LodSection {
         self.tree
             .validate()
             .map_err(|e| ("model.lod.tree", e.to_string()))?;
-        if self.revise_threshold_m.is_nan() || self.revise_threshold_m < 0.0 || !self.revise_threshold_m.is_finite() {
+        if self.revise_threshold_m.is_nan()
+            || self.revise_threshold_m < 0.0
+            || !self.revise_threshold_m.is_finite()
+        {
             return Err((
                 "model.lod.revise_threshold_m",
                 format!("must be finite and >= 0, got {}", self.revise_threshold_m),

@@ -368,14 +368,25 @@ mod tests {
         }
         assert_eq!(
             kinds(&live),
-            ["listed 0/0/0", "listed 0/1/0", "listed 1/0/0", "listed 0/1/0", "withdrawn 0/0/0"]
+            [
+                "listed 0/0/0",
+                "listed 0/1/0",
+                "listed 1/0/0",
+                "listed 0/1/0",
+                "withdrawn 0/0/0"
+            ]
         );
         assert!(old.live.try_recv().is_err());
         // A newcomer's snapshot lists the tiles coarsest first, before the scans.
         let snapshot = hub.subscribe_with(true).unwrap().snapshot;
         assert_eq!(
             kinds(&snapshot),
-            ["ModelReset", "listed 1/0/0", "listed 0/1/0", "SnapshotComplete"]
+            [
+                "ModelReset",
+                "listed 1/0/0",
+                "listed 0/1/0",
+                "SnapshotComplete"
+            ]
         );
         let snapshot = hub.subscribe_with(false).unwrap().snapshot;
         assert_eq!(kinds(&snapshot), ["ModelReset", "SnapshotComplete"]);

@@ -194,7 +194,8 @@ impl LodStage {
         while !self.stop.load(Ordering::Acquire) {
             let busy = model.pending_tiles() > 0;
             let wait = if busy { Duration::ZERO } else { IDLE_WAIT };
-            let (batch, closed, oldest_waiting) = self.inbox.take(self.config.scans_per_round, wait);
+            let (batch, closed, oldest_waiting) =
+                self.inbox.take(self.config.scans_per_round, wait);
             for (id, target) in &batch {
                 unreflected = Some(unreflected.map_or(target.since, |u| u.min(target.since)));
                 self.fuse(&mut model, &mut fused, &mut counts, *id, target);
@@ -362,7 +363,10 @@ impl LodStage {
                 let l = listing(old.revision, old.triangles, old.encoded_bytes);
                 if l != old {
                     published.insert(*id, l);
-                    changes.push(TileChange::Relisted { id: *id, listing: l });
+                    changes.push(TileChange::Relisted {
+                        id: *id,
+                        listing: l,
+                    });
                 }
             }
         }
@@ -383,7 +387,11 @@ impl LodStage {
 fn reach_m(scan: &TexelScan) -> f64 {
     scan.vertices
         .iter()
-        .map(|v| Point3::new(f64::from(v[0]), f64::from(v[1]), f64::from(v[2])).coords.norm())
+        .map(|v| {
+            Point3::new(f64::from(v[0]), f64::from(v[1]), f64::from(v[2]))
+                .coords
+                .norm()
+        })
         .filter(|d| d.is_finite())
         .fold(0.0, f64::max)
 }

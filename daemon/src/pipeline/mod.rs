@@ -37,9 +37,9 @@ use tokio::sync::mpsc;
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 
+use self::lod::{LodInbox, LodStage};
 use crate::config::{RegistrationMode, SessionConfig};
 use crate::hub::{Hub, ModelOptions};
-use self::lod::{LodInbox, LodStage};
 use crate::pages::FilePages;
 use crate::record::{RecordItem, RecordSummary, Recorder};
 use crate::resume::{self, ResumeError};

@@ -557,7 +557,11 @@ pub fn sample_messages() -> Vec<Message> {
         },
         Message::RequestScan { id: 8 },
         Message::TileListed {
-            id: crate::tile::TileId { lod: 2, x: -3, y: 4 },
+            id: crate::tile::TileId {
+                lod: 2,
+                x: -3,
+                y: 4,
+            },
             listing: crate::tile::TileListing {
                 revision: 5,
                 bounds_min_m: [-25.6, 51.2, -1.0],
@@ -571,16 +575,28 @@ pub fn sample_messages() -> Vec<Message> {
             id: crate::tile::TileId { lod: 0, x: 0, y: 0 },
         },
         Message::TileData(Box::new(wire::WireTile {
-            id: crate::tile::TileId { lod: 1, x: 9, y: -9 },
+            id: crate::tile::TileId {
+                lod: 1,
+                x: 9,
+                y: -9,
+            },
             revision: 5,
             data: b"TXLT".to_vec(),
         })),
         Message::TileUnavailable {
-            id: crate::tile::TileId { lod: 1, x: 9, y: -9 },
+            id: crate::tile::TileId {
+                lod: 1,
+                x: 9,
+                y: -9,
+            },
             reason: "tile 1/9/-9 is not in the tree".into(),
         },
         Message::RequestTile {
-            id: crate::tile::TileId { lod: 1, x: 9, y: -9 },
+            id: crate::tile::TileId {
+                lod: 1,
+                x: 9,
+                y: -9,
+            },
         },
     ]
 }

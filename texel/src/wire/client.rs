@@ -10,10 +10,10 @@ use std::time::Duration;
 use bytes::BytesMut;
 use thiserror::Error;
 
-use super::{TileCatalog, TileEvent};
-use crate::tile::TileId;
 use super::{FetchPlan, Limits, Message, PROTOCOL_VERSION, Status, WireError, decode_frame};
+use super::{TileCatalog, TileEvent};
 use crate::model::{Model, ModelError, ModelEvent, ScanId};
+use crate::tile::TileId;
 
 #[derive(Debug, Error)]
 pub enum ClientError {

@@ -22,9 +22,11 @@ pub use scan::{
     MAX_GRID_SIDE, MAX_TEXTURE_BYTES, Texture, TextureFormat, TextureRef, WireScan, WireScanRef,
     check_sendable,
 };
+pub use status::{
+    LodStatus, ModelStatus, QueueStatus, RecordingStatus, SourceStatus, StageLatency, Status,
+};
 pub use tile_catalog::{TileCatalog, TileEvent};
 pub use tiles::{MAX_TILE_DATA_BYTES, TILE_ID_LEN, TILE_LISTED_LEN, WireTile};
-pub use status::{LodStatus, ModelStatus, QueueStatus, RecordingStatus, SourceStatus, StageLatency, Status};
 
 use thiserror::Error;
 

@@ -222,7 +222,10 @@ mod tests {
             let at = floats_at + 8 * float;
             bytes[at..at + 8].copy_from_slice(&value.to_le_bytes());
             let r = decode_frame(&bytes, &Limits::FROM_SERVER);
-            assert!(matches!(r, Err(WireError::Invalid { .. })), "{float}: {r:?}");
+            assert!(
+                matches!(r, Err(WireError::Invalid { .. })),
+                "{float}: {r:?}"
+            );
         }
         let mut high = good.clone();
         high[5] = MAX_LOD + 1;

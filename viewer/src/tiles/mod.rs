@@ -10,6 +10,7 @@ pub mod cache;
 pub mod fade;
 pub mod loader;
 pub mod measure;
+pub mod net;
 pub mod pass;
 pub mod source;
 
