@@ -379,3 +379,65 @@ fn the_window_follows_a_live_daemon() {
     colours.dedup();
     assert!(colours.len() > 200, "{} distinct colours", colours.len());
 }
+
+#[test]
+fn the_window_draws_a_daemons_level_of_detail_tiles() {
+    let dir = tempfile::tempdir().unwrap();
+    let (capture, _) = lab_capture(dir.path());
+    let daemon = Daemon::start(
+        &capture,
+        &dir.path().join("rec.mcap"),
+        "127.0.0.1:0".parse().unwrap(),
+        1.0,
+        true,
+    );
+    daemon.wait_for_scans(FRAMES);
+    // The tree is built in the background: wait for its first tiles.
+    let hub = &daemon.session.as_ref().unwrap().hub;
+    let start = Instant::now();
+    while hub.tile_counts().tiles == 0 {
+        assert!(start.elapsed() < Duration::from_secs(60), "no tiles");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let addr = daemon.addr.to_string();
+    let (_xvfb, display) = start_xvfb();
+    let shot = dir.path().join("tiles.png");
+    run_viewer(
+        &[
+            "--connect",
+            &addr,
+            "--lod",
+            "--width",
+            "320",
+            "--height",
+            "240",
+            "--frames",
+            "20",
+            "--min-scans",
+            "1",
+            "--screenshot",
+            shot.to_str().unwrap(),
+        ],
+        Some(&display),
+        dir.path(),
+    );
+    daemon.stop();
+    // The window drew the tiles (the scans were not drawn: `--lod`), from the first
+    // scan's view: the merged room covers much of the frame.
+    let img = image::open(&shot).unwrap().to_rgba8();
+    let covered = img
+        .pixels()
+        .filter(|p| [p[0], p[1], p[2]] != [0, 0, 0])
+        .count();
+    let fraction = covered as f64 / f64::from(img.width() * img.height());
+    let mut colours: Vec<[u8; 3]> = img.pixels().map(|p| [p[0], p[1], p[2]]).collect();
+    colours.sort_unstable();
+    colours.dedup();
+    eprintln!(
+        "tiles cover {:.1} % of the window, {} colours",
+        fraction * 100.0,
+        colours.len()
+    );
+    assert!(fraction > 0.2, "{fraction}");
+    assert!(colours.len() > 50, "{} distinct colours", colours.len());
+}

@@ -43,6 +43,10 @@ struct LiveArgs {
     /// The daemon's token (needed when it listens beyond loopback).
     #[arg(long, default_value = "")]
     token: String,
+    /// Draw the daemon's level-of-detail tiles (protocol version 3) instead of its
+    /// scans, over a second connection; `L` in the window switches between them.
+    #[arg(long)]
+    lod: bool,
     #[arg(long, default_value_t = 1280)]
     width: u32,
     #[arg(long, default_value_t = 800)]
@@ -461,6 +465,7 @@ fn open(args: OpenArgs) -> anyhow::Result<()> {
         budget_bytes,
         follow_newest: false,
         screenshot: args.screenshot.map(|p| (p, args.frames, args.min_scans)),
+        tiles: None,
     });
     drop(keep_alive);
     result
@@ -574,10 +579,34 @@ fn connect(args: LiveArgs, addr: String) -> anyhow::Result<()> {
             budget_bytes,
             follow_newest: true,
             screenshot: args.screenshot.map(|p| (p, args.frames, args.min_scans)),
+            tiles: if args.lod {
+                Some(connect_tiles(&addr, &args.token)?)
+            } else {
+                None
+            },
         }),
     };
     connection.stop();
     result
+}
+
+/// The tile connection of `--lod`.
+fn connect_tiles(
+    addr: &str,
+    token: &str,
+) -> anyhow::Result<texel_viewer::tiles::net::NetTileSource> {
+    use std::net::ToSocketAddrs;
+    let socket = addr
+        .to_socket_addrs()
+        .with_context(|| format!("resolving {addr}"))?
+        .next()
+        .with_context(|| format!("{addr} resolves to no address"))?;
+    texel_viewer::tiles::net::NetTileSource::connect(
+        socket,
+        token,
+        std::time::Duration::from_secs(5),
+    )
+    .with_context(|| format!("the level-of-detail tiles of {addr}"))
 }
 
 fn main() -> anyhow::Result<()> {

@@ -28,6 +28,9 @@ use state::window_residency;
 
 use crate::gpu::{GpuContext, RenderSettings, RenderTarget, Renderer};
 use crate::live::{SourceCommand, ViewerEvent};
+use crate::tiles::net::NetTileSource;
+use crate::tiles::pass::PassTarget;
+use crate::tiles::{TileRenderer, TileSettings};
 
 pub struct AppOptions {
     pub title: String,
@@ -47,6 +50,8 @@ pub struct AppOptions {
     /// Read back the frame after this many frames once the model holds this many
     /// scans (or a minute has passed), write it, and exit.
     pub screenshot: Option<(PathBuf, u32, usize)>,
+    /// The daemon's level-of-detail tiles, drawn instead of the scans (`L` switches).
+    pub tiles: Option<NetTileSource>,
 }
 
 struct WindowState {
@@ -58,6 +63,9 @@ struct WindowState {
     egui_ctx: egui::Context,
     egui_state: egui_winit::State,
     egui_renderer: egui_wgpu::Renderer,
+    tiles: Option<TileRenderer<NetTileSource>>,
+    /// The tile pass's depth buffer, at the surface's size.
+    tile_depth: Option<(u32, u32, wgpu::TextureView)>,
 }
 
 struct App {
@@ -159,6 +167,13 @@ impl App {
         );
         let egui_renderer =
             egui_wgpu::Renderer::new(&gpu.device, format, egui_wgpu::RendererOptions::default());
+        let tiles = match self.options.tiles.take() {
+            Some(source) => {
+                self.viewer.show_tiles = true;
+                Some(TileRenderer::new(&gpu, source, TileSettings::default())?)
+            }
+            None => None,
+        };
         Ok(WindowState {
             window,
             surface,
@@ -168,6 +183,8 @@ impl App {
             egui_ctx,
             egui_state,
             egui_renderer,
+            tiles,
+            tile_depth: None,
         })
     }
 
@@ -219,14 +236,45 @@ impl App {
             .create_view(&wgpu::TextureViewDescriptor::default());
         let (width, height) = (w.config.width, w.config.height);
         if let Some(camera) = self.viewer.camera(width, height) {
-            self.viewer.update_residency(&mut w.renderer, &camera);
             let target = RenderTarget {
                 view: &view,
                 format: w.config.format,
                 width,
                 height,
             };
-            self.viewer.stats = w.renderer.render(&camera, &self.viewer.settings, &target)?;
+            match w.tiles.as_mut().filter(|_| self.viewer.show_tiles) {
+                Some(tiles) => {
+                    let now_s = now.duration_since(self.started).as_secs_f64();
+                    let stats = tiles.update(&camera, now_s);
+                    self.viewer.tile_stats = Some(stats);
+                    let depth = tile_depth(&w.gpu, &mut w.tile_depth, width, height);
+                    let mut encoder =
+                        w.gpu
+                            .device
+                            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                                label: Some("window tiles"),
+                            });
+                    tiles.encode(
+                        &mut encoder,
+                        &PassTarget {
+                            colour: target,
+                            depth,
+                            clear: Some([0.0; 3]),
+                        },
+                        &camera,
+                    );
+                    w.gpu.queue.submit(Some(encoder.finish()));
+                }
+                None => {
+                    if w.tiles.is_some() {
+                        // Keep the tile switch in the panel while scans are drawn.
+                        self.viewer.tile_stats.get_or_insert_default();
+                    }
+                    self.viewer.update_residency(&mut w.renderer, &camera);
+                    self.viewer.stats =
+                        w.renderer.render(&camera, &self.viewer.settings, &target)?;
+                }
+            }
         }
         self.viewer.latency.drawn(Instant::now());
         // The overlay, drawn over the frame.
@@ -323,6 +371,38 @@ impl App {
 }
 
 /// Reads the swapchain image back as RGBA8 (BGRA formats are swizzled), opaque.
+/// The tile pass's depth buffer at `width` x `height`, made anew when the size
+/// changed.
+fn tile_depth<'a>(
+    gpu: &GpuContext,
+    held: &'a mut Option<(u32, u32, wgpu::TextureView)>,
+    width: u32,
+    height: u32,
+) -> &'a wgpu::TextureView {
+    if !matches!(held, Some((w, h, _)) if *w == width && *h == height) {
+        *held = None;
+    }
+    let (_, _, view) = held.get_or_insert_with(|| {
+        let texture = gpu.device.create_texture(&wgpu::TextureDescriptor {
+            label: Some("window tile depth"),
+            size: wgpu::Extent3d {
+                width,
+                height,
+                depth_or_array_layers: 1,
+            },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: crate::gpu::DEPTH_FORMAT,
+            usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
+            view_formats: &[],
+        });
+        let view = texture.create_view(&wgpu::TextureViewDescriptor::default());
+        (width, height, view)
+    });
+    view
+}
+
 fn read_frame(gpu: &GpuContext, texture: &wgpu::Texture) -> anyhow::Result<image::RgbaImage> {
     anyhow::ensure!(
         texture.usage().contains(wgpu::TextureUsages::COPY_SRC),
@@ -377,6 +457,9 @@ impl ApplicationHandler for App {
             WindowEvent::KeyboardInput { event, .. } if !consumed => {
                 if let PhysicalKey::Code(code) = event.physical_key {
                     if event.state == ElementState::Pressed {
+                        if code == KeyCode::KeyL && !event.repeat {
+                            self.viewer.show_tiles = !self.viewer.show_tiles;
+                        }
                         self.keys.insert(code);
                     } else {
                         self.keys.remove(&code);

@@ -38,6 +38,11 @@ pub struct ViewerState {
     /// The camera and model state of the last residency step: with neither changed
     /// and nothing on its way, planning again would change nothing.
     planned: Option<(VirtualCamera, u64)>,
+    /// Draw the daemon's level-of-detail tiles instead of its scans (when it serves
+    /// them); `L` switches.
+    pub show_tiles: bool,
+    /// The last frame's tile figures, when tiles were drawn.
+    pub tile_stats: Option<crate::tiles::TileFrameStats>,
     camera_placed: bool,
     fov_known: bool,
 }
@@ -54,6 +59,8 @@ impl ViewerState {
             fps: 0.0,
             jump_to: None,
             connection: None,
+            show_tiles: false,
+            tile_stats: None,
             status: None,
             snapshot_complete: false,
             latency: LatencyMeter::default(),

@@ -32,6 +32,20 @@ pub(super) fn panel(ctx: &egui::Context, v: &mut ViewerState, roomy: bool) {
                 v.stats.scan_bytes as f64 / 1048576.0
             ));
             residency_section(ui, v);
+            if let Some(t) = &v.tile_stats {
+                ui.checkbox(&mut v.show_tiles, "level-of-detail tiles (L)");
+                if v.show_tiles {
+                    ui.label(format!(
+                        "tiles: {} drawn, {} triangles, {} resident ({:.1} MiB), {} wanted, {} loading",
+                        t.tiles_drawn,
+                        t.triangles_drawn,
+                        t.resident_tiles,
+                        t.resident_bytes as f64 / 1048576.0,
+                        t.tiles_wanted,
+                        t.loads_in_flight
+                    ));
+                }
+            }
             ui.separator();
             egui::ComboBox::from_label("mode")
                 .selected_text(v.settings.composite.mode.name())
