@@ -198,7 +198,8 @@ async fn run(fix: bool) -> Outcome {
 }
 
 /// Connects with protocol version 2 and reads the snapshot: scans listed, tile
-/// messages seen.
+/// messages seen. Then asks for a tile, which version 2 does not have: the server
+/// ends the connection saying why.
 async fn v2_snapshot(addr: std::net::SocketAddr) -> (usize, usize) {
     let mut stream = tokio::net::TcpStream::connect(addr).await.unwrap();
     let hello = Message::ClientHello {
@@ -220,10 +221,28 @@ async fn v2_snapshot(addr: std::net::SocketAddr) -> (usize, usize) {
             Message::ServerHello { version, .. } => assert_eq!(version, 2),
             Message::ScanListed { .. } => scans += 1,
             Message::TileListed { .. } | Message::TileWithdrawn { .. } => tiles += 1,
-            Message::SnapshotComplete { .. } => return (scans, tiles),
+            Message::SnapshotComplete { .. } => break,
             _ => {}
         }
     }
+    let ask = Message::RequestTile {
+        id: TileId { lod: 0, x: 0, y: 0 },
+    };
+    stream.write_all(&ask.encode().unwrap()).await.unwrap();
+    let reason = loop {
+        if let Some(m) = frames.take_message().unwrap() {
+            if let Message::Goodbye { reason } = m {
+                break reason;
+            }
+            continue;
+        }
+        assert!(
+            stream.read_buf(&mut frames.buf).await.unwrap() > 0,
+            "closed without a goodbye"
+        );
+    };
+    assert!(reason.contains("unexpected RequestTile"), "{reason}");
+    (scans, tiles)
 }
 
 /// Distances of every vertex of the finest tiles from the wall.

@@ -181,6 +181,26 @@ fn a_killed_session_resumes_from_its_recording_and_ends_like_an_uninterrupted_on
             client.request_scan(id).unwrap();
         }
     }
+    // The level-of-detail tree took in the restored scans as well as the new ones.
+    let deadline = std::time::Instant::now() + Duration::from_secs(60);
+    loop {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "the tree never took in the restored scans: {:?}",
+            replica.status.as_ref().and_then(|s| s.lod.clone())
+        );
+        let message = client.next_message().unwrap().expect("stream open");
+        replica.apply(message).unwrap();
+        let lod = replica.status.as_ref().and_then(|s| s.lod.clone());
+        if let Some(l) = lod
+            && l.pending_scans == 0
+            && l.pending_tiles == 0
+            && l.scans_fused as usize >= replica.model.len()
+        {
+            assert!(l.tiles > 0 && l.read_errors == 0, "{l:?}");
+            break;
+        }
+    }
     Command::new("kill")
         .args(["-TERM", &child.id().to_string()])
         .status()
