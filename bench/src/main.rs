@@ -89,6 +89,11 @@ enum TradeoffsCommand {
     Retirement(tradeoffs::retirement::RetirementArgs),
     /// Level of detail: build cost, size and distance from the truth per setting.
     Lod(tradeoffs::lod::LodArgs),
+    /// Level of detail in the daemon: the tree's lag behind a 30 Hz walk, bytes per
+    /// tile, a late joiner's first overview against fetching every scan.
+    LodLive(tradeoffs::lod_live::LodLiveArgs),
+    /// Level of detail in the viewer: frame time, GPU bytes, quality and popping.
+    LodView(tradeoffs::lod_view::LodViewArgs),
 }
 
 fn main() -> ExitCode {
@@ -142,6 +147,12 @@ fn main() -> ExitCode {
         }
         Command::Tradeoffs(TradeoffsCommand::Lod(args)) => {
             ("tradeoffs lod", tradeoffs::lod::run(&args))
+        }
+        Command::Tradeoffs(TradeoffsCommand::LodLive(args)) => {
+            ("tradeoffs lod-live", tradeoffs::lod_live::run(&args))
+        }
+        Command::Tradeoffs(TradeoffsCommand::LodView(args)) => {
+            ("tradeoffs lod-view", tradeoffs::lod_view::run(&args))
         }
         Command::Calib(command) => ("calib", texel_bench::calibration::commands::run(command)),
     };

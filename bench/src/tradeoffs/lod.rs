@@ -135,7 +135,7 @@ pub fn run(args: &LodArgs) -> Result<()> {
 
 /// Every texel frame of the capture fused and placed by its `/truth/pose` (the
 /// export's own reading).
-fn truth_placed_scans(capture: &Path) -> Result<Vec<(Arc<TexelScan>, Pose)>> {
+pub(crate) fn truth_placed_scans(capture: &Path) -> Result<Vec<(Arc<TexelScan>, Pose)>> {
     let mut placed = Vec::new();
     texel_daemon::model_export::for_each_placed_by(
         capture,

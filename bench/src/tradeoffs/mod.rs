@@ -6,6 +6,8 @@
 
 pub mod calibration;
 pub mod lod;
+pub mod lod_live;
+pub mod lod_view;
 pub mod plot;
 pub mod registration;
 pub mod rendering;

@@ -1,0 +1,544 @@
+//! `texel-bench tradeoffs lod-view`: what the level-of-detail tree does for the
+//! viewer on the street, against drawing the scans. The street capture (the first
+//! N frames of the walk, cached as the `lod` section caches it) is read with every
+//! scan placed at its true pose and fused into a `texel_lod::LodModel` with the
+//! default settings; the viewer then draws the same street two ways, headless at
+//! 320x240: the tiles (`texel_viewer::tiles::TileRenderer` over a `MemorySource`
+//! of the hierarchy, the viewer's default selection and 256 MiB budget) and the
+//! scans only (the residency planner choosing the scans a view needs within the
+//! viewer's default 512 MiB, drawn `blended` by the scan renderer). Measured:
+//!
+//! 1. frame time (median wall time of a frame rendered into an image and read back,
+//!    after warm-up) and GPU bytes held, for a close view at street level and an
+//!    overview of the whole walked street, with tiles drawn and triangles;
+//! 2. PSNR against the simulator's own render at held-out poses, near (halfway
+//!    between frames of the walk) and far (raised and pulled back), over the pixels
+//!    where the truth has geometry and both renders drew;
+//! 3. popping on a fly-through from the close view to the overview, every tile
+//!    resident: the largest frame-to-frame change at switch frames with a 0.25 s
+//!    cross-fade and without, against the same fly-through with the scans only and
+//!    with the finest tiles only, and the change a switch alone makes, held still.
+//!
+//! Writes the "Level of detail in the viewer" section of `docs/tradeoffs.md`.
+
+mod render;
+mod report;
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, bail};
+use texel::{PinholeCamera, Pose, TexelScan};
+use texel_lod::{Hierarchy, LodConfig, LodModel};
+use texel_viewer::camera::VirtualCamera;
+use texel_viewer::gpu::GpuContext;
+use texel_viewer::residency::DEFAULT_BUDGET_MB;
+use texel_viewer::tiles::TileRenderer;
+use texel_viewer::tiles::cache::tile_gpu_bytes;
+use texel_viewer::tiles::measure::{
+    PopMeasure, SwitchMeasure, popping_excess, popping_measure, switch_measure,
+};
+use texel_viewer::tiles::source::MemorySource;
+
+use self::render::{
+    FRAME_S, HEIGHT, ScanHolder, ViewFigures, Views, WIDTH, camera, covered, held_out, lod_view,
+    rgb, scan_settings, scans_view, settle, tile_settings, truth_geometry,
+};
+use crate::tradeoffs::registration::data::{SequenceSpec, cached_capture, simulator};
+use crate::tradeoffs::rendering::metrics;
+use crate::tradeoffs::rendering::report::replace_or_append;
+
+#[derive(Debug, Clone, clap::Args)]
+pub struct LodViewArgs {
+    /// Fewer frames (300), poses and frames timed, for a quick look (docs/ is left
+    /// alone).
+    #[arg(long)]
+    pub quick: bool,
+    /// Frames of the street walk (30 Hz).
+    #[arg(long, default_value_t = 1800)]
+    pub frames: usize,
+    /// The repository root (scenes are read and the docs written under it).
+    #[arg(long, default_value = ".")]
+    pub repo: PathBuf,
+    /// Where captures are kept between runs.
+    #[arg(long, default_value = "target/tradeoffs-cache")]
+    pub cache: PathBuf,
+    /// Simulator seed.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Measure and print, but leave docs/tradeoffs.md alone.
+    #[arg(long)]
+    pub no_write: bool,
+    /// Also write, per held-out pose, the truth and both renders as PNGs under this
+    /// folder, to look at what the PSNR scores.
+    #[arg(long)]
+    pub images: Option<PathBuf>,
+}
+
+/// The tile renderer's default GPU budget (`TileSettings::default`).
+const TILE_BUDGET: u64 = 256 << 20;
+/// Frames of the fly-through (4 s at 30 Hz).
+const FLY_FRAMES: usize = 120;
+
+/// Everything measured, for the report.
+struct Figures {
+    frames: usize,
+    scans: usize,
+    adapter: String,
+    build_s: f64,
+    tiles: usize,
+    levels: u8,
+    tile_bytes_all: u64,
+    scan_bytes_all: u64,
+    views: Views,
+    /// [close, overview] x [lod, scans].
+    view: [[ViewFigures; 2]; 2],
+    quality: Vec<PoseQuality>,
+    pop: Popping,
+    timings: Vec<(&'static str, f64)>,
+}
+
+struct PoseQuality {
+    kind: &'static str,
+    lod_db: f64,
+    scans_db: f64,
+    /// Shares of the truth's geometry pixels drawn by each, and scored.
+    lod_cover: f64,
+    scans_cover: f64,
+    scored: f64,
+    /// Scans the planner left out of the budget at this pose.
+    left_out: usize,
+}
+
+struct Popping {
+    fade: PopMeasure,
+    nofade: PopMeasure,
+    /// The scans-only fly-through at the no-fade and fade runs' switch frames.
+    scans_at_nofade: PopMeasure,
+    scans_at_fade: PopMeasure,
+    /// The finest tiles only at the no-fade run's switch frames.
+    finest_at_nofade: PopMeasure,
+    excess_fade_scans: f64,
+    excess_nofade_scans: f64,
+    excess_fade_finest: f64,
+    excess_nofade_finest: f64,
+    still_fade: SwitchMeasure,
+    still_nofade: SwitchMeasure,
+    /// Frames where the scans' resident set changed, and the largest change there.
+    scans_residency_frames: usize,
+    scans_residency_max: f64,
+    scans_left_out_max: usize,
+}
+
+pub fn run(args: &LodViewArgs) -> Result<()> {
+    let started = Instant::now();
+    let frames = if args.quick {
+        args.frames.min(300)
+    } else {
+        args.frames
+    };
+    let scenes = args.repo.join("configs").join("scenes");
+    let spec = SequenceSpec {
+        scene: "street",
+        frames,
+        seed: args.seed,
+        orbit_period_frames: None,
+    };
+    wait_for_capture(&args.cache, frames, args.seed)?;
+    let capture = cached_capture(&scenes, &args.cache, &spec)?;
+    let mut timings = Vec::new();
+    let t = Instant::now();
+    let placed = crate::tradeoffs::lod::truth_placed_scans(&capture)?;
+    timings.push(("read and fuse the capture", t.elapsed().as_secs_f64()));
+    println!("{} placed scans of {frames} frames", placed.len());
+    let t = Instant::now();
+    let hierarchy = build(&placed)?;
+    let build_s = t.elapsed().as_secs_f64();
+    timings.push(("build the tree", build_s));
+    let tile_bytes_all: u64 = hierarchy.nodes.values().map(tile_gpu_bytes).sum();
+    println!(
+        "tree: {} tiles in {} levels, {:.1} MiB on the GPU if all resident, built in {build_s:.1} s",
+        hierarchy.nodes.len(),
+        hierarchy.top_lod + 1,
+        mib(tile_bytes_all)
+    );
+    let sim = simulator(&scenes, "street", frames, args.seed, None)?;
+    let fov = VirtualCamera::fov_y_deg_of(&sim.sensor_model().eo);
+    let gpu = GpuContext::headless()?;
+    let adapter = gpu.adapter_name();
+    println!("adapter: {adapter}");
+    let source = MemorySource::new(&hierarchy);
+    let views = Views::of(&sim);
+    let mut holder = ScanHolder::new(&gpu, &placed, DEFAULT_BUDGET_MB << 20);
+    let scan_bytes_all = holder.all_bytes();
+    println!(
+        "scans: {:.1} MiB on the GPU if all resident; the viewer's budget {DEFAULT_BUDGET_MB} MiB",
+        mib(scan_bytes_all)
+    );
+
+    // 1. Frame time and GPU memory.
+    let t = Instant::now();
+    let timed = if args.quick { 5 } else { 9 };
+    let mut view = [[ViewFigures::default(); 2]; 2];
+    for (k, (name, pose)) in [("close", views.close()?), ("overview", views.overview()?)]
+        .into_iter()
+        .enumerate()
+    {
+        let cam = camera(pose, fov)?;
+        let (lod, _) = lod_view(&gpu, &source, &cam, tile_settings(0.25, TILE_BUDGET), timed)?;
+        print_view(name, "LOD", &lod);
+        let (scans, _) = scans_view(&mut holder, &cam, timed)?;
+        print_view(name, "scans only", &scans);
+        view[k] = [lod, scans];
+    }
+    for (j, label) in ["LOD", "scans only"].iter().enumerate() {
+        println!(
+            "{label}: overview / close frame time {:.2}, GPU bytes {:.2}",
+            ratio(view[1][j].frame_ms, view[0][j].frame_ms),
+            ratio(view[1][j].data_bytes as f64, view[0][j].data_bytes as f64)
+        );
+    }
+    timings.push(("frame time and memory", t.elapsed().as_secs_f64()));
+
+    // 2. Quality at held-out poses.
+    let t = Instant::now();
+    let poses = held_out(&sim, if args.quick { 3 } else { 8 });
+    let quality = quality(
+        &gpu,
+        &source,
+        &mut holder,
+        &sim,
+        &poses,
+        fov,
+        args.images.as_deref(),
+    )?;
+    for kind in ["near", "far"] {
+        let (l, s, d) = mean_quality(&quality, kind);
+        println!(
+            "{kind}: PSNR LOD {l:.2} dB, scans only {s:.2} dB, LOD - scans {d:+.2} dB (mean over poses)"
+        );
+    }
+    timings.push(("quality at held-out poses", t.elapsed().as_secs_f64()));
+    drop(holder);
+
+    // 3. Popping.
+    let t = Instant::now();
+    let cameras: Vec<VirtualCamera> = (0..FLY_FRAMES)
+        .map(|i| camera(views.fly(i as f64 / (FLY_FRAMES - 1) as f64)?, fov))
+        .collect::<Result<_>>()?;
+    let pop = popping(&gpu, &hierarchy, &source, &placed, &cameras, tile_bytes_all)?;
+    timings.push(("popping fly-throughs", t.elapsed().as_secs_f64()));
+    timings.push(("total", started.elapsed().as_secs_f64()));
+    for (what, s) in &timings {
+        println!("time: {what} {s:.1} s");
+    }
+
+    let figures = Figures {
+        frames,
+        scans: placed.len(),
+        adapter,
+        build_s,
+        tiles: hierarchy.nodes.len(),
+        levels: hierarchy.top_lod + 1,
+        tile_bytes_all,
+        scan_bytes_all,
+        views,
+        view,
+        quality,
+        pop,
+        timings,
+    };
+    let body = report::markdown(&figures, args);
+    println!("{body}");
+    if args.no_write || args.quick {
+        return Ok(());
+    }
+    let doc = args.repo.join("docs").join("tradeoffs.md");
+    let text =
+        std::fs::read_to_string(&doc).with_context(|| format!("reading {}", doc.display()))?;
+    let updated = replace_or_append(&text, "lod-view", &body);
+    std::fs::write(&doc, updated).with_context(|| format!("writing {}", doc.display()))?;
+    println!("updated the lod-view section of {}", doc.display());
+    Ok(())
+}
+
+/// If another process is rendering the capture (its `.partial.mcap` exists and
+/// grows), waits for it rather than render it again into the same file.
+fn wait_for_capture(cache: &Path, frames: usize, seed: u64) -> Result<()> {
+    let out = cache.join(format!("street-{frames}f-seed{seed}.mcap"));
+    let partial = out.with_extension("partial.mcap");
+    let mut last = (0u64, Instant::now());
+    while !out.exists() {
+        let Ok(meta) = std::fs::metadata(&partial) else {
+            return Ok(());
+        };
+        if meta.len() != last.0 {
+            last = (meta.len(), Instant::now());
+        } else if last.1.elapsed() > Duration::from_secs(300) {
+            bail!(
+                "{} has not grown for 5 minutes: remove it if nothing is writing it",
+                partial.display()
+            );
+        }
+        eprintln!(
+            "waiting for {} ({:.0} MB so far)",
+            partial.display(),
+            meta.len() as f64 / 1e6
+        );
+        std::thread::sleep(Duration::from_secs(10));
+    }
+    Ok(())
+}
+
+/// The default tree of every scan.
+fn build(placed: &[(Arc<TexelScan>, Pose)]) -> Result<Hierarchy> {
+    let mut model = LodModel::new(LodConfig::default())?;
+    for (scan, pose) in placed {
+        model.add_scan(scan, pose);
+    }
+    model.rebuild(usize::MAX);
+    Ok(model.hierarchy()?)
+}
+
+fn mib(bytes: u64) -> f64 {
+    bytes as f64 / f64::from(1u32 << 20)
+}
+
+/// `a / b`, NaN when `b` is not positive.
+fn ratio(a: f64, b: f64) -> f64 {
+    if b > 0.0 { a / b } else { f64::NAN }
+}
+
+fn print_view(view: &str, how: &str, f: &ViewFigures) {
+    println!(
+        "{view}, {how}: {:.1} ms/frame, {:.1} MiB data + {:.1} MiB targets, {} resident, {} drawn, {} triangles{}",
+        f.frame_ms,
+        mib(f.data_bytes),
+        mib(f.target_bytes),
+        f.resident,
+        f.drawn,
+        f.triangles,
+        if how == "LOD" {
+            format!(
+                ", settled after {} updates{}",
+                f.needed,
+                if f.complete { "" } else { " (did not settle)" }
+            )
+        } else {
+            format!(
+                ", {} needed, {} left out by the budget",
+                f.needed, f.left_out
+            )
+        }
+    );
+}
+
+/// Renders every held-out pose both ways and scores them against the simulator's
+/// render over the pixels where the truth has geometry and both drew.
+fn quality(
+    gpu: &GpuContext,
+    source: &MemorySource,
+    holder: &mut ScanHolder<'_>,
+    sim: &sims::Simulator,
+    poses: &[(&'static str, Pose)],
+    fov: f64,
+    images: Option<&Path>,
+) -> Result<Vec<PoseQuality>> {
+    if let Some(dir) = images {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    let pinhole = PinholeCamera::from_vertical_fov(WIDTH, HEIGHT, fov)?;
+    let settings = scan_settings();
+    let (w, h) = (WIDTH as usize, HEIGHT as usize);
+    let mut out = Vec::new();
+    for (i, (kind, pose)) in poses.iter().enumerate() {
+        let cam = camera(*pose, fov)?;
+        let truth = sim.scene().render_view(pose, &pinhole).rgb;
+        let geometry = truth_geometry(sim.scene(), &cam);
+        let mut r = TileRenderer::new(gpu, source.clone(), tile_settings(0.0, TILE_BUDGET))?;
+        let (_, now_s, _) = settle(&mut r, &cam, 0.0, 400);
+        let (lod, _) = r.render_to_image(&cam, now_s)?;
+        let (plan, _) = holder.hold_for(&cam)?;
+        let (scans, _) = holder.renderer.render_to_image(&cam, &settings)?;
+        if let Some(dir) = images {
+            let truth_image = image::RgbImage::from_raw(WIDTH, HEIGHT, truth.clone())
+                .context("a truth image of the wrong size")?;
+            let save = |name: String, r: Result<(), image::ImageError>| {
+                r.with_context(|| format!("writing {}", dir.join(name).display()))
+            };
+            let name = format!("{i:02}-{kind}");
+            save(
+                format!("{name}-truth.png"),
+                truth_image.save(dir.join(format!("{name}-truth.png"))),
+            )?;
+            save(
+                format!("{name}-lod.png"),
+                lod.save(dir.join(format!("{name}-lod.png"))),
+            )?;
+            save(
+                format!("{name}-scans.png"),
+                scans.save(dir.join(format!("{name}-scans.png"))),
+            )?;
+        }
+        let (lc, sc) = (covered(&lod), covered(&scans));
+        let mask: Vec<bool> = (0..w * h).map(|k| geometry[k] && lc[k] && sc[k]).collect();
+        let geo = geometry.iter().filter(|g| **g).count().max(1) as f64;
+        let share =
+            |c: &[bool]| c.iter().zip(&geometry).filter(|(a, b)| **a && **b).count() as f64 / geo;
+        let score = |img: &image::RgbaImage| {
+            metrics::score(&rgb(img), &truth, &mask, w, h).map_or(f64::NAN, |s| s.psnr_db())
+        };
+        let q = PoseQuality {
+            kind,
+            lod_db: score(&lod),
+            scans_db: score(&scans),
+            lod_cover: share(&lc),
+            scans_cover: share(&sc),
+            scored: share(&mask),
+            left_out: plan.left_out.len(),
+        };
+        println!(
+            "pose {i} ({kind}): PSNR LOD {:.2} dB, scans only {:.2} dB ({:+.2}); truth geometry drawn {:.1} % / {:.1} %, scored {:.1} %; {} scans left out by the budget",
+            q.lod_db,
+            q.scans_db,
+            q.lod_db - q.scans_db,
+            100.0 * q.lod_cover,
+            100.0 * q.scans_cover,
+            100.0 * q.scored,
+            q.left_out
+        );
+        out.push(q);
+    }
+    Ok(out)
+}
+
+/// Mean PSNR with LOD, scans only and their mean difference over the poses of a kind
+/// (poses without a score left out).
+fn mean_quality(q: &[PoseQuality], kind: &str) -> (f64, f64, f64) {
+    let scored: Vec<&PoseQuality> = q
+        .iter()
+        .filter(|p| p.kind == kind && p.lod_db.is_finite() && p.scans_db.is_finite())
+        .collect();
+    let n = scored.len();
+    if n == 0 {
+        return (f64::NAN, f64::NAN, f64::NAN);
+    }
+    let mean =
+        |f: &dyn Fn(&PoseQuality) -> f64| scored.iter().map(|p| f(p)).sum::<f64>() / n as f64;
+    (
+        mean(&|p| p.lod_db),
+        mean(&|p| p.scans_db),
+        mean(&|p| p.lod_db - p.scans_db),
+    )
+}
+
+/// A fly-through's frames, per frame whether the selection switched or a fade was
+/// under way, and per frame the previous frame's tiles and this frame's drawn from
+/// this frame's camera (as `viewer/tests/tiles_flythrough.rs`).
+type Fly = (
+    Vec<image::RgbaImage>,
+    Vec<bool>,
+    Vec<(image::RgbaImage, image::RgbaImage)>,
+);
+
+/// The fly-through with every tile of `source` resident from the start.
+fn lod_fly(
+    gpu: &GpuContext,
+    source: MemorySource,
+    cameras: &[VirtualCamera],
+    fade_s: f64,
+    budget: u64,
+) -> Result<Fly> {
+    let tiles = source.len();
+    let mut r = TileRenderer::new(gpu, source, tile_settings(fade_s, budget))?;
+    r.preload_all(Duration::from_secs(600));
+    anyhow::ensure!(
+        r.cache().len() == tiles,
+        "{} of {tiles} tiles resident after preloading",
+        r.cache().len()
+    );
+    let (mut frames, mut switched, mut pairs) = (Vec::new(), Vec::new(), Vec::new());
+    for (i, cam) in cameras.iter().enumerate() {
+        let before = r.draw_to_image(cam)?;
+        let (img, stats) = r.render_to_image(cam, i as f64 * FRAME_S)?;
+        switched.push(stats.selection_changed || stats.fading);
+        if i > 0 {
+            pairs.push((before, img.clone()));
+        }
+        frames.push(img);
+    }
+    Ok((frames, switched, pairs))
+}
+
+fn popping(
+    gpu: &GpuContext,
+    hierarchy: &Hierarchy,
+    source: &MemorySource,
+    placed: &[(Arc<TexelScan>, Pose)],
+    cameras: &[VirtualCamera],
+    tile_bytes_all: u64,
+) -> Result<Popping> {
+    let budget = tile_bytes_all.saturating_add(16 << 20);
+    let (faded, faded_sw, faded_pairs) = lod_fly(gpu, source.clone(), cameras, 0.25, budget)?;
+    let (popped, popped_sw, popped_pairs) = lod_fly(gpu, source.clone(), cameras, 0.0, budget)?;
+    let finest_source =
+        MemorySource::from_nodes(hierarchy.nodes.values().filter(|n| n.id.lod == 0));
+    let (finest, _, _) = lod_fly(gpu, finest_source, cameras, 0.0, budget)?;
+    // The same fly-through with the scans only, as the viewer holds them.
+    let mut holder = ScanHolder::new(gpu, placed, DEFAULT_BUDGET_MB << 20);
+    let settings = scan_settings();
+    let (mut scans, mut residency, mut left_out) = (Vec::new(), Vec::new(), 0usize);
+    for cam in cameras {
+        let (plan, changed) = holder.hold_for(cam)?;
+        left_out = left_out.max(plan.left_out.len());
+        residency.push(changed);
+        scans.push(holder.renderer.render_to_image(cam, &settings)?.0);
+    }
+    residency[0] = false;
+    let scans_residency = popping_measure(&scans, &residency);
+    let pop = Popping {
+        fade: popping_measure(&faded, &faded_sw),
+        nofade: popping_measure(&popped, &popped_sw),
+        scans_at_nofade: popping_measure(&scans, &popped_sw),
+        scans_at_fade: popping_measure(&scans, &faded_sw),
+        finest_at_nofade: popping_measure(&finest, &popped_sw),
+        excess_fade_scans: popping_excess(&faded, &scans, &faded_sw),
+        excess_nofade_scans: popping_excess(&popped, &scans, &popped_sw),
+        excess_fade_finest: popping_excess(&faded, &finest, &faded_sw),
+        excess_nofade_finest: popping_excess(&popped, &finest, &popped_sw),
+        still_fade: switch_measure(&faded_pairs),
+        still_nofade: switch_measure(&popped_pairs),
+        scans_residency_frames: scans_residency.switch_frames,
+        scans_residency_max: scans_residency.max_switch_change,
+        scans_left_out_max: left_out,
+    };
+    println!("fly-through, LOD fade 0.25 s: {:?}", pop.fade);
+    println!("fly-through, LOD fade 0:      {:?}", pop.nofade);
+    println!(
+        "fly-through, scans only at the no-fade switch frames: {:?}",
+        pop.scans_at_nofade
+    );
+    println!(
+        "fly-through, scans only at the fade switch frames: {:?}",
+        pop.scans_at_fade
+    );
+    println!(
+        "fly-through, finest tiles only at the no-fade switch frames: {:?}",
+        pop.finest_at_nofade
+    );
+    println!(
+        "largest excess at a switch over scans only: fade {:.3}, no fade {:.3}; over the finest tiles: fade {:.3}, no fade {:.3}",
+        pop.excess_fade_scans,
+        pop.excess_nofade_scans,
+        pop.excess_fade_finest,
+        pop.excess_nofade_finest
+    );
+    println!("held still, fade 0.25 s: {:?}", pop.still_fade);
+    println!("held still, fade 0:      {:?}", pop.still_nofade);
+    println!(
+        "scans only: resident set changed at {} frames, largest change there {:.3}; at most {} needed scans left out",
+        pop.scans_residency_frames, pop.scans_residency_max, pop.scans_left_out_max
+    );
+    Ok(pop)
+}
