@@ -19,20 +19,18 @@ use texel::{Pose, TexelScan};
 use texel_lod::{Hierarchy, LodConfig, LodModel, tileset_files};
 
 use crate::tradeoffs::registration::data::{SequenceSpec, cached_capture};
-use crate::tradeoffs::rendering::report::replace_or_append;
+use crate::tradeoffs::rendering::report::write_tradeoffs_section;
 
+/// The street walk the level-of-detail reports measure on, and where they write.
 #[derive(Debug, Clone, clap::Args)]
-pub struct LodArgs {
-    /// Fewer frames and settings, for a quick look (docs/ is left alone).
-    #[arg(long)]
-    pub quick: bool,
+pub struct StreetArgs {
     /// Frames of the street walk (30 Hz).
     #[arg(long, default_value_t = 1800)]
     pub frames: usize,
     /// The repository root (scenes are read and the docs written under it).
     #[arg(long, default_value = ".")]
     pub repo: PathBuf,
-    /// Where captures and their registrations are kept between runs.
+    /// Where captures are kept between runs.
     #[arg(long, default_value = "target/tradeoffs-cache")]
     pub cache: PathBuf,
     /// Simulator seed.
@@ -41,6 +39,33 @@ pub struct LodArgs {
     /// Measure and print, but leave docs/tradeoffs.md alone.
     #[arg(long)]
     pub no_write: bool,
+}
+
+impl StreetArgs {
+    /// The scene files' folder.
+    pub fn scenes(&self) -> PathBuf {
+        self.repo.join("configs").join("scenes")
+    }
+
+    /// The capture of the walk's first `frames` frames, rendered into the cache once.
+    pub fn capture(&self, frames: usize) -> Result<PathBuf> {
+        let spec = SequenceSpec {
+            scene: "street",
+            frames,
+            seed: self.seed,
+            orbit_period_frames: None,
+        };
+        cached_capture(&self.scenes(), &self.cache, &spec)
+    }
+}
+
+#[derive(Debug, Clone, clap::Args)]
+pub struct LodArgs {
+    /// Fewer frames and settings, for a quick look (docs/ is left alone).
+    #[arg(long)]
+    pub quick: bool,
+    #[command(flatten)]
+    pub street: StreetArgs,
 }
 
 /// One setting's figures.
@@ -88,18 +113,12 @@ fn settings(quick: bool) -> Vec<(String, LodConfig)> {
 
 pub fn run(args: &LodArgs) -> Result<()> {
     let frames = if args.quick {
-        args.frames.min(300)
+        args.street.frames.min(300)
     } else {
-        args.frames
+        args.street.frames
     };
-    let scenes = args.repo.join("configs").join("scenes");
-    let spec = SequenceSpec {
-        scene: "street",
-        frames,
-        seed: args.seed,
-        orbit_period_frames: None,
-    };
-    let capture = cached_capture(&scenes, &args.cache, &spec)?;
+    let scenes = args.street.scenes();
+    let capture = args.street.capture(frames)?;
     let scene = sims::Scene::load(&scenes.join("street.toml")).context("loading the street")?;
     // The true poses: what the hierarchy costs and keeps, apart from registration
     // (which is measured in its own section).
@@ -122,15 +141,10 @@ pub fn run(args: &LodArgs) -> Result<()> {
     }
     let body = markdown(&rows, frames);
     println!("{body}");
-    if args.no_write || args.quick {
+    if args.street.no_write || args.quick {
         return Ok(());
     }
-    let doc = args.repo.join("docs").join("tradeoffs.md");
-    let text =
-        std::fs::read_to_string(&doc).with_context(|| format!("reading {}", doc.display()))?;
-    let updated = replace_or_append(&text, "lod", &body);
-    std::fs::write(&doc, updated).with_context(|| format!("writing {}", doc.display()))?;
-    Ok(())
+    write_tradeoffs_section(&args.street.repo, "lod", &body)
 }
 
 /// Every texel frame of the capture fused and placed by its `/truth/pose` (the

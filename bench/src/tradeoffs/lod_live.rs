@@ -7,7 +7,7 @@
 //! on the wire come from the listings. Writes the "Level of detail in the daemon"
 //! section of `docs/tradeoffs.md`.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
@@ -18,26 +18,13 @@ use texel_daemon::pipeline::Session;
 use texel_daemon::status::percentiles;
 use tokio_util::sync::CancellationToken;
 
-use crate::tradeoffs::registration::data::{SequenceSpec, cached_capture};
-use crate::tradeoffs::rendering::report::replace_or_append;
+use crate::tradeoffs::lod::StreetArgs;
+use crate::tradeoffs::rendering::report::write_tradeoffs_section;
 
 #[derive(Debug, Clone, clap::Args)]
 pub struct LodLiveArgs {
-    /// Frames of the street walk (30 Hz).
-    #[arg(long, default_value_t = 1800)]
-    pub frames: usize,
-    /// The repository root (scenes are read and the docs written under it).
-    #[arg(long, default_value = ".")]
-    pub repo: PathBuf,
-    /// Where captures are kept between runs.
-    #[arg(long, default_value = "target/tradeoffs-cache")]
-    pub cache: PathBuf,
-    /// Simulator seed.
-    #[arg(long, default_value_t = 1)]
-    pub seed: u64,
-    /// Measure and print, but leave docs/tradeoffs.md alone.
-    #[arg(long)]
-    pub no_write: bool,
+    #[command(flatten)]
+    pub street: StreetArgs,
 }
 
 /// What one run measured.
@@ -63,31 +50,19 @@ struct Figures {
 }
 
 pub fn run(args: &LodLiveArgs) -> Result<()> {
-    let scenes = args.repo.join("configs").join("scenes");
-    let spec = SequenceSpec {
-        scene: "street",
-        frames: args.frames,
-        seed: args.seed,
-        orbit_period_frames: None,
-    };
-    let capture = cached_capture(&scenes, &args.cache, &spec)?;
+    let capture = args.street.capture(args.street.frames)?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
         .build()
         .context("starting the runtime")?;
-    let f = runtime.block_on(measure(&capture, args.frames))?;
+    let f = runtime.block_on(measure(&capture, args.street.frames))?;
     let body = markdown(&f);
     println!("{body}");
-    if args.no_write {
+    if args.street.no_write {
         return Ok(());
     }
-    let doc = args.repo.join("docs").join("tradeoffs.md");
-    let text =
-        std::fs::read_to_string(&doc).with_context(|| format!("reading {}", doc.display()))?;
-    let updated = replace_or_append(&text, "lod-live", &body);
-    std::fs::write(&doc, updated).with_context(|| format!("writing {}", doc.display()))?;
-    Ok(())
+    write_tradeoffs_section(&args.street.repo, "lod-live", &body)
 }
 
 fn config(capture: &Path) -> SessionConfig {

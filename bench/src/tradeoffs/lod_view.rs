@@ -28,7 +28,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Context, Result};
 use texel::{PinholeCamera, Pose, TexelScan};
 use texel_lod::{Hierarchy, LodConfig, LodModel};
 use texel_viewer::camera::VirtualCamera;
@@ -45,9 +45,10 @@ use self::render::{
     FRAME_S, HEIGHT, ScanHolder, ViewFigures, Views, WIDTH, camera, covered, held_out, lod_view,
     rgb, scan_settings, scans_view, settle, tile_settings, truth_geometry,
 };
-use crate::tradeoffs::registration::data::{SequenceSpec, cached_capture, simulator};
+use crate::tradeoffs::lod::StreetArgs;
+use crate::tradeoffs::registration::data::simulator;
 use crate::tradeoffs::rendering::metrics;
-use crate::tradeoffs::rendering::report::replace_or_append;
+use crate::tradeoffs::rendering::report::write_tradeoffs_section;
 
 #[derive(Debug, Clone, clap::Args)]
 pub struct LodViewArgs {
@@ -55,21 +56,8 @@ pub struct LodViewArgs {
     /// alone).
     #[arg(long)]
     pub quick: bool,
-    /// Frames of the street walk (30 Hz).
-    #[arg(long, default_value_t = 1800)]
-    pub frames: usize,
-    /// The repository root (scenes are read and the docs written under it).
-    #[arg(long, default_value = ".")]
-    pub repo: PathBuf,
-    /// Where captures are kept between runs.
-    #[arg(long, default_value = "target/tradeoffs-cache")]
-    pub cache: PathBuf,
-    /// Simulator seed.
-    #[arg(long, default_value_t = 1)]
-    pub seed: u64,
-    /// Measure and print, but leave docs/tradeoffs.md alone.
-    #[arg(long)]
-    pub no_write: bool,
+    #[command(flatten)]
+    pub street: StreetArgs,
     /// Also write, per held-out pose, the truth and both renders as PNGs under this
     /// folder, to look at what the PSNR scores.
     #[arg(long)]
@@ -134,19 +122,12 @@ struct Popping {
 pub fn run(args: &LodViewArgs) -> Result<()> {
     let started = Instant::now();
     let frames = if args.quick {
-        args.frames.min(300)
+        args.street.frames.min(300)
     } else {
-        args.frames
+        args.street.frames
     };
-    let scenes = args.repo.join("configs").join("scenes");
-    let spec = SequenceSpec {
-        scene: "street",
-        frames,
-        seed: args.seed,
-        orbit_period_frames: None,
-    };
-    wait_for_capture(&args.cache, frames, args.seed)?;
-    let capture = cached_capture(&scenes, &args.cache, &spec)?;
+    let scenes = args.street.scenes();
+    let capture = args.street.capture(frames)?;
     let mut timings = Vec::new();
     let t = Instant::now();
     let placed = crate::tradeoffs::lod::truth_placed_scans(&capture)?;
@@ -163,7 +144,7 @@ pub fn run(args: &LodViewArgs) -> Result<()> {
         hierarchy.top_lod + 1,
         mib(tile_bytes_all)
     );
-    let sim = simulator(&scenes, "street", frames, args.seed, None)?;
+    let sim = simulator(&scenes, "street", frames, args.street.seed, None)?;
     let fov = VirtualCamera::fov_y_deg_of(&sim.sensor_model().eo);
     let gpu = GpuContext::headless()?;
     let adapter = gpu.adapter_name();
@@ -251,44 +232,10 @@ pub fn run(args: &LodViewArgs) -> Result<()> {
     };
     let body = report::markdown(&figures, args);
     println!("{body}");
-    if args.no_write || args.quick {
+    if args.street.no_write || args.quick {
         return Ok(());
     }
-    let doc = args.repo.join("docs").join("tradeoffs.md");
-    let text =
-        std::fs::read_to_string(&doc).with_context(|| format!("reading {}", doc.display()))?;
-    let updated = replace_or_append(&text, "lod-view", &body);
-    std::fs::write(&doc, updated).with_context(|| format!("writing {}", doc.display()))?;
-    println!("updated the lod-view section of {}", doc.display());
-    Ok(())
-}
-
-/// If another process is rendering the capture (its `.partial.mcap` exists and
-/// grows), waits for it rather than render it again into the same file.
-fn wait_for_capture(cache: &Path, frames: usize, seed: u64) -> Result<()> {
-    let out = cache.join(format!("street-{frames}f-seed{seed}.mcap"));
-    let partial = out.with_extension("partial.mcap");
-    let mut last = (0u64, Instant::now());
-    while !out.exists() {
-        let Ok(meta) = std::fs::metadata(&partial) else {
-            return Ok(());
-        };
-        if meta.len() != last.0 {
-            last = (meta.len(), Instant::now());
-        } else if last.1.elapsed() > Duration::from_secs(300) {
-            bail!(
-                "{} has not grown for 5 minutes: remove it if nothing is writing it",
-                partial.display()
-            );
-        }
-        eprintln!(
-            "waiting for {} ({:.0} MB so far)",
-            partial.display(),
-            meta.len() as f64 / 1e6
-        );
-        std::thread::sleep(Duration::from_secs(10));
-    }
-    Ok(())
+    write_tradeoffs_section(&args.street.repo, "lod-view", &body)
 }
 
 /// The default tree of every scan.

@@ -12,7 +12,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 use texel::coverage::{CoverageConfig, Retirement, ScanCoverage};
 use texel::model::ScanId;
 use texel::{PinholeCamera, Pose, TexelScan};
@@ -22,7 +22,7 @@ use texel_viewer::composite::Mode;
 use texel_viewer::gpu::{GpuContext, Renderer};
 
 use crate::tradeoffs::registration::data::{SequenceSpec, cached_capture, simulator};
-use crate::tradeoffs::rendering::report::replace_or_append;
+use crate::tradeoffs::rendering::report::write_tradeoffs_section;
 use crate::tradeoffs::rendering::{
     BACKGROUND_RGB, Config, held_out_poses, metrics, registered_capture,
 };
@@ -132,13 +132,7 @@ pub fn run(args: &RetirementArgs) -> Result<()> {
         return Ok(());
     }
     let body = markdown(&results, &gpu.adapter_name());
-    let doc = args.repo.join("docs").join("tradeoffs.md");
-    let text =
-        std::fs::read_to_string(&doc).with_context(|| format!("reading {}", doc.display()))?;
-    let updated = replace_or_append(&text, "retirement", &body);
-    std::fs::write(&doc, updated).with_context(|| format!("writing {}", doc.display()))?;
-    println!("updated the retirement section of {}", doc.display());
-    Ok(())
+    write_tradeoffs_section(&args.repo, "retirement", &body)
 }
 
 /// The registered scans of a loaded capture with their poses, in time order.

@@ -163,10 +163,15 @@ impl Hub {
     /// The `TileListed` frames of every tile, coarsest first (what a newcomer needs
     /// for an overview comes first).
     pub(super) fn tile_snapshot(inner: &Inner) -> Result<Vec<Bytes>, HubError> {
-        let mut ids: Vec<TileId> = inner.tiles.entries.keys().copied().collect();
-        ids.sort_by(|a, b| b.lod.cmp(&a.lod).then(a.cmp(b)));
-        ids.into_iter()
-            .filter_map(|id| inner.tiles.entries.get(&id).map(|e| (id, e.listing)))
+        let mut listed: Vec<(TileId, TileListing)> = inner
+            .tiles
+            .entries
+            .iter()
+            .map(|(id, e)| (*id, e.listing))
+            .collect();
+        listed.sort_by(|a, b| b.0.lod.cmp(&a.0.lod).then(a.0.cmp(&b.0)));
+        listed
+            .into_iter()
             .map(|(id, listing)| Ok(Bytes::from(Message::TileListed { id, listing }.encode()?)))
             .collect()
     }
@@ -250,17 +255,6 @@ impl Hub {
             sent: t.sent,
             sent_bytes: t.sent_bytes,
         }
-    }
-
-    /// The listing of every tile served now.
-    pub fn tile_listings(&self) -> Vec<(TileId, TileListing)> {
-        let inner = self.lock();
-        inner
-            .tiles
-            .entries
-            .iter()
-            .map(|(id, e)| (*id, e.listing))
-            .collect()
     }
 }
 

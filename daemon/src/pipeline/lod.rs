@@ -191,9 +191,14 @@ impl LodStage {
         let mut counts = LodStatus::default();
         // Arrival of the oldest scan fused but not yet in the served tiles.
         let mut unreflected: Option<Instant> = None;
+        // Tiles waiting after the last round: while there are, rounds do not wait.
+        let mut pending_tiles = 0;
         while !self.stop.load(Ordering::Acquire) {
-            let busy = model.pending_tiles() > 0;
-            let wait = if busy { Duration::ZERO } else { IDLE_WAIT };
+            let wait = if pending_tiles > 0 {
+                Duration::ZERO
+            } else {
+                IDLE_WAIT
+            };
             let (batch, closed, oldest_waiting) =
                 self.inbox.take(self.config.scans_per_round, wait);
             for (id, target) in &batch {
@@ -211,7 +216,7 @@ impl LodStage {
                     Err(e) => tracing::error!("level of detail: tiles not published: {e}"),
                 }
             }
-            let pending_tiles = model.pending_tiles();
+            pending_tiles = model.pending_tiles();
             if pending_tiles == 0 {
                 unreflected = None;
             }

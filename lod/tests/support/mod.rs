@@ -33,6 +33,17 @@ pub fn street_samples(length_m: f64, step_m: f64, offset: [f64; 3]) -> Vec<Sampl
 
 /// [`street_samples`] stop by stop: one "scan" per camera position.
 pub fn street_stops(length_m: f64, step_m: f64, offset: [f64; 3]) -> Vec<Vec<Sample>> {
+    street_stops_coloured(length_m, step_m, offset, colour_at)
+}
+
+/// [`street_stops`] with the surfaces painted by `colour` (of the point before the
+/// offset).
+pub fn street_stops_coloured(
+    length_m: f64,
+    step_m: f64,
+    offset: [f64; 3],
+    colour: fn([f64; 3]) -> [u8; 3],
+) -> Vec<Vec<Sample>> {
     let mut stops_out = Vec::new();
     let stops = (length_m / step_m).floor() as i64;
     for s in 0..=stops {
@@ -74,7 +85,7 @@ pub fn street_stops(length_m: f64, step_m: f64, offset: [f64; 3]) -> Vec<Vec<Sam
                     point_m: [0, 1, 2].map(|k| p[k] + offset[k]),
                     centre_m: [0, 1, 2].map(|k| eye[k] + offset[k]),
                     weight: (cos as f32).max(0.05),
-                    colour: Some(colour_at(p)),
+                    colour: Some(colour(p)),
                 });
             }
         }

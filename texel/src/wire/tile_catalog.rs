@@ -108,11 +108,6 @@ impl TileCatalog {
         }
     }
 
-    /// Drops a tile's data (a viewer evicting it); it stays listed.
-    pub fn forget(&mut self, id: TileId) {
-        self.data.remove(&id);
-    }
-
     /// Of `wanted` (most needed first), the tiles to request now, counted as
     /// requested: listed, not current, not in flight, not unavailable, keeping at most
     /// `max_in_flight` unanswered in all.

@@ -106,11 +106,6 @@ impl NetTileSource {
             server,
         })
     }
-
-    /// Why the connection ended, if it has.
-    pub fn ended(&self) -> Option<String> {
-        lock(&self.shared).ended.clone()
-    }
 }
 
 /// Ends the connection's life: every unanswered request is answered with `reason`.

@@ -8,8 +8,9 @@ use texel_surface::{Sample, Tsdf, TsdfConfig};
 use texel_viewer::camera::VirtualCamera;
 use texel_viewer::tiles::look_at;
 
-pub const HALF_WIDTH: f64 = 6.0;
-pub const FACADE_HEIGHT: f64 = 8.0;
+#[path = "../../../lod/tests/support/mod.rs"]
+mod street;
+
 /// Where nothing is drawn: no tile colour has full red and no green.
 pub const BACKGROUND: [f32; 3] = [1.0, 0.0, 1.0];
 pub const BACKGROUND_U8: [u8; 3] = [255, 0, 255];
@@ -34,53 +35,10 @@ pub fn is_ground(p: &image::Rgba<u8>) -> bool {
 }
 
 /// Samples from a camera 1.5 m up every `step_m` along `length_m`, a fan of rays
-/// cut at the ground or a facade within 12 m; everything shifted by `offset`.
+/// cut at the ground or a facade within 12 m (the level-of-detail tests' street),
+/// painted with the checker; everything shifted by `offset`.
 pub fn street_samples(length_m: f64, step_m: f64, offset: [f64; 3]) -> Vec<Sample> {
-    let mut samples = Vec::new();
-    let stops = (length_m / step_m).floor() as i64;
-    for s in 0..=stops {
-        let eye = [s as f64 * step_m, 0.0, 1.5];
-        for i in 0..240 {
-            let azimuth = f64::from(i) / 240.0 * std::f64::consts::TAU;
-            for j in 0..80 {
-                let elevation = -1.3 + f64::from(j) / 79.0 * 2.3;
-                let d = [
-                    azimuth.cos() * elevation.cos(),
-                    azimuth.sin() * elevation.cos(),
-                    elevation.sin(),
-                ];
-                let mut best = f64::INFINITY;
-                if d[2] < -1e-6 {
-                    best = best.min(-eye[2] / d[2]);
-                }
-                for wall in [HALF_WIDTH, -HALF_WIDTH] {
-                    if d[1].abs() > 1e-6 {
-                        let t = (wall - eye[1]) / d[1];
-                        let z = eye[2] + t * d[2];
-                        if t > 0.0 && (0.0..=FACADE_HEIGHT).contains(&z) {
-                            best = best.min(t);
-                        }
-                    }
-                }
-                if best >= 12.0 {
-                    continue;
-                }
-                let p = [0, 1, 2].map(|k| eye[k] + best * d[k]);
-                let cos = if p[2].abs() < 1e-9 {
-                    d[2].abs()
-                } else {
-                    d[1].abs()
-                };
-                samples.push(Sample {
-                    point_m: [0, 1, 2].map(|k| p[k] + offset[k]),
-                    centre_m: [0, 1, 2].map(|k| eye[k] + offset[k]),
-                    weight: (cos as f32).max(0.05),
-                    colour: Some(colour_at(p)),
-                });
-            }
-        }
-    }
-    samples
+    street::street_stops_coloured(length_m, step_m, offset, colour_at).concat()
 }
 
 /// Small tiles (3.2 m at the finest level) so a short street has four levels; 0.2 m

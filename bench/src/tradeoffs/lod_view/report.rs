@@ -17,10 +17,10 @@ pub(super) fn markdown(f: &Figures, args: &LodViewArgs) -> String {
     } else {
         format!(" --frames {}", f.frames)
     };
-    let seed_arg = if args.seed == 1 {
+    let seed_arg = if args.street.seed == 1 {
         String::new()
     } else {
-        format!(" --seed {}", args.seed)
+        format!(" --seed {}", args.street.seed)
     };
     let v = &f.views;
     let _ = writeln!(

@@ -215,13 +215,7 @@ pub fn run(args: &TradeoffsArgs) -> Result<()> {
     std::fs::create_dir_all(&figures).with_context(|| format!("creating {}", figures.display()))?;
     report::plot(&figures.join("rendering-pareto"), &results)?;
     let body = report::markdown(&results, args, &gpu.adapter_name());
-    let doc = args.repo.join("docs").join("tradeoffs.md");
-    let text =
-        std::fs::read_to_string(&doc).with_context(|| format!("reading {}", doc.display()))?;
-    let updated = report::replace_or_append(&text, "rendering", &body);
-    std::fs::write(&doc, updated).with_context(|| format!("writing {}", doc.display()))?;
-    println!("updated the rendering section of {}", doc.display());
-    Ok(())
+    report::write_tradeoffs_section(&args.repo, "rendering", &body)
 }
 
 /// The capture registered with the daemon's defaults, kept in the cache.

@@ -5,7 +5,7 @@ use std::fmt::Write;
 use std::path::Path;
 
 use crate::tradeoffs::plot::{Series, write_pareto};
-use anyhow::Result;
+use anyhow::{Context, Result};
 
 use super::{Row, SceneResult, TradeoffsArgs};
 use texel_viewer::composite::Mode;
@@ -103,6 +103,18 @@ pub fn plot(stem: &Path, results: &[SceneResult]) -> Result<()> {
         &series,
     )
     .map_err(Into::into)
+}
+
+/// Writes `body` as section `name` of the repository's `docs/tradeoffs.md`
+/// ([`replace_or_append`]) and says so.
+pub fn write_tradeoffs_section(repo: &Path, name: &str, body: &str) -> Result<()> {
+    let doc = repo.join("docs").join("tradeoffs.md");
+    let text =
+        std::fs::read_to_string(&doc).with_context(|| format!("reading {}", doc.display()))?;
+    let updated = replace_or_append(&text, name, body);
+    std::fs::write(&doc, updated).with_context(|| format!("writing {}", doc.display()))?;
+    println!("updated the {name} section of {}", doc.display());
+    Ok(())
 }
 
 /// `text` with the section between `<!-- BEGIN name -->` and `<!-- END name -->`
