@@ -109,12 +109,6 @@ impl Encoder {
         // what retirement tests it by.
         let coverage = ScanCoverage::of(&scan, &self.coverage);
         let listing = ScanListing::of_scan(&scan, frame.len() as u64, coverage.score() as f32);
-        // The tree fuses every scan, retired ones too: a redundant scan still
-        // averages the surface down, and it costs the tree nothing to keep.
-        if let Some(lod) = &self.lod {
-            lod.scan(id, &scan, world_from_scan);
-        }
-        drop(scan);
         // Into the store first, so the hub may drop it from memory at any time.
         let stored = match self.hub.store() {
             Some(store) => match store.append(id, &frame) {
@@ -127,6 +121,13 @@ impl Encoder {
             },
             None => false,
         };
+        // The tree fuses every scan, retired ones too: a redundant scan still
+        // averages the surface down, and it costs the tree nothing to keep. Handed
+        // over once stored: a scan the tree does not hold is read back from there.
+        if let Some(lod) = &self.lod {
+            lod.scan(id, &scan, world_from_scan);
+        }
+        drop(scan);
         self.metrics
             .record_latency(Stage::Encode, started.elapsed());
         let coverage = self.hub.retires().then_some(coverage);
