@@ -17,7 +17,7 @@ use texel::wire::client::FrameReader;
 use texel::wire::{LodStatus, Message, TextureFormat};
 use texel::{Pose, TexelScan};
 use texel_client::{Client, Replica};
-use texel_daemon::config::{LatePolicy, SessionConfig, SimConfig};
+use texel_daemon::config::{LatePolicy, OverloadPolicy, SessionConfig, SimConfig};
 use texel_daemon::pipeline::Session;
 use texel_e2e::repo_root;
 use texel_lod::{LodNode, decode_tile};
@@ -88,6 +88,8 @@ fn session() -> SessionConfig {
         render_threads: 2,
         ..SimConfig::default()
     }];
+    // Every frame becomes a scan, however loaded the machine: the test counts them.
+    c.pipeline.overload = OverloadPolicy::Backpressure;
     // Served until the test has what it needs.
     c.session.exit_when_sources_end = false;
     c.serve.bind = "127.0.0.1:0".parse().unwrap();
