@@ -25,6 +25,9 @@ fn config(capture: &Path, fast: bool) -> SessionConfig {
     // Every scan served: what this test follows is the stream, not retirement
     // (the synthetic frames overlap so much that most would retire).
     c.model.retirement.enabled = false;
+    // No level-of-detail tree either: its tile listings would share the tiny client
+    // queues this test sizes for scans, and its fusion the two cores.
+    c.model.lod.enabled = false;
     c.source.replay = vec![ReplayConfig {
         name: "replay".into(),
         capture: capture.to_path_buf(),
