@@ -223,8 +223,9 @@ fn bad_3d_tiles_arguments_are_refused_by_name() {
     assert!(!out.join("tileset.json").exists());
 }
 
-/// Mean sRGB colour of the vertices of the finest tiles, decoded from the GLBs'
-/// linear 16-bit COLOR_0 with the sRGB transfer function.
+/// Mean sRGB colour of the vertices of the coarsest tiles: decoded from the GLBs'
+/// linear 16-bit COLOR_0 with the sRGB transfer function, or, for a tile coloured by
+/// its atlas, the atlas's (sRGB) texel under each vertex's TEXCOORD_0.
 fn finest_tiles_mean_colour(dir: &Path, tileset: &Value) -> [f64; 3] {
     let mut uris = Vec::new();
     content_uris(&tileset["root"], &mut uris);
@@ -244,8 +245,33 @@ fn finest_tiles_mean_colour(dir: &Path, tileset: &Value) -> [f64; 3] {
         let json: Value = serde_json::from_slice(&bytes[20..20 + json_len]).unwrap();
         let bin = &bytes[20 + json_len + 8..];
         let n = json["accessors"][1]["count"].as_u64().unwrap() as usize;
-        assert_eq!(json["accessors"][1]["componentType"], 5123);
         let offset = json["bufferViews"][1]["byteOffset"].as_u64().unwrap() as usize;
+        let attributes = &json["meshes"][0]["primitives"][0]["attributes"];
+        if attributes.get("TEXCOORD_0").is_some() {
+            assert!(attributes.get("COLOR_0").is_none());
+            assert_eq!(json["accessors"][1]["componentType"], 5126);
+            let view =
+                &json["bufferViews"][json["images"][0]["bufferView"].as_u64().unwrap() as usize];
+            let at = view["byteOffset"].as_u64().unwrap() as usize;
+            let len = view["byteLength"].as_u64().unwrap() as usize;
+            let atlas =
+                image::load_from_memory_with_format(&bin[at..at + len], image::ImageFormat::Png)
+                    .unwrap()
+                    .to_rgb8();
+            let f = |at: usize| f32::from_le_bytes(bin[at..at + 4].try_into().unwrap());
+            for v in 0..n {
+                let uv = [f(offset + v * 8), f(offset + v * 8 + 4)];
+                let x = ((uv[0] * atlas.width() as f32) as u32).min(atlas.width() - 1);
+                let y = ((uv[1] * atlas.height() as f32) as u32).min(atlas.height() - 1);
+                let p = atlas.get_pixel(x, y);
+                for k in 0..3 {
+                    sum[k] += f64::from(p[k]);
+                }
+                count += 1.0;
+            }
+            continue;
+        }
+        assert_eq!(json["accessors"][1]["componentType"], 5123);
         for v in 0..n {
             for k in 0..3 {
                 let at = offset + v * 8 + k * 2;

@@ -7,6 +7,7 @@ use std::collections::BTreeMap;
 use texel_surface::{SurfaceMesh, Tsdf, TsdfConfig, TsdfError, VoxelRegion, extract, simplify};
 use thiserror::Error;
 
+use crate::atlas::{AtlasParams, MAX_ATLAS_PX, TileTexture, build_atlas};
 use crate::select::TileInfo;
 use crate::tree::{Grid, MAX_LOD, TileId};
 
@@ -29,6 +30,14 @@ pub struct LodConfig {
     /// The coarsest level kept: tiles of `tile_voxels · leaf_voxel_m · 2^max_lod`
     /// (12.8 m · 2^10 ≈ 13 km with the defaults).
     pub max_lod: u8,
+    /// Largest side of a tile's texture atlas, texels; 0 leaves tiles coloured per
+    /// vertex only. 1024² holds a full triangle budget's charts (at least 3×3 texels
+    /// each) with room for their detail.
+    pub atlas_max_px: u32,
+    /// The finest atlas texel, in leaf voxels (doubled per try until the atlas fits).
+    /// One: the leaf field's colour is a mean over a voxel, so finer texels would only
+    /// resample its interpolation at four times the bytes.
+    pub atlas_texel_voxels: f64,
 }
 
 impl Default for LodConfig {
@@ -40,6 +49,8 @@ impl Default for LodConfig {
             simplify_error_voxels: 1.0,
             truncation_voxels: 3.0,
             max_lod: 10,
+            atlas_max_px: 1024,
+            atlas_texel_voxels: 1.0,
         }
     }
 }
@@ -105,6 +116,22 @@ impl LodConfig {
                 self.simplify_error_voxels,
             ));
         }
+        if self.atlas_max_px != 0 && !(16..=MAX_ATLAS_PX).contains(&self.atlas_max_px) {
+            return Err(bad(
+                "atlas_max_px",
+                "0 (no atlas) or in [16, 4096]",
+                f64::from(self.atlas_max_px),
+            ));
+        }
+        if !(self.atlas_texel_voxels.is_finite()
+            && (0.25..=1024.0).contains(&self.atlas_texel_voxels))
+        {
+            return Err(bad(
+                "atlas_texel_voxels",
+                "in [0.25, 1024]",
+                self.atlas_texel_voxels,
+            ));
+        }
         Ok(())
     }
 
@@ -142,6 +169,10 @@ pub struct LodNode {
     pub voxel_m: f64,
     /// Triangles before simplification.
     pub merged_triangles: usize,
+    /// The tile's colour as an atlas (then the mesh has one vertex per triangle
+    /// corner, and the texture one coordinate per vertex); `None` where the tile is
+    /// coloured per vertex only.
+    pub texture: Option<TileTexture>,
 }
 
 /// A snapshot of the tree: every tile that holds surface up to the top level, by id.
@@ -257,9 +288,17 @@ pub fn build_from_field(field: Tsdf, config: &LodConfig) -> Result<Hierarchy, Lo
     model.hierarchy()
 }
 
-/// Cuts tile `id` from its level's field and simplifies it to the budget, so every
-/// level costs the same per tile (Liu §4.2).
-pub(crate) fn build_tile(field: &Tsdf, grid: &Grid, id: TileId, config: &LodConfig) -> LodNode {
+/// Cuts tile `id` from its level's field (`fields`, one per level, finest first) and
+/// simplifies it to the budget, so every level costs the same per tile (Liu §4.2);
+/// then colours it from the finer levels into its atlas. `None` when the tile's level
+/// has no field.
+pub(crate) fn build_tile(
+    fields: &[Tsdf],
+    grid: &Grid,
+    id: TileId,
+    config: &LodConfig,
+) -> Option<LodNode> {
+    let field = fields.get(usize::from(id.lod))?;
     let (lo, hi) = grid.columns(id);
     let (foot_lo, foot_hi) = grid.footprint(id);
     let centre = [
@@ -297,13 +336,38 @@ pub(crate) fn build_tile(field: &Tsdf, grid: &Grid, id: TileId, config: &LodConf
             [foot_hi[0], foot_hi[1], centre[2]],
         ),
     };
-    LodNode {
+    let geometric_error_m = 0.5 * voxel_m + simplified.error_m;
+    let atlas = (config.atlas_max_px > 0)
+        .then(|| {
+            build_atlas(
+                &mesh,
+                fields,
+                &AtlasParams {
+                    texel_m: config.leaf_voxel_m * config.atlas_texel_voxels,
+                    max_px: config.atlas_max_px,
+                    lod: id.lod,
+                    // The mesh lies within its error of the surface, and the colour
+                    // within the band round it.
+                    search_m: geometric_error_m + field.truncation_m(),
+                },
+            )
+        })
+        .flatten();
+    let texture = match atlas {
+        Some(atlas) => {
+            mesh = atlas.mesh;
+            Some(atlas.texture)
+        }
+        None => None,
+    };
+    Some(LodNode {
         id,
-        geometric_error_m: 0.5 * voxel_m + simplified.error_m,
+        geometric_error_m,
         voxel_m,
         merged_triangles: merged.triangle_count(),
         mesh,
         bounds_min_m,
         bounds_max_m,
-    }
+        texture,
+    })
 }

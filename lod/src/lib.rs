@@ -3,6 +3,7 @@
 //! one triangle budget per tile; selection of the tiles to draw by screen-space error;
 //! and the hierarchy as an OGC 3D Tiles 1.1 tileset. Pure, synchronous, I/O-free.
 
+pub mod atlas;
 pub mod build;
 pub mod codec;
 pub mod model;
@@ -10,8 +11,9 @@ pub mod select;
 pub mod tiles;
 pub mod tree;
 
+pub use atlas::TileTexture;
 pub use build::{Hierarchy, LodConfig, LodError, LodNode, build_from_field};
-pub use codec::{TileCodecError, decode_tile, encode_tile};
+pub use codec::{TileCodecError, atlas_png, decode_tile, encode_tile};
 pub use model::LodModel;
 pub use select::{Lens, SelectConfig, Selection, TileIndex, TileInfo, View, select};
 pub use tiles::{GeoReference, TileFile, TilesError, tileset_files};

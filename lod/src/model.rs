@@ -135,9 +135,12 @@ impl LodModel {
         self.fields.iter().map(Tsdf::heap_bytes).sum()
     }
 
-    /// Bytes the built tiles' meshes hold.
+    /// Bytes the built tiles' meshes and atlases hold.
     pub fn mesh_bytes(&self) -> usize {
-        self.nodes.values().map(|n| n.mesh.heap_bytes()).sum()
+        self.nodes
+            .values()
+            .map(|n| n.mesh.heap_bytes() + n.texture.as_ref().map_or(0, |t| t.heap_bytes()))
+            .sum()
     }
 
     /// The field of level `lod`.
@@ -160,13 +163,22 @@ impl LodModel {
                 break;
             };
             self.dirty.remove(&id);
-            let field = &self.fields[usize::from(id.lod)];
             let (lo, hi) = self.grid.columns(id);
-            if field.voxels_in_columns(lo, hi).next().is_none() {
-                self.nodes.remove(&id);
-            } else {
-                self.nodes
-                    .insert(id, build_tile(field, &self.grid, id, &self.config));
+            let occupied = self
+                .fields
+                .get(usize::from(id.lod))
+                .is_some_and(|f| f.voxels_in_columns(lo, hi).next().is_some());
+            // The finer levels colour the tile's atlas.
+            match occupied
+                .then(|| build_tile(&self.fields, &self.grid, id, &self.config))
+                .flatten()
+            {
+                Some(node) => {
+                    self.nodes.insert(id, node);
+                }
+                None => {
+                    self.nodes.remove(&id);
+                }
             }
             self.rebuilt.insert(id);
             rebuilt += 1;

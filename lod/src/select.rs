@@ -160,6 +160,11 @@ pub struct Selection {
     pub wanted: Vec<TileId>,
     /// Tiles refined this time (feed back as `refined_before` next time).
     pub refined: BTreeSet<TileId>,
+    /// Finest-level tiles (drawn, in `draw`) whose error still exceeds the threshold:
+    /// the view wants more than the tree holds, so the scans under them should be
+    /// drawn as well (Liu 2014 §3: the scans are the tree's leaves). Also in
+    /// `refined`, so hysteresis keeps them there.
+    pub below_finest: BTreeSet<TileId>,
 }
 
 /// Selects the tiles to draw for `view`. `resident` says which tiles are loaded;
@@ -203,6 +208,10 @@ pub fn select(
             .filter_map(|c| index.tile(c).map(|i| (c, i)))
             .collect();
         if error_px <= threshold || children.is_empty() {
+            if error_px > threshold && id.lod == 0 {
+                out.below_finest.insert(id);
+                out.refined.insert(id);
+            }
             out.draw.push(id);
             continue;
         }

@@ -1,7 +1,7 @@
 //! The hierarchy as an OGC 3D Tiles 1.1 tileset: `tileset.json` (bounding boxes,
 //! geometric errors, REPLACE refinement, one tile per node) and one binary glTF 2.0
-//! per tile, coloured per vertex (linear, from the sRGB pixels) and unlit (the colours
-//! are the scene's own light).
+//! per tile, coloured by its atlas (an embedded PNG) or, without one, per vertex
+//! (linear, from the sRGB pixels), and unlit (the colours are the scene's own light).
 //!
 //! Frames: tile coordinates are the model's world frame (right-handed, +z up,
 //! metres), read as a local east-north-up frame. glTF is +y up and 3D Tiles turns
@@ -16,6 +16,7 @@ use texel_surface::SurfaceMesh;
 use thiserror::Error;
 
 use crate::build::{Hierarchy, LodNode};
+use crate::codec::atlas_png;
 use crate::tree::TileId;
 
 /// Where the model's world frame lies on the globe.
@@ -212,7 +213,10 @@ pub fn srgb_to_linear_u16(value: u8) -> u16 {
 }
 
 /// A node's mesh as binary glTF: positions (f32, y-up, offsets from a translated
-/// node), linear RGBA16 vertex colours, u32 indices, one unlit material.
+/// node), u32 indices and one unlit material; coloured by its atlas (TEXCOORD_0 and
+/// an embedded PNG as the base colour texture, which glTF reads as sRGB, as the atlas
+/// holds) where it has one, else by linear RGBA16 vertex colours. Never both: glTF
+/// multiplies COLOR_0 into the base colour.
 pub fn tile_glb(node: &LodNode) -> Result<Vec<u8>, TilesError> {
     let mesh: &SurfaceMesh = &node.mesh;
     let n = mesh.vertex_count();
@@ -222,6 +226,11 @@ pub fn tile_glb(node: &LodNode) -> Result<Vec<u8>, TilesError> {
             vertices: n,
         });
     }
+    let png = node
+        .texture
+        .as_ref()
+        .filter(|t| t.uvs.len() == n)
+        .and_then(|t| Some((t, atlas_png(t)?)));
     let to_gltf = |p: [f32; 3]| [p[0], p[2], -p[1]];
     let mut bin: Vec<u8> = Vec::with_capacity(n * 20 + mesh.triangle_count() * 12);
     let mut lo = [f32::INFINITY; 3];
@@ -234,15 +243,32 @@ pub fn tile_glb(node: &LodNode) -> Result<Vec<u8>, TilesError> {
             bin.extend_from_slice(&q[a].to_le_bytes());
         }
     }
-    // glTF vertex colours are linear; the EO pixels are sRGB. Sixteen bits keep the
-    // dark end, where linear values crowd together, as fine as the pixels were.
     let colour_offset = bin.len();
-    for c in &mesh.colours {
-        for channel in [c[0], c[1], c[2]] {
-            bin.extend_from_slice(&srgb_to_linear_u16(channel).to_le_bytes());
+    let colour_accessor = match &png {
+        Some((texture, _)) => {
+            // glTF's texture coordinates start at the image's first row, as the
+            // atlas's do.
+            for uv in &texture.uvs {
+                for c in uv {
+                    bin.extend_from_slice(&c.clamp(0.0, 1.0).to_le_bytes());
+                }
+            }
+            json!({ "bufferView": 1, "componentType": 5126, "count": n, "type": "VEC2" })
         }
-        bin.extend_from_slice(&u16::MAX.to_le_bytes());
-    }
+        None => {
+            // glTF vertex colours are linear; the EO pixels are sRGB. Sixteen bits
+            // keep the dark end, where linear values crowd together, as fine as the
+            // pixels were.
+            for c in &mesh.colours {
+                for channel in [c[0], c[1], c[2]] {
+                    bin.extend_from_slice(&srgb_to_linear_u16(channel).to_le_bytes());
+                }
+                bin.extend_from_slice(&u16::MAX.to_le_bytes());
+            }
+            json!({ "bufferView": 1, "componentType": 5123, "normalized": true, "count": n,
+                    "type": "VEC4" })
+        }
+    };
     let index_offset = bin.len();
     for t in &mesh.triangles {
         for v in t {
@@ -250,43 +276,63 @@ pub fn tile_glb(node: &LodNode) -> Result<Vec<u8>, TilesError> {
         }
     }
     let o = mesh.origin_m;
-    let json = json!({
+    let mut material = json!({
+        "pbrMetallicRoughness": {
+            "baseColorFactor": [1.0, 1.0, 1.0, 1.0],
+            "metallicFactor": 0.0,
+            "roughnessFactor": 1.0
+        },
+        "extensions": { "KHR_materials_unlit": {} }
+    });
+    let mut buffer_views = vec![
+        json!({ "buffer": 0, "byteOffset": 0, "byteLength": colour_offset, "target": 34962 }),
+        json!({ "buffer": 0, "byteOffset": colour_offset,
+                "byteLength": index_offset - colour_offset, "target": 34962 }),
+        json!({ "buffer": 0, "byteOffset": index_offset,
+                "byteLength": bin.len() - index_offset, "target": 34963 }),
+    ];
+    let attributes = if png.is_some() {
+        json!({ "POSITION": 0, "TEXCOORD_0": 1 })
+    } else {
+        json!({ "POSITION": 0, "COLOR_0": 1 })
+    };
+    let mut json = json!({
         "asset": { "version": "2.0", "generator": "texel" },
         "extensionsUsed": ["KHR_materials_unlit"],
         "scene": 0,
         "scenes": [{ "nodes": [0] }],
         "nodes": [{ "mesh": 0, "translation": [o[0], o[2], -o[1]] }],
         "meshes": [{ "primitives": [{
-            "attributes": { "POSITION": 0, "COLOR_0": 1 },
+            "attributes": attributes,
             "indices": 2,
             "material": 0,
             "mode": 4
         }]}],
-        "materials": [{
-            "pbrMetallicRoughness": {
-                "baseColorFactor": [1.0, 1.0, 1.0, 1.0],
-                "metallicFactor": 0.0,
-                "roughnessFactor": 1.0
-            },
-            "extensions": { "KHR_materials_unlit": {} }
-        }],
         "accessors": [
             { "bufferView": 0, "componentType": 5126, "count": n, "type": "VEC3",
               "min": lo, "max": hi },
-            { "bufferView": 1, "componentType": 5123, "normalized": true, "count": n,
-              "type": "VEC4" },
+            colour_accessor,
             { "bufferView": 2, "componentType": 5125, "count": mesh.triangle_count() * 3,
               "type": "SCALAR" }
         ],
-        "bufferViews": [
-            { "buffer": 0, "byteOffset": 0, "byteLength": colour_offset, "target": 34962 },
-            { "buffer": 0, "byteOffset": colour_offset, "byteLength": index_offset - colour_offset,
-              "target": 34962 },
-            { "buffer": 0, "byteOffset": index_offset, "byteLength": bin.len() - index_offset,
-              "target": 34963 }
-        ],
-        "buffers": [{ "byteLength": bin.len() }]
     });
+    if let Some((_, png)) = &png {
+        // The image last: the accessors' views before it stay 4-byte aligned.
+        let image_offset = bin.len();
+        bin.extend_from_slice(png);
+        buffer_views.push(json!({ "buffer": 0, "byteOffset": image_offset,
+                                  "byteLength": png.len() }));
+        material["pbrMetallicRoughness"]["baseColorTexture"] = json!({ "index": 0 });
+        json["images"] = json!([{ "bufferView": 3, "mimeType": "image/png" }]);
+        // Linear filtering without mipmaps (the charts' gutters hold one texel, which
+        // is all a bilinear tap reaches), clamped at the atlas's edges.
+        json["samplers"] =
+            json!([{ "magFilter": 9729, "minFilter": 9729, "wrapS": 33071, "wrapT": 33071 }]);
+        json["textures"] = json!([{ "sampler": 0, "source": 0 }]);
+    }
+    json["materials"] = json!([material]);
+    json["bufferViews"] = Value::Array(buffer_views);
+    json["buffers"] = json!([{ "byteLength": bin.len() }]);
     Ok(glb_container(
         serde_json::to_vec(&json).unwrap_or_default(),
         bin,

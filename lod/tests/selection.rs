@@ -160,6 +160,44 @@ fn hysteresis_holds_a_refined_tile_between_the_thresholds() {
     assert!(!held.draw.contains(&root_id));
 }
 
+#[test]
+fn finest_tiles_still_too_coarse_for_the_view_ask_for_their_scans() {
+    let h = street();
+    let all: BTreeSet<TileId> = h.nodes.keys().copied().collect();
+    let config = SelectConfig::default();
+    let far = view([60.0, -3_000.0, 2_000.0], [60.0, 0.0, 0.0]);
+    let sel = select(h, &far, &|id| all.contains(&id), &BTreeSet::new(), &config);
+    assert!(sel.below_finest.is_empty(), "{:?}", sel.below_finest);
+    let close = view([60.0, 0.0, 1.6], [70.0, 0.0, 1.6]);
+    let sel = select(
+        h,
+        &close,
+        &|id| all.contains(&id),
+        &BTreeSet::new(),
+        &config,
+    );
+    assert!(!sel.below_finest.is_empty());
+    for id in &sel.below_finest {
+        assert_eq!(id.lod, 0, "{id:?}");
+        assert!(sel.draw.contains(id), "{id:?} wants scans but is not drawn");
+        assert!(sel.refined.contains(id), "{id:?} not held by hysteresis");
+        let e = projected_error_px(&close, &h.tile(*id).unwrap(), config.centre_weight);
+        assert!(e > config.max_error_px, "{id:?}: {e} px");
+    }
+    // Every drawn leaf over the threshold is there: none is left to its tile alone.
+    for id in sel.draw.iter().filter(|id| id.lod == 0) {
+        let e = projected_error_px(&close, &h.tile(*id).unwrap(), config.centre_weight);
+        assert_eq!(
+            e > config.max_error_px,
+            sel.below_finest.contains(id),
+            "{id:?}"
+        );
+    }
+    // Between the thresholds a leaf already showing its scans keeps them.
+    let held = select(h, &close, &|id| all.contains(&id), &sel.refined, &config);
+    assert!(held.below_finest.is_superset(&sel.below_finest));
+}
+
 proptest! {
     #![proptest_config(ProptestConfig::with_cases(64))]
 

@@ -43,10 +43,15 @@ struct LiveArgs {
     /// The daemon's token (needed when it listens beyond loopback).
     #[arg(long, default_value = "")]
     token: String,
-    /// Draw the daemon's level-of-detail tiles (protocol version 3) instead of its
-    /// scans, over a second connection; `L` in the window switches between them.
+    /// Draw the daemon's level-of-detail tiles (protocol version 3, over a second
+    /// connection) and, below the finest tiles the view still finds too coarse, its
+    /// scans; `L` in the window switches to the scans alone.
     #[arg(long)]
     lod: bool,
+    /// With `--lod`: the tiles alone, no scans below the finest (a check box in the
+    /// window's panel).
+    #[arg(long, requires = "lod")]
+    lod_tiles_only: bool,
     #[arg(long, default_value_t = 1280)]
     width: u32,
     #[arg(long, default_value_t = 800)]
@@ -246,10 +251,14 @@ struct RenderArgs {
     #[arg(long, default_value = "view.png")]
     out: PathBuf,
     /// Draw the level-of-detail hierarchy (texel-lod, default settings) built from
-    /// the model's scans instead of the scans: tiles selected for each view by
-    /// screen-space error, all loaded before it is drawn.
+    /// the model's scans: tiles selected for each view by screen-space error, all
+    /// loaded before it is drawn, and below the finest tiles the view still finds too
+    /// coarse, the scans themselves.
     #[arg(long)]
     lod: bool,
+    /// With `--lod`: the tiles alone, no scans below the finest.
+    #[arg(long, requires = "lod")]
+    lod_tiles_only: bool,
 }
 
 #[derive(Args)]
@@ -340,7 +349,7 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
     }
     let gpu = GpuContext::headless()?;
     if args.lod {
-        return render_lod(&gpu, &loaded.model, &views, &args);
+        return render_lod(&gpu, loaded.model, &settings, budget_bytes, &views, &args);
     }
     let mut renderer = Renderer::new(&gpu);
     // Each view uploads what it needs within the budget (evicting what the previous
@@ -371,7 +380,9 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
 /// view drawn from the tiles it selects (every wanted tile loaded first, no fade).
 fn render_lod(
     gpu: &GpuContext,
-    model: &texel::model::Model,
+    mut model: texel::model::Model,
+    scan_settings: &RenderSettings,
+    budget_bytes: u64,
     views: &[(PathBuf, texel::Pose, f64)],
     args: &RenderArgs,
 ) -> anyhow::Result<()> {
@@ -389,12 +400,18 @@ fn render_lod(
         hierarchy.top_lod + 1,
         hierarchy.triangle_count()
     );
-    let settings = TileSettings {
+    let mut settings = TileSettings {
         fade_s: 0.0,
-        budget_bytes: args.display.budget_bytes()?,
+        budget_bytes,
         ..TileSettings::default()
     };
+    settings.hybrid.enabled = !args.lod_tiles_only;
     let mut tiles = TileRenderer::new(gpu, MemorySource::new(&hierarchy), settings)?;
+    // The scans below the finest tiles: held within the same budget as the scans
+    // alone would be.
+    let mut renderer = Renderer::new(gpu);
+    let mut residency = Residency::over_model(budget_bytes, &mut model);
+    residency.options.hidden = scan_settings.hidden.clone();
     for (out, pose, fov) in views {
         let camera = VirtualCamera::new(*pose, *fov, args.width, args.height)?;
         // Select and load until the selection wants nothing more, or nothing more
@@ -412,17 +429,28 @@ fn render_lod(
         for e in tiles.take_errors() {
             eprintln!("{e}");
         }
-        let (image, stats) = tiles.render_to_image(&camera, 0.0)?;
+        residency.options.only = Some(tiles.scans_wanted(model.scans(), &camera));
+        let resident = residency.step(&mut model, &mut renderer, &camera);
+        let (image, stats, hybrid) = tiles.render_over_scans_to_image(
+            &mut renderer,
+            scan_settings,
+            model.scans(),
+            &camera,
+            0.0,
+        )?;
         image
             .save(out)
             .with_context(|| format!("writing {}", out.display()))?;
         eprintln!(
-            "{}: {} tiles drawn, {} triangles, {} tiles resident ({} bytes)",
+            "{}: {} tiles drawn, {} triangles, {} tiles resident ({} bytes); {} finest tiles show their scans, {} scans drawn; {}",
             out.display(),
             stats.tiles_drawn,
             stats.triangles_drawn,
             stats.resident_tiles,
-            stats.resident_bytes
+            stats.resident_bytes,
+            stats.tiles_with_scans,
+            hybrid.scans.map_or(0, |s| s.drawn),
+            resident.describe()
         );
     }
     Ok(())
@@ -466,6 +494,7 @@ fn open(args: OpenArgs) -> anyhow::Result<()> {
         follow_newest: false,
         screenshot: args.screenshot.map(|p| (p, args.frames, args.min_scans)),
         tiles: None,
+        scans_below_tiles: true,
     });
     drop(keep_alive);
     result
@@ -584,6 +613,7 @@ fn connect(args: LiveArgs, addr: String) -> anyhow::Result<()> {
             } else {
                 None
             },
+            scans_below_tiles: !args.lod_tiles_only,
         }),
     };
     connection.stop();

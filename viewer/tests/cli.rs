@@ -209,7 +209,9 @@ fn bad_input_is_named() {
 }
 
 /// `render --lod`: the capture's scans fused into a level-of-detail hierarchy and
-/// drawn from the tiles the view selects.
+/// drawn from the tiles the view selects, with the scans below the finest tiles the
+/// view finds too coarse; `--lod-tiles-only` without them. Close to the box the
+/// scans show: the frame is nearer the scans' own render than the tiles alone are.
 #[test]
 fn renders_a_capture_as_level_of_detail_tiles() {
     let dir = tempfile::tempdir().unwrap();
@@ -221,33 +223,63 @@ fn renders_a_capture_as_level_of_detail_tiles() {
         "{} {} {} {} {} {} {}",
         t[0], t[1], t[2], q[0], q[1], q[2], q[3]
     );
-    let out = dir.path().join("lod.png");
-    let o = render(&[
-        "--capture",
-        capture.to_str().unwrap(),
-        "--pose",
-        &pose,
-        "--fov-deg",
-        "55",
-        "--width",
-        "160",
-        "--height",
-        "120",
-        "--lod",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
-    let stderr = String::from_utf8_lossy(&o.stderr);
-    assert!(o.status.success(), "{stderr}");
+    let run = |name: &str, extra: &[&str]| {
+        let out = dir.path().join(name);
+        let mut args = vec![
+            "--capture",
+            capture.to_str().unwrap(),
+            "--pose",
+            &pose,
+            "--fov-deg",
+            "55",
+            // Large enough that the finest tiles (0.1 m voxels) are too coarse for
+            // the view: their projected error exceeds 2 pixels.
+            "--width",
+            "640",
+            "--height",
+            "480",
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        let o = render(&args);
+        let stderr = String::from_utf8_lossy(&o.stderr).to_string();
+        assert!(o.status.success(), "{stderr}");
+        println!("{name}: {stderr}");
+        (image::open(&out).unwrap().to_rgba8(), stderr)
+    };
+    let (hybrid, stderr) = run("lod.png", &["--lod"]);
     assert!(stderr.contains("hierarchy: "), "{stderr}");
     assert!(stderr.contains("tiles drawn"), "{stderr}");
-    let img = image::open(&out).unwrap().to_rgba8();
-    let drawn = img
-        .pixels()
-        .filter(|p| p[0] != 0 || p[1] != 0 || p[2] != 0)
-        .count();
-    println!("{stderr}{drawn} pixels drawn");
+    assert!(
+        !stderr.contains(" 0 finest tiles show their scans"),
+        "{stderr}"
+    );
+    assert!(!stderr.contains(" 0 scans drawn"), "{stderr}");
+    let (tiles, stderr) = run("tiles.png", &["--lod", "--lod-tiles-only"]);
+    assert!(stderr.contains(" 0 scans drawn"), "{stderr}");
+    let (scans, _) = run("scans.png", &[]);
+    let drawn = |p: &image::Rgba<u8>| p[0] != 0 || p[1] != 0 || p[2] != 0;
+    let count = tiles.pixels().filter(|p| drawn(p)).count();
     // The box's fused surface (three scans at 0.1 m voxels) covers about a fifth of
     // the view.
-    assert!(drawn > 160 * 120 / 10, "{drawn} pixels drawn");
+    assert!(count > 640 * 480 / 10, "{count} pixels drawn");
+    // Where the scans drew, the frame with the scans below the tiles matches them far
+    // more often than the tiles alone do.
+    let agree = |img: &image::RgbaImage| {
+        let (mut n, mut ok) = (0usize, 0usize);
+        for (p, q) in scans.pixels().zip(img.pixels()) {
+            if drawn(p) {
+                n += 1;
+                ok += usize::from((0..3).all(|k| p[k].abs_diff(q[k]) <= 3));
+            }
+        }
+        ok as f64 / n.max(1) as f64
+    };
+    let (with_scans, alone) = (agree(&hybrid), agree(&tiles));
+    println!(
+        "agreement with the scans' render: {with_scans:.3} with scans below, {alone:.3} alone"
+    );
+    assert!(with_scans > 0.9, "{with_scans}");
+    assert!(with_scans > alone + 0.2, "{with_scans} against {alone}");
 }

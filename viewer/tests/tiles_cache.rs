@@ -6,10 +6,11 @@
 mod support;
 mod tiles_support;
 
-use texel_lod::{LodNode, TileId};
+use texel_lod::{LodNode, TileId, TileTexture};
 use texel_surface::SurfaceMesh;
 use texel_viewer::tiles::cache::{Inserted, TileCache, tile_gpu_bytes};
-use texel_viewer::tiles::pass::{TilePass, render_tiles_to_image};
+use texel_viewer::tiles::image_target::render_tiles_to_image;
+use texel_viewer::tiles::pass::TilePass;
 
 /// A tile holding `quads` unit squares at height 0 of one colour, over tile (x, 0).
 fn node(x: i64, quads: usize, colour: [u8; 3]) -> LodNode {
@@ -33,6 +34,7 @@ fn node(x: i64, quads: usize, colour: [u8; 3]) -> LodNode {
         geometric_error_m: 0.05,
         voxel_m: 0.1,
         merged_triangles: 2 * quads,
+        texture: None,
     }
 }
 
@@ -45,7 +47,7 @@ fn the_cache_keeps_its_budget_and_evicts_least_recently_used() {
     let start = std::time::Instant::now();
     let gpu = support::gpu();
     let one = tile_gpu_bytes(&node(0, 10, [0; 3]));
-    assert_eq!(one, 10 * 4 * 16 + 10 * 2 * 12);
+    assert_eq!(one, 10 * 4 * 24 + 10 * 2 * 12);
     let mut cache = TileCache::new(gpu, 3 * one + one / 2);
     for (frame, x) in [(1, 0), (2, 1), (3, 2)] {
         assert_eq!(
@@ -201,4 +203,61 @@ fn the_driver_reloads_a_tile_listed_with_a_new_revision() {
     assert_eq!(r.cache().revision(id(0)), Some(2));
     assert_eq!((stats.resident_tiles, stats.triangles_drawn), (1, 6));
     assert_eq!(r.source_mut().requests(), 2);
+}
+
+/// A tile with an atlas draws the atlas's colours, not its vertex colours, and its
+/// texels count against the budget.
+#[test]
+fn a_textured_tile_draws_its_atlas() {
+    let gpu = support::gpu();
+    let (red, blue) = ([250, 10, 10], [10, 10, 250]);
+    // The vertex colours are green: none of it may show.
+    let mut textured = node(0, 1, [10, 250, 10]);
+    // One quad (two triangles) over x in [-1, 1]; u runs with x over a 4 × 1 atlas,
+    // red on the left half, blue on the right.
+    let uvs = textured
+        .mesh
+        .positions
+        .iter()
+        .map(|p| [(p[0] + 1.0) / 2.0, 0.5])
+        .collect();
+    textured.texture = Some(TileTexture {
+        width: 4,
+        height: 1,
+        texel_m: 0.5,
+        rgb: [red, red, blue, blue].concat(),
+        uvs,
+    });
+    assert_eq!(tile_gpu_bytes(&textured), 4 * 24 + 2 * 12 + 4 * 4);
+    let mut cache = TileCache::new(gpu, 1 << 20);
+    cache.insert(&textured, 1, 1).unwrap();
+    assert_eq!(cache.resident_bytes(), tile_gpu_bytes(&textured));
+    let cam = tiles_support::camera([0.0, -0.01, 3.0], [0.0, 0.0, 0.0], [0.0; 3], 64, 48);
+    let mut pass = TilePass::new(gpu);
+    let tile = cache.get(id(0)).unwrap();
+    let (img, _) =
+        render_tiles_to_image(gpu, &mut pass, &[tile], &cam, tiles_support::BACKGROUND).unwrap();
+    let (mut reds, mut blues) = ([0usize; 2], [0usize; 2]);
+    for (x, _, p) in img.enumerate_pixels() {
+        let c = [p[0], p[1], p[2]];
+        assert!(p[1] < 200, "vertex colour shows at column {x}: {c:?}");
+        let half = usize::from(x >= 32);
+        if c == red {
+            reds[half] += 1;
+        }
+        if c == blue {
+            blues[half] += 1;
+        }
+    }
+    // World x increases to the right of the image in this view (see the camera).
+    let (left, right) = if reds[0] > reds[1] { (0, 1) } else { (1, 0) };
+    assert!(
+        reds[left] > 20 && blues[right] > 20,
+        "red {reds:?}, blue {blues:?}"
+    );
+    assert_eq!(
+        (reds[right], blues[left]),
+        (0, 0),
+        "red {reds:?}, blue {blues:?}"
+    );
 }

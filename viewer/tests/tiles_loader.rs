@@ -34,6 +34,7 @@ fn node(x: i64) -> LodNode {
         geometric_error_m: 0.05,
         voxel_m: 0.1,
         merged_triangles: 2,
+        texture: None,
     }
 }
 

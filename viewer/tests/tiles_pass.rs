@@ -11,8 +11,9 @@ use std::collections::BTreeSet;
 
 use texel_lod::{SelectConfig, TileId, select};
 use texel_viewer::tiles::cache::TileCache;
+use texel_viewer::tiles::image_target::render_tiles_to_image;
 use texel_viewer::tiles::lod_view;
-use texel_viewer::tiles::pass::{TilePass, render_tiles_to_image};
+use texel_viewer::tiles::pass::TilePass;
 use tiles_support::*;
 
 const OFFSET: [f64; 3] = [4.0e5, 5.0e6, 120.0];

@@ -34,16 +34,16 @@ use texel_lod::{Hierarchy, LodConfig, LodModel};
 use texel_viewer::camera::VirtualCamera;
 use texel_viewer::gpu::GpuContext;
 use texel_viewer::residency::DEFAULT_BUDGET_MB;
-use texel_viewer::tiles::TileRenderer;
 use texel_viewer::tiles::cache::tile_gpu_bytes;
 use texel_viewer::tiles::measure::{
     PopMeasure, SwitchMeasure, popping_excess, popping_measure, switch_measure,
 };
 use texel_viewer::tiles::source::MemorySource;
+use texel_viewer::tiles::{TileRenderer, TileSettings};
 
 use self::render::{
-    FRAME_S, HEIGHT, ScanHolder, ViewFigures, Views, WIDTH, camera, covered, held_out, lod_view,
-    rgb, scan_settings, scans_view, settle, tile_settings, truth_geometry,
+    FRAME_S, HEIGHT, ScanHolder, ViewFigures, Views, WIDTH, camera, covered, held_out, hybrid_view,
+    lod_view, rgb, scan_settings, scans_view, settle, tile_settings, truth_geometry,
 };
 use crate::tradeoffs::lod::StreetArgs;
 use crate::tradeoffs::registration::data::simulator;
@@ -80,8 +80,10 @@ struct Figures {
     tile_bytes_all: u64,
     scan_bytes_all: u64,
     views: Views,
-    /// [close, overview] x [lod, scans].
-    view: [[ViewFigures; 2]; 2],
+    /// [close, overview] x [LOD with scans below, tiles alone, scans only].
+    view: [[ViewFigures; 3]; 2],
+    /// The close view with LOD at each count of scans per tile.
+    close_sweep: Vec<(usize, ViewFigures)>,
     quality: Vec<PoseQuality>,
     pop: Popping,
     timings: Vec<(&'static str, f64)>,
@@ -89,17 +91,32 @@ struct Figures {
 
 struct PoseQuality {
     kind: &'static str,
+    /// LOD with the scans below the finest tiles, the tiles alone, the scans only.
+    hybrid_db: f64,
     lod_db: f64,
     scans_db: f64,
     /// Shares of the truth's geometry pixels drawn by each, and scored.
+    hybrid_cover: f64,
     lod_cover: f64,
     scans_cover: f64,
+    /// Finest tiles showing their scans, and scans drawn with them.
+    tiles_with_scans: usize,
+    hybrid_scans: usize,
+    /// LOD at each count of scans per tile: the count, PSNR dB and scans drawn.
+    swept_db: Vec<(usize, f64, usize)>,
     scored: f64,
     /// Scans the planner left out of the budget at this pose.
     left_out: usize,
 }
 
 struct Popping {
+    /// The tiles with the scans below (fade 0.25 s), the scans only at its switch
+    /// frames, the largest excess there, and the most scans a frame drew.
+    hybrid: PopMeasure,
+    scans_at_hybrid: PopMeasure,
+    excess_hybrid_scans: f64,
+    hybrid_scans_max: usize,
+    /// The tiles alone.
     fade: PopMeasure,
     nofade: PopMeasure,
     /// The scans-only fly-through at the no-fade and fade runs' switch frames.
@@ -161,19 +178,36 @@ pub fn run(args: &LodViewArgs) -> Result<()> {
     // 1. Frame time and GPU memory.
     let t = Instant::now();
     let timed = if args.quick { 5 } else { 9 };
-    let mut view = [[ViewFigures::default(); 2]; 2];
+    let mut view = [[ViewFigures::default(); 3]; 2];
     for (k, (name, pose)) in [("close", views.close()?), ("overview", views.overview()?)]
         .into_iter()
         .enumerate()
     {
         let cam = camera(pose, fov)?;
-        let (lod, _) = lod_view(&gpu, &source, &cam, tile_settings(0.25, TILE_BUDGET), timed)?;
-        print_view(name, "LOD", &lod);
+        let settings = tile_settings(0.25, TILE_BUDGET);
+        let (hybrid, _) = hybrid_view(&gpu, &source, &mut holder, &cam, settings, timed)?;
+        print_view(name, HOW[0], &hybrid);
+        let (lod, _) = lod_view(&gpu, &source, &cam, tiles_alone(settings), timed)?;
+        print_view(name, HOW[1], &lod);
         let (scans, _) = scans_view(&mut holder, &cam, timed)?;
-        print_view(name, "scans only", &scans);
-        view[k] = [lod, scans];
+        print_view(name, HOW[2], &scans);
+        view[k] = [hybrid, lod, scans];
     }
-    for (j, label) in ["LOD", "scans only"].iter().enumerate() {
+    // What the scans below the tiles cost in the close view, per count per tile.
+    let mut close_sweep = Vec::new();
+    let close_cam = camera(views.close()?, fov)?;
+    for &k in if args.quick { &SWEEP[..2] } else { &SWEEP[..] } {
+        let settings = per_tile(tile_settings(0.25, TILE_BUDGET), k);
+        let (f, _) = hybrid_view(&gpu, &source, &mut holder, &close_cam, settings, timed)?;
+        println!(
+            "close, LOD with {k} scans per tile: {:.1} ms/frame, {} scans drawn, {:.1} MiB data",
+            f.frame_ms,
+            f.scans_drawn,
+            mib(f.data_bytes)
+        );
+        close_sweep.push((k, f));
+    }
+    for (j, label) in HOW.iter().enumerate() {
         println!(
             "{label}: overview / close frame time {:.2}, GPU bytes {:.2}",
             ratio(view[1][j].frame_ms, view[0][j].frame_ms),
@@ -185,6 +219,7 @@ pub fn run(args: &LodViewArgs) -> Result<()> {
     // 2. Quality at held-out poses.
     let t = Instant::now();
     let poses = held_out(&sim, if args.quick { 3 } else { 8 });
+    let sweep: &[usize] = if args.quick { &[4, 8] } else { &SWEEP };
     let quality = quality(
         &gpu,
         &source,
@@ -192,12 +227,18 @@ pub fn run(args: &LodViewArgs) -> Result<()> {
         &sim,
         &poses,
         fov,
-        args.images.as_deref(),
+        (args.images.as_deref(), sweep),
     )?;
     for kind in ["near", "far"] {
-        let (l, s, d) = mean_quality(&quality, kind);
+        let m = mean_quality(&quality, kind);
         println!(
-            "{kind}: PSNR LOD {l:.2} dB, scans only {s:.2} dB, LOD - scans {d:+.2} dB (mean over poses)"
+            "{kind}: PSNR LOD {:.2} dB, tiles alone {:.2} dB, scans only {:.2} dB; LOD - scans {:+.2} dB, tiles alone - scans {:+.2} dB (mean over {} poses)",
+            m.hybrid_db,
+            m.lod_db,
+            m.scans_db,
+            m.hybrid_minus_scans_db,
+            m.lod_minus_scans_db,
+            m.poses
         );
     }
     timings.push(("quality at held-out poses", t.elapsed().as_secs_f64()));
@@ -226,6 +267,7 @@ pub fn run(args: &LodViewArgs) -> Result<()> {
         scan_bytes_all,
         views,
         view,
+        close_sweep,
         quality,
         pop,
         timings,
@@ -257,6 +299,24 @@ fn ratio(a: f64, b: f64) -> f64 {
     if b > 0.0 { a / b } else { f64::NAN }
 }
 
+/// Counts of scans per finest tile measured (the default, 8, among them).
+const SWEEP: [usize; 4] = [4, 8, 16, 32];
+
+/// The three ways the street is drawn, as the tables name them.
+const HOW: [&str; 3] = ["LOD", "tiles alone", "scans only"];
+
+/// Tile settings with `k` scans below each finest tile.
+fn per_tile(mut settings: TileSettings, k: usize) -> TileSettings {
+    settings.hybrid.scans_per_tile = k;
+    settings
+}
+
+/// Tile settings without the scans below the finest tiles.
+fn tiles_alone(mut settings: TileSettings) -> TileSettings {
+    settings.hybrid.enabled = false;
+    settings
+}
+
 fn print_view(view: &str, how: &str, f: &ViewFigures) {
     println!(
         "{view}, {how}: {:.1} ms/frame, {:.1} MiB data + {:.1} MiB targets, {} resident, {} drawn, {} triangles{}",
@@ -266,11 +326,14 @@ fn print_view(view: &str, how: &str, f: &ViewFigures) {
         f.resident,
         f.drawn,
         f.triangles,
-        if how == "LOD" {
+        if how != "scans only" {
             format!(
-                ", settled after {} updates{}",
+                ", settled after {} updates{}; {} finest tiles show {} scans ({} left out by the budget)",
                 f.needed,
-                if f.complete { "" } else { " (did not settle)" }
+                if f.complete { "" } else { " (incomplete)" },
+                f.tiles_with_scans,
+                f.scans_drawn,
+                f.left_out
             )
         } else {
             format!(
@@ -290,7 +353,7 @@ fn quality(
     sim: &sims::Simulator,
     poses: &[(&'static str, Pose)],
     fov: f64,
-    images: Option<&Path>,
+    (images, sweep): (Option<&Path>, &[usize]),
 ) -> Result<Vec<PoseQuality>> {
     if let Some(dir) = images {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
@@ -303,11 +366,27 @@ fn quality(
         let cam = camera(*pose, fov)?;
         let truth = sim.scene().render_view(pose, &pinhole).rgb;
         let geometry = truth_geometry(sim.scene(), &cam);
-        let mut r = TileRenderer::new(gpu, source.clone(), tile_settings(0.0, TILE_BUDGET))?;
-        let (_, now_s, _) = settle(&mut r, &cam, 0.0, 400);
-        let (lod, _) = r.render_to_image(&cam, now_s)?;
+        let tiles = tile_settings(0.0, TILE_BUDGET);
         let (plan, _) = holder.hold_for(&cam)?;
         let (scans, _) = holder.renderer.render_to_image(&cam, &settings)?;
+        let mut r = TileRenderer::new(gpu, source.clone(), tiles_alone(tiles))?;
+        let (_, now_s, _) = settle(&mut r, &cam, 0.0, 400);
+        let (lod, _) = r.render_to_image(&cam, now_s)?;
+        // The scans below the finest tiles at each count per tile; the default's is
+        // the LOD figure.
+        let mut swept = Vec::new();
+        for &k in sweep {
+            swept.push((
+                k,
+                hybrid_view(gpu, source, holder, &cam, per_tile(tiles, k), 1)?,
+            ));
+        }
+        let default_k = tiles.hybrid.scans_per_tile;
+        let (hybrid_figures, hybrid) = swept
+            .iter()
+            .find(|(k, _)| *k == default_k)
+            .map(|(_, v)| v.clone())
+            .context("the sweep leaves out the default count")?;
         if let Some(dir) = images {
             let truth_image = image::RgbImage::from_raw(WIDTH, HEIGHT, truth.clone())
                 .context("a truth image of the wrong size")?;
@@ -321,14 +400,19 @@ fn quality(
             )?;
             save(
                 format!("{name}-lod.png"),
-                lod.save(dir.join(format!("{name}-lod.png"))),
+                hybrid.save(dir.join(format!("{name}-lod.png"))),
+            )?;
+            save(
+                format!("{name}-tiles.png"),
+                lod.save(dir.join(format!("{name}-tiles.png"))),
             )?;
             save(
                 format!("{name}-scans.png"),
                 scans.save(dir.join(format!("{name}-scans.png"))),
             )?;
         }
-        let (lc, sc) = (covered(&lod), covered(&scans));
+        // The hybrid draws wherever the tiles alone do (they fill below the scans).
+        let (hc, lc, sc) = (covered(&hybrid), covered(&lod), covered(&scans));
         let mask: Vec<bool> = (0..w * h).map(|k| geometry[k] && lc[k] && sc[k]).collect();
         let geo = geometry.iter().filter(|g| **g).count().max(1) as f64;
         let share =
@@ -338,18 +422,30 @@ fn quality(
         };
         let q = PoseQuality {
             kind,
+            hybrid_db: score(&hybrid),
             lod_db: score(&lod),
             scans_db: score(&scans),
+            hybrid_cover: share(&hc),
             lod_cover: share(&lc),
             scans_cover: share(&sc),
+            tiles_with_scans: hybrid_figures.tiles_with_scans,
+            hybrid_scans: hybrid_figures.scans_drawn,
+            swept_db: swept
+                .iter()
+                .map(|(k, (f, img))| (*k, score(img), f.scans_drawn))
+                .collect(),
             scored: share(&mask),
             left_out: plan.left_out.len(),
         };
         println!(
-            "pose {i} ({kind}): PSNR LOD {:.2} dB, scans only {:.2} dB ({:+.2}); truth geometry drawn {:.1} % / {:.1} %, scored {:.1} %; {} scans left out by the budget",
+            "pose {i} ({kind}): PSNR LOD {:.2} dB ({} finest tiles show {} scans), tiles alone {:.2} dB, scans only {:.2} dB ({:+.2}); truth geometry drawn {:.1} % / {:.1} % / {:.1} %, scored {:.1} %; {} scans left out by the budget",
+            q.hybrid_db,
+            q.tiles_with_scans,
+            q.hybrid_scans,
             q.lod_db,
             q.scans_db,
-            q.lod_db - q.scans_db,
+            q.hybrid_db - q.scans_db,
+            100.0 * q.hybrid_cover,
             100.0 * q.lod_cover,
             100.0 * q.scans_cover,
             100.0 * q.scored,
@@ -360,24 +456,43 @@ fn quality(
     Ok(out)
 }
 
-/// Mean PSNR with LOD, scans only and their mean difference over the poses of a kind
-/// (poses without a score left out).
-fn mean_quality(q: &[PoseQuality], kind: &str) -> (f64, f64, f64) {
+/// Mean PSNRs over the poses of a kind, and the mean differences.
+struct MeanQuality {
+    poses: usize,
+    hybrid_db: f64,
+    lod_db: f64,
+    scans_db: f64,
+    hybrid_minus_scans_db: f64,
+    lod_minus_scans_db: f64,
+}
+
+/// Mean PSNR each way over the poses of a kind (poses without a score left out).
+fn mean_quality(q: &[PoseQuality], kind: &str) -> MeanQuality {
     let scored: Vec<&PoseQuality> = q
         .iter()
-        .filter(|p| p.kind == kind && p.lod_db.is_finite() && p.scans_db.is_finite())
+        .filter(|p| {
+            p.kind == kind
+                && p.hybrid_db.is_finite()
+                && p.lod_db.is_finite()
+                && p.scans_db.is_finite()
+        })
         .collect();
     let n = scored.len();
-    if n == 0 {
-        return (f64::NAN, f64::NAN, f64::NAN);
+    let mean = |f: &dyn Fn(&PoseQuality) -> f64| {
+        if n == 0 {
+            f64::NAN
+        } else {
+            scored.iter().map(|p| f(p)).sum::<f64>() / n as f64
+        }
+    };
+    MeanQuality {
+        poses: n,
+        hybrid_db: mean(&|p| p.hybrid_db),
+        lod_db: mean(&|p| p.lod_db),
+        scans_db: mean(&|p| p.scans_db),
+        hybrid_minus_scans_db: mean(&|p| p.hybrid_db - p.scans_db),
+        lod_minus_scans_db: mean(&|p| p.lod_db - p.scans_db),
     }
-    let mean =
-        |f: &dyn Fn(&PoseQuality) -> f64| scored.iter().map(|p| f(p)).sum::<f64>() / n as f64;
-    (
-        mean(&|p| p.lod_db),
-        mean(&|p| p.scans_db),
-        mean(&|p| p.lod_db - p.scans_db),
-    )
 }
 
 /// A fly-through's frames, per frame whether the selection switched or a fade was
@@ -418,6 +533,48 @@ fn lod_fly(
     Ok((frames, switched, pairs))
 }
 
+/// The fly-through with the scans below the finest tiles, as the viewer draws it:
+/// every tile resident from the start; each frame updates, makes the wanted scans
+/// resident (the planner restricted to them) and draws both. A frame is a switch
+/// when the tile selection changed, a fade was under way, the finest tiles showing
+/// scans changed or the resident scans did.
+fn hybrid_fly(
+    gpu: &GpuContext,
+    source: MemorySource,
+    holder: &mut ScanHolder<'_>,
+    cameras: &[VirtualCamera],
+    fade_s: f64,
+    budget: u64,
+) -> Result<(Vec<image::RgbaImage>, Vec<bool>, usize)> {
+    let tiles = source.len();
+    let mut r = TileRenderer::new(gpu, source, tile_settings(fade_s, budget))?;
+    r.preload_all(Duration::from_secs(600));
+    anyhow::ensure!(
+        r.cache().len() == tiles,
+        "{} of {tiles} tiles resident after preloading",
+        r.cache().len()
+    );
+    let settings = scan_settings();
+    let (mut frames, mut switched, mut most_scans) = (Vec::new(), Vec::new(), 0usize);
+    let mut showing = None;
+    for (i, cam) in cameras.iter().enumerate() {
+        let stats = r.update(cam, i as f64 * FRAME_S);
+        holder.set_only(Some(r.scans_wanted(&holder.model_scans, cam)));
+        let hold = holder.hold_for(cam);
+        holder.set_only(None);
+        let (_, changed) = hold?;
+        let (img, hybrid) =
+            r.draw_over_scans_to_image(&mut holder.renderer, &settings, &holder.model_scans, cam)?;
+        most_scans = most_scans.max(hybrid.scans.map_or(0, |s| s.drawn));
+        let shown_changed = showing.is_some_and(|n| n != stats.tiles_with_scans);
+        showing = Some(stats.tiles_with_scans);
+        switched
+            .push(i > 0 && (stats.selection_changed || stats.fading || shown_changed || changed));
+        frames.push(img);
+    }
+    Ok((frames, switched, most_scans))
+}
+
 fn popping(
     gpu: &GpuContext,
     hierarchy: &Hierarchy,
@@ -432,8 +589,10 @@ fn popping(
     let finest_source =
         MemorySource::from_nodes(hierarchy.nodes.values().filter(|n| n.id.lod == 0));
     let (finest, _, _) = lod_fly(gpu, finest_source, cameras, 0.0, budget)?;
-    // The same fly-through with the scans only, as the viewer holds them.
     let mut holder = ScanHolder::new(gpu, placed, DEFAULT_BUDGET_MB << 20);
+    let (hybrid, hybrid_sw, hybrid_scans_max) =
+        hybrid_fly(gpu, source.clone(), &mut holder, cameras, 0.25, budget)?;
+    // The same fly-through with the scans only, as the viewer holds them.
     let settings = scan_settings();
     let (mut scans, mut residency, mut left_out) = (Vec::new(), Vec::new(), 0usize);
     for cam in cameras {
@@ -445,6 +604,10 @@ fn popping(
     residency[0] = false;
     let scans_residency = popping_measure(&scans, &residency);
     let pop = Popping {
+        hybrid: popping_measure(&hybrid, &hybrid_sw),
+        scans_at_hybrid: popping_measure(&scans, &hybrid_sw),
+        excess_hybrid_scans: popping_excess(&hybrid, &scans, &hybrid_sw),
+        hybrid_scans_max,
         fade: popping_measure(&faded, &faded_sw),
         nofade: popping_measure(&popped, &popped_sw),
         scans_at_nofade: popping_measure(&scans, &popped_sw),
@@ -460,7 +623,15 @@ fn popping(
         scans_residency_max: scans_residency.max_switch_change,
         scans_left_out_max: left_out,
     };
-    println!("fly-through, LOD fade 0.25 s: {:?}", pop.fade);
+    println!(
+        "fly-through, LOD with scans below, fade 0.25 s: {:?} (at most {} scans drawn)",
+        pop.hybrid, pop.hybrid_scans_max
+    );
+    println!(
+        "fly-through, scans only at its switch frames: {:?}; largest excess {:.3}",
+        pop.scans_at_hybrid, pop.excess_hybrid_scans
+    );
+    println!("fly-through, tiles alone fade 0.25 s: {:?}", pop.fade);
     println!("fly-through, LOD fade 0:      {:?}", pop.nofade);
     println!(
         "fly-through, scans only at the no-fade switch frames: {:?}",

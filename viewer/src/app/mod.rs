@@ -29,7 +29,6 @@ use state::window_residency;
 use crate::gpu::{GpuContext, RenderSettings, RenderTarget, Renderer};
 use crate::live::{SourceCommand, ViewerEvent};
 use crate::tiles::net::NetTileSource;
-use crate::tiles::pass::PassTarget;
 use crate::tiles::{TileRenderer, TileSettings};
 
 pub struct AppOptions {
@@ -52,6 +51,9 @@ pub struct AppOptions {
     pub screenshot: Option<(PathBuf, u32, usize)>,
     /// The daemon's level-of-detail tiles, drawn instead of the scans (`L` switches).
     pub tiles: Option<NetTileSource>,
+    /// With the tiles, draw the scans below the finest tiles the view finds too
+    /// coarse (a check box in the panel).
+    pub scans_below_tiles: bool,
 }
 
 struct WindowState {
@@ -170,6 +172,7 @@ impl App {
         let tiles = match self.options.tiles.take() {
             Some(source) => {
                 self.viewer.show_tiles = true;
+                self.viewer.scans_below_tiles = self.options.scans_below_tiles;
                 Some(TileRenderer::new(&gpu, source, TileSettings::default())?)
             }
             None => None,
@@ -245,27 +248,29 @@ impl App {
             match w.tiles.as_mut().filter(|_| self.viewer.show_tiles) {
                 Some(tiles) => {
                     let now_s = now.duration_since(self.started).as_secs_f64();
+                    tiles.settings.hybrid.enabled = self.viewer.scans_below_tiles;
                     let stats = tiles.update(&camera, now_s);
                     self.viewer.tile_stats = Some(stats);
+                    // The scans below the finest tiles the view finds too coarse: only
+                    // they are held (residency) and drawn beneath the tiles.
+                    let wanted = tiles.scans_wanted(self.viewer.model.scans(), &camera);
+                    self.viewer.settings.only = Some(wanted.clone());
+                    self.viewer.update_residency(&mut w.renderer, &camera);
                     let depth = tile_depth(&w.gpu, &mut w.tile_depth, width, height);
-                    let mut encoder =
-                        w.gpu
-                            .device
-                            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                                label: Some("window tiles"),
-                            });
-                    tiles.encode(
-                        &mut encoder,
-                        &PassTarget {
-                            colour: target,
-                            depth,
-                            clear: Some([0.0; 3]),
-                        },
+                    let hybrid = tiles.encode_over_scans(
+                        &mut w.renderer,
+                        &self.viewer.settings,
+                        &wanted,
                         &camera,
-                    );
-                    w.gpu.queue.submit(Some(encoder.finish()));
+                        &target,
+                        depth,
+                    )?;
+                    if let Some(scan_stats) = hybrid.scans {
+                        self.viewer.stats = scan_stats;
+                    }
                 }
                 None => {
+                    self.viewer.settings.only = None;
                     if w.tiles.is_some() {
                         // Keep the tile switch in the panel while scans are drawn.
                         self.viewer.tile_stats.get_or_insert_default();

@@ -41,6 +41,9 @@ pub struct ViewerState {
     /// Draw the daemon's level-of-detail tiles instead of its scans (when it serves
     /// them); `L` switches.
     pub show_tiles: bool,
+    /// With the tiles, draw the scans below the finest tiles the view finds too
+    /// coarse (Liu's leaves).
+    pub scans_below_tiles: bool,
     /// The last frame's tile figures, when tiles were drawn.
     pub tile_stats: Option<crate::tiles::TileFrameStats>,
     camera_placed: bool,
@@ -60,6 +63,7 @@ impl ViewerState {
             jump_to: None,
             connection: None,
             show_tiles: false,
+            scans_below_tiles: true,
             tile_stats: None,
             status: None,
             snapshot_complete: false,
@@ -172,8 +176,11 @@ impl ViewerState {
 
     /// Carries out residency for `camera`: evicts, uploads, fetches.
     pub fn update_residency(&mut self, renderer: &mut Renderer, camera: &VirtualCamera) {
-        if self.residency.options.hidden != self.settings.hidden {
+        if self.residency.options.hidden != self.settings.hidden
+            || self.residency.options.only != self.settings.only
+        {
             self.residency.options.hidden = self.settings.hidden.clone();
+            self.residency.options.only = self.settings.only.clone();
             self.planned = None;
         }
         let state = (*camera, self.model.events_applied());

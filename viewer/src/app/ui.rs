@@ -44,6 +44,13 @@ pub(super) fn panel(ctx: &egui::Context, v: &mut ViewerState, roomy: bool) {
                         t.tiles_wanted,
                         t.loads_in_flight
                     ));
+                    ui.checkbox(&mut v.scans_below_tiles, "scans below the finest tiles");
+                    if v.scans_below_tiles {
+                        ui.label(format!(
+                            "{} finest tiles show their scans ({} drawn)",
+                            t.tiles_with_scans, v.stats.drawn
+                        ));
+                    }
                 }
             }
             ui.separator();

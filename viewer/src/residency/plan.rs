@@ -66,6 +66,9 @@ pub struct PlanOptions {
     pub max_in_flight: usize,
     /// Scans switched off by the user: never needed.
     pub hidden: BTreeSet<ScanId>,
+    /// Only these scans can be needed (`None`: any): the scans below the finest
+    /// level-of-detail tiles, when tiles draw the rest.
+    pub only: Option<BTreeSet<ScanId>>,
 }
 
 impl PlanOptions {
@@ -78,6 +81,7 @@ impl PlanOptions {
             stickiness: 1.25,
             max_in_flight: 4,
             hidden: BTreeSet::new(),
+            only: None,
         }
     }
 }
@@ -119,7 +123,11 @@ pub fn plan(scans: &[PlanScan], camera: &VirtualCamera, options: &PlanOptions) -
     let mut needed: Vec<(f64, &PlanScan)> = Vec::new();
     let mut band: Vec<(f64, &PlanScan)> = Vec::new();
     for s in scans {
-        if options.hidden.contains(&s.id) {
+        let left_out = options
+            .only
+            .as_ref()
+            .is_some_and(|only| !only.contains(&s.id));
+        if left_out || options.hidden.contains(&s.id) {
             continue;
         }
         let want = want(s, &view_from_world, &wide, &wider, options, mean_priority);

@@ -1,9 +1,9 @@
 // tile.wgsl: draws level-of-detail tiles (texel-lod): f32 positions relative to each
 // tile's origin, placed relative to the virtual camera (composed in f64 on the CPU),
-// coloured per vertex with display (sRGB-encoded) values. A cross-fade is a screen
-// door: each pixel's ordered-dither threshold picks one of the selections ("cuts")
-// being faded between, and only that cut's tiles are kept at the pixel, so no sorting
-// is needed and the depth buffer stays valid.
+// coloured per vertex or by the tile's atlas, both display (sRGB-encoded) values. A
+// cross-fade is a screen door: each pixel's ordered-dither threshold picks one of the
+// selections ("cuts") being faded between, and only that cut's tiles are kept at the
+// pixel, so no sorting is needed and the depth buffer stays valid.
 
 const MAX_CUTS: u32 = 8u;
 
@@ -17,20 +17,34 @@ struct Tile {
     view_from_tile: mat4x4<f32>,
     // x: bit i set when the tile belongs to cut i
     cuts: vec4<u32>,
+    // x: share of the tile's pixels where scans on its surface win over it; y: the
+    // same-surface tolerance, metres
+    scans: vec4<f32>,
 }
 
 @group(0) @binding(0) var<uniform> frame: Frame;
 @group(0) @binding(1) var<uniform> fade: Fade;
+// The scans drawn beneath (the scan renderer's pre-pass): per pixel the nearest valid
+// scan fragment's distance from the eye and its range sigma (bit patterns of f32);
+// +infinity where no scan drew. 1 x 1 when no scans are drawn.
+@group(0) @binding(2) var scan_nearest: texture_2d<u32>;
 @group(1) @binding(0) var<uniform> tile: Tile;
+// The tile's atlas, display values like the vertex colours (which are white where it
+// holds the colour; a tile coloured per vertex binds a 1 x 1 white atlas instead).
+@group(1) @binding(1) var atlas: texture_2d<f32>;
+@group(1) @binding(2) var atlas_sampler: sampler;
 
 struct TileIn {
     @location(0) position: vec3<f32>,
     @location(1) colour: vec4<f32>,
+    @location(2) uv: vec2<f32>,
 }
 
 struct TileOut {
     @builtin(position) clip: vec4<f32>,
     @location(0) colour: vec3<f32>,
+    @location(1) p_view: vec3<f32>,
+    @location(2) uv: vec2<f32>,
 }
 
 @vertex
@@ -39,6 +53,8 @@ fn vs_tile(v: TileIn) -> TileOut {
     var out: TileOut;
     out.clip = frame.clip_from_view * vec4<f32>(p.xyz, 1.0);
     out.colour = v.colour.rgb;
+    out.uv = v.uv;
+    out.p_view = p.xyz;
     return out;
 }
 
@@ -64,9 +80,52 @@ fn cut_at(b: f32) -> u32 {
 
 @fragment
 fn fs_tile(in: TileOut) -> @location(0) vec4<f32> {
+    // Sampled before any discard: implicit derivatives need uniform control flow.
+    let texel = textureSample(atlas, atlas_sampler, in.uv).rgb;
+    let slant = ray_slant(in.p_view);
     let cut = cut_at(bayer8(vec2<u32>(in.clip.xy)));
     if ((tile.cuts.x >> cut) & 1u) == 0u {
         discard;
     }
-    return to_target(in.colour);
+    if gives_way_to_scans(vec2<u32>(in.clip.xy), length(in.p_view), slant) {
+        discard;
+    }
+    return to_target(in.colour * texel);
+}
+
+// How much longer along the ray than across the surface an offset between two
+// near-parallel surfaces is: 1 / |cos| of the angle between the ray and the tile's
+// normal (from the screen-space derivatives of the view position), at most 8 (76
+// degrees from face-on), 8 where the derivatives are degenerate.
+fn ray_slant(p_view: vec3<f32>) -> f32 {
+    let n = cross(dpdx(p_view), dpdy(p_view));
+    let ln = length(n);
+    let lp = length(p_view);
+    if ln <= 1e-30 || lp <= 1e-30 {
+        return 8.0;
+    }
+    let c = abs(dot(n, p_view)) / (ln * lp);
+    return 1.0 / max(c, 0.125);
+}
+
+// Whether the scans drawn beneath show at this pixel instead of the tile: they lie in
+// front of it, or on the same surface (within the tile's tolerance across the surface,
+// `slant` times that along the ray, or 3 sigma of their range noise) in the share of
+// pixels the tile gives way (a screen door, decorrelated from the cut's by an offset).
+// A tile in front of the scans covers them.
+fn gives_way_to_scans(pixel: vec2<u32>, tile_distance: f32, slant: f32) -> bool {
+    let size = textureDimensions(scan_nearest);
+    let at = min(pixel, max(size, vec2<u32>(1u)) - vec2<u32>(1u));
+    let near = textureLoad(scan_nearest, at, 0).xy;
+    let scan_distance = bitcast<f32>(near.x);
+    // No scan here (+infinity), or not a number: the tile stays.
+    if !(scan_distance < 3.0e38) {
+        return false;
+    }
+    let tolerance = max(tile.scans.y * slant, 3.0 * bitcast<f32>(near.y));
+    if tile_distance > scan_distance + tolerance {
+        return true;
+    }
+    return tile_distance >= scan_distance - tolerance
+        && bayer8(pixel + vec2<u32>(4u, 2u)) < tile.scans.x;
 }

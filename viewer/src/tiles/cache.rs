@@ -1,5 +1,6 @@
 //! The GPU tile cache: each decoded tile's mesh uploaded once (vertices as f32 offsets
-//! from the tile's f64 origin with their colour, and u32 indices), keyed by tile id
+//! from the tile's f64 origin with their colour and atlas coordinates, u32 indices,
+//! and the tile's atlas as an RGBA texture where it has one), keyed by tile id
 //! and revision (a rebuilt tile has a new revision and replaces the old copy); its GPU
 //! bytes kept within a budget by evicting the least recently used tiles first, never
 //! one used in the current frame.
@@ -7,28 +8,57 @@
 use std::collections::BTreeMap;
 
 use bytemuck::{Pod, Zeroable};
-use texel_lod::{LodNode, TileId};
+use texel_lod::{LodNode, TileId, TileTexture};
 use wgpu::util::DeviceExt;
 
 use crate::gpu::{GpuContext, GpuError};
 
-/// One vertex as the tile pass reads it: position relative to the tile's origin and
-/// the colour (display values, alpha unused).
+/// One vertex as the tile pass reads it: position relative to the tile's origin, the
+/// colour (display values, alpha unused; white where the atlas holds the colour, as
+/// the shader multiplies the two) and the atlas coordinates.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, PartialEq, Pod, Zeroable)]
 pub struct TileVertex {
     pub position: [f32; 3],
     pub colour: [u8; 4],
+    pub uv: [f32; 2],
 }
 
 /// The vertex layout of [`TileVertex`] (`TileIn` in `tile.wgsl`).
-pub const TILE_VERTEX_ATTRIBUTES: [wgpu::VertexAttribute; 2] =
-    wgpu::vertex_attr_array![0 => Float32x3, 1 => Unorm8x4];
+pub const TILE_VERTEX_ATTRIBUTES: [wgpu::VertexAttribute; 3] =
+    wgpu::vertex_attr_array![0 => Float32x3, 1 => Unorm8x4, 2 => Float32x2];
 
-/// GPU bytes a tile's mesh takes: 16 bytes a vertex, 12 a triangle.
+/// The atlas texture's format: plain (not sRGB) 8-bit, so a sample is the display
+/// value the atlas holds, filtered between display values as the vertex colours are
+/// interpolated; the shader treats both alike.
+pub const ATLAS_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Unorm;
+
+/// The atlas of a tile if it is one the GPU can hold: its size matches its texels and
+/// coordinates, and no side exceeds `max_side` texels.
+fn drawable_atlas(node: &LodNode, max_side: u32) -> Option<&TileTexture> {
+    node.texture.as_ref().filter(|t| {
+        t.width > 0
+            && t.height > 0
+            && t.width <= max_side
+            && t.height <= max_side
+            && t.rgb.len() == t.width as usize * t.height as usize * 3
+            && t.uvs.len() == node.mesh.vertex_count()
+    })
+}
+
+/// GPU bytes a tile takes: 24 bytes a vertex, 12 a triangle, and 4 a texel of its
+/// atlas (RGBA: GPUs have no 3-byte texel).
 pub fn tile_gpu_bytes(node: &LodNode) -> u64 {
+    mesh_gpu_bytes(node) + drawable_atlas(node, u32::MAX).map_or(0, atlas_gpu_bytes)
+}
+
+fn mesh_gpu_bytes(node: &LodNode) -> u64 {
     node.mesh.vertex_count() as u64 * std::mem::size_of::<TileVertex>() as u64
         + node.mesh.triangle_count() as u64 * 12
+}
+
+fn atlas_gpu_bytes(texture: &TileTexture) -> u64 {
+    u64::from(texture.width) * u64::from(texture.height) * 4
 }
 
 /// A resident tile.
@@ -43,6 +73,8 @@ pub struct GpuTile {
     /// `None` for a tile without surface (resident, so selection can refine through
     /// it, but nothing to draw).
     pub(crate) buffers: Option<(wgpu::Buffer, wgpu::Buffer)>,
+    /// The tile's atlas; `None` for a tile coloured per vertex.
+    pub(crate) atlas: Option<wgpu::TextureView>,
     last_used_frame: u64,
 }
 
@@ -68,6 +100,7 @@ pub enum Inserted {
 /// Resident tiles within a GPU byte budget.
 pub struct TileCache {
     device: wgpu::Device,
+    queue: wgpu::Queue,
     budget_bytes: u64,
     tiles: BTreeMap<TileId, GpuTile>,
     resident_bytes: u64,
@@ -77,6 +110,7 @@ impl TileCache {
     pub fn new(gpu: &GpuContext, budget_bytes: u64) -> Self {
         Self {
             device: gpu.device.clone(),
+            queue: gpu.queue.clone(),
             budget_bytes,
             tiles: BTreeMap::new(),
             resident_bytes: 0,
@@ -193,7 +227,7 @@ impl TileCache {
     fn upload(&self, node: &LodNode, revision: u64, frame: u64) -> Result<GpuTile, GpuError> {
         let mesh = &node.mesh;
         let limit = self.device.limits().max_buffer_size;
-        let bytes = tile_gpu_bytes(node);
+        let bytes = mesh_gpu_bytes(node);
         if bytes > limit || mesh.triangle_count() > (u32::MAX / 3) as usize {
             return Err(GpuError::TooLarge {
                 what: "a tile's mesh",
@@ -203,6 +237,10 @@ impl TileCache {
         }
         let n = mesh.vertex_count();
         let valid = mesh.triangles.iter().flatten().all(|&v| (v as usize) < n);
+        // An atlas too large for this GPU is left out: the vertex colours show.
+        let texture = drawable_atlas(node, self.device.limits().max_texture_dimension_2d)
+            .filter(|_| valid && !mesh.is_empty());
+        let bytes = bytes + texture.map_or(0, atlas_gpu_bytes);
         let buffers = if mesh.is_empty() || !valid {
             // A mesh with an index out of range cannot come from the decoder (it
             // checks every index); drawn as nothing rather than read out of bounds.
@@ -213,10 +251,14 @@ impl TileCache {
                 .iter()
                 .enumerate()
                 .map(|(i, p)| {
-                    let c = mesh.colours.get(i).copied().unwrap_or([0; 3]);
+                    let (c, uv) = match texture {
+                        Some(t) => ([255; 3], t.uvs.get(i).copied().unwrap_or([0.0; 2])),
+                        None => (mesh.colours.get(i).copied().unwrap_or([0; 3]), [0.0; 2]),
+                    };
                     TileVertex {
                         position: *p,
                         colour: [c[0], c[1], c[2], 255],
+                        uv,
                     }
                 })
                 .collect();
@@ -238,6 +280,9 @@ impl TileCache {
                 });
             Some((vb, ib))
         };
+        let atlas = texture
+            .filter(|_| buffers.is_some())
+            .map(|t| self.upload_atlas(t, &node.id.path()));
         let triangles = if buffers.is_some() {
             mesh.triangle_count() as u32
         } else {
@@ -250,7 +295,138 @@ impl TileCache {
             bytes: if buffers.is_some() { bytes } else { 0 },
             triangles,
             buffers,
+            atlas,
             last_used_frame: frame,
+        })
+    }
+
+    /// A tile's atlas as an RGBA texture.
+    fn upload_atlas(&self, texture: &TileTexture, path: &str) -> wgpu::TextureView {
+        let rgba: Vec<u8> = texture
+            .rgb
+            .chunks_exact(3)
+            .flat_map(|c| [c[0], c[1], c[2], 255])
+            .collect();
+        let label = format!("tile atlas {path}");
+        self.device
+            .create_texture_with_data(
+                &self.queue,
+                &wgpu::TextureDescriptor {
+                    label: Some(&label),
+                    size: wgpu::Extent3d {
+                        width: texture.width,
+                        height: texture.height,
+                        depth_or_array_layers: 1,
+                    },
+                    mip_level_count: 1,
+                    sample_count: 1,
+                    dimension: wgpu::TextureDimension::D2,
+                    format: ATLAS_FORMAT,
+                    usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+                    view_formats: &[],
+                },
+                wgpu::util::TextureDataOrder::LayerMajor,
+                &rgba,
+            )
+            .create_view(&wgpu::TextureViewDescriptor::default())
+    }
+}
+
+/// What binds a tile's atlas in the tile pass (group 1 beside the tile's uniform,
+/// bindings 1 and 2): a bilinear sampler clamped to the edge (the charts' one-texel
+/// gutters are all a bilinear tap reaches; no mipmaps), and a 1 × 1 white atlas for
+/// tiles coloured per vertex.
+pub(crate) struct AtlasBinding {
+    sampler: wgpu::Sampler,
+    blank: wgpu::TextureView,
+}
+
+/// The layout entries of the atlas and its sampler.
+pub(crate) const ATLAS_LAYOUT_ENTRIES: [wgpu::BindGroupLayoutEntry; 2] = [
+    wgpu::BindGroupLayoutEntry {
+        binding: 1,
+        visibility: wgpu::ShaderStages::FRAGMENT,
+        ty: wgpu::BindingType::Texture {
+            sample_type: wgpu::TextureSampleType::Float { filterable: true },
+            view_dimension: wgpu::TextureViewDimension::D2,
+            multisampled: false,
+        },
+        count: None,
+    },
+    wgpu::BindGroupLayoutEntry {
+        binding: 2,
+        visibility: wgpu::ShaderStages::FRAGMENT,
+        ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
+        count: None,
+    },
+];
+
+impl AtlasBinding {
+    pub(crate) fn new(device: &wgpu::Device, queue: &wgpu::Queue) -> Self {
+        let sampler = device.create_sampler(&wgpu::SamplerDescriptor {
+            label: Some("tile atlas"),
+            address_mode_u: wgpu::AddressMode::ClampToEdge,
+            address_mode_v: wgpu::AddressMode::ClampToEdge,
+            address_mode_w: wgpu::AddressMode::ClampToEdge,
+            mag_filter: wgpu::FilterMode::Linear,
+            min_filter: wgpu::FilterMode::Linear,
+            ..Default::default()
+        });
+        let blank = device
+            .create_texture_with_data(
+                queue,
+                &wgpu::TextureDescriptor {
+                    label: Some("blank tile atlas"),
+                    size: wgpu::Extent3d {
+                        width: 1,
+                        height: 1,
+                        depth_or_array_layers: 1,
+                    },
+                    mip_level_count: 1,
+                    sample_count: 1,
+                    dimension: wgpu::TextureDimension::D2,
+                    format: ATLAS_FORMAT,
+                    usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+                    view_formats: &[],
+                },
+                wgpu::util::TextureDataOrder::LayerMajor,
+                &[255; 4],
+            )
+            .create_view(&wgpu::TextureViewDescriptor::default());
+        Self { sampler, blank }
+    }
+
+    /// Group 1 of the tile pass: `uniform_bytes` of `uniforms` (at a dynamic offset)
+    /// and `atlas`, or the blank atlas.
+    pub(crate) fn bind_group(
+        &self,
+        device: &wgpu::Device,
+        layout: &wgpu::BindGroupLayout,
+        uniforms: &wgpu::Buffer,
+        uniform_bytes: u64,
+        atlas: Option<&wgpu::TextureView>,
+    ) -> wgpu::BindGroup {
+        device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("tile"),
+            layout,
+            entries: &[
+                wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                        buffer: uniforms,
+                        offset: 0,
+                        size: wgpu::BufferSize::new(uniform_bytes),
+                    }),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: wgpu::BindingResource::TextureView(atlas.unwrap_or(&self.blank)),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 2,
+                    resource: wgpu::BindingResource::Sampler(&self.sampler),
+                },
+            ],
         })
     }
 }

@@ -2,12 +2,16 @@
 //! for the view with the cache's residency (Liu 2014 §4.3), ask the source for the
 //! wanted ones (most needed first, a bounded number in flight), decode them off the
 //! render thread, upload what finished, and draw the selection, cross-fading every
-//! switch. One module per job: `source.rs` (where bytes come from), `loader.rs` (the
-//! decode thread), `cache.rs` (GPU tiles within a budget), `fade.rs` (the
-//! cross-fade), `pass.rs` (the pipeline), `measure.rs` (popping figures).
+//! switch, with the scans below the finest tiles the view finds too coarse. One
+//! module per job: `source.rs` (where bytes come from), `loader.rs` (the decode
+//! thread), `cache.rs` (GPU tiles within a budget), `fade.rs` (the cross-fade),
+//! `pass.rs` (the pipeline), `hybrid.rs` (the scans below the tiles),
+//! `image_target.rs` (headless targets), `measure.rs` (popping figures).
 
 pub mod cache;
 pub mod fade;
+pub mod hybrid;
+pub mod image_target;
 pub mod loader;
 pub mod measure;
 pub mod net;
@@ -24,8 +28,10 @@ use texel_lod::{SelectConfig, TileId, TileIndex, TileInfo, View, select};
 
 use self::cache::{Inserted, TileCache};
 use self::fade::{CrossFade, FadeFrame};
+use self::hybrid::{HybridSettings, ScanRamp, scans_below};
+use self::image_target::ImageTarget;
 use self::loader::{LoadOutcome, TileLoader};
-use self::pass::{ImageTarget, PassCounts, PassTarget, TileDraw, TilePass};
+use self::pass::{PassCounts, PassTarget, TileDraw, TilePass};
 use self::source::{LoadError, TileEntry, TileSource};
 use crate::camera::VirtualCamera;
 use crate::gpu::{GpuContext, GpuError};
@@ -54,6 +60,8 @@ pub struct TileSettings {
     pub max_in_flight: usize,
     /// Display colour where no tile is drawn.
     pub background: [f32; 3],
+    /// The scans below the finest tiles.
+    pub hybrid: HybridSettings,
 }
 
 impl Default for TileSettings {
@@ -64,6 +72,7 @@ impl Default for TileSettings {
             budget_bytes: 256 << 20,
             max_in_flight: 8,
             background: [0.0; 3],
+            hybrid: HybridSettings::default(),
         }
     }
 }
@@ -86,6 +95,8 @@ pub struct TileFrameStats {
     pub selection_changed: bool,
     /// A cross-fade is under way.
     pub fading: bool,
+    /// Finest tiles showing the scans below them (see [`TileRenderer::scans_wanted`]).
+    pub tiles_with_scans: usize,
 }
 
 /// The listing as selection sees it; the top tiles are those of the highest level
@@ -164,6 +175,8 @@ pub struct TileRenderer<S: TileSource> {
     fade: CrossFade,
     /// The last update's drawing plan.
     plan: FadeFrame,
+    /// Finest tiles showing their scans, and how far faded in.
+    ramp: ScanRamp,
     refined: BTreeSet<TileId>,
     last_draw: Vec<TileId>,
     /// Requested from the source, bytes not arrived yet.
@@ -189,6 +202,7 @@ impl<S: TileSource> TileRenderer<S> {
             pass: TilePass::new(gpu),
             fade: CrossFade::new(),
             plan: FadeFrame::default(),
+            ramp: ScanRamp::default(),
             refined: BTreeSet::new(),
             last_draw: Vec::new(),
             awaiting: BTreeSet::new(),
@@ -244,6 +258,18 @@ impl<S: TileSource> TileRenderer<S> {
         self.plan = self
             .fade
             .update(&selection.draw, &visible, now_s, self.settings.fade_s);
+        let below_finest: BTreeSet<TileId> = if self.settings.hybrid.enabled {
+            let planned = &self.plan.tiles;
+            selection
+                .below_finest
+                .iter()
+                .filter(|id| planned.contains_key(id))
+                .copied()
+                .collect()
+        } else {
+            BTreeSet::new()
+        };
+        self.ramp.update(&below_finest, now_s, self.settings.fade_s);
         // The top tiles stay resident too: without them selection has nothing to
         // start from and their ground would be empty until they load again.
         let roots = self.index.roots();
@@ -304,6 +330,7 @@ impl<S: TileSource> TileRenderer<S> {
             uploaded,
             selection_changed,
             fading: self.plan.fading,
+            tiles_with_scans: self.ramp.shown().count(),
         }
     }
 
@@ -434,6 +461,22 @@ impl<S: TileSource> TileRenderer<S> {
         uploaded
     }
 
+    /// The scans to draw below the finest tiles of the last update whose scans are
+    /// shown (see [`hybrid::scans_below`]), from the model's `scans`; empty when none
+    /// are.
+    pub fn scans_wanted(
+        &self,
+        scans: &[texel::model::ModelScan],
+        camera: &VirtualCamera,
+    ) -> BTreeSet<texel::model::ScanId> {
+        let tiles: Vec<TileInfo> = self
+            .ramp
+            .shown()
+            .filter_map(|(id, _)| self.index.tile(id))
+            .collect();
+        scans_below(&tiles, scans, camera, &self.settings.hybrid)
+    }
+
     /// Records the planned tiles into `target` (see [`TilePass::encode`]).
     pub fn encode(
         &mut self,
@@ -449,6 +492,11 @@ impl<S: TileSource> TileRenderer<S> {
                 self.cache.get(*id).map(|tile| TileDraw {
                     tile,
                     cuts: if self.plan.fading { *cuts } else { u32::MAX },
+                    scan_share: self.ramp.share(),
+                    surface_tolerance_m: self
+                        .index
+                        .tile(*id)
+                        .map_or(0.0, |info| info.geometric_error_m.max(0.0) as f32),
                 })
             })
             .collect();
@@ -486,6 +534,7 @@ impl<S: TileSource> TileRenderer<S> {
             colour: image.target(),
             depth: image.depth_view(),
             clear: Some(background),
+            scans: None,
         };
         self.encode(&mut encoder, &target, camera);
         self.gpu.queue.submit(Some(encoder.finish()));

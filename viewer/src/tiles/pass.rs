@@ -3,8 +3,7 @@
 //! (depth cleared to 0, compare Greater), display colours through `to_target`, and
 //! positions relative to the camera. Each tile's view-from-tile transform is built in
 //! f64 from `origin_m - eye` and only then rounded to f32, so a street 5,000 km from
-//! the world origin draws as well as one at it. Also a headless target (colour in
-//! `IMAGE_FORMAT` plus depth) read back as an image.
+//! the world origin draws as well as one at it.
 
 use std::collections::HashMap;
 
@@ -12,10 +11,12 @@ use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, UVec4, Vec4};
 use nalgebra::{Matrix4, Vector3};
 
-use super::cache::{GpuTile, TILE_VERTEX_ATTRIBUTES, TileVertex};
+use super::cache::{
+    ATLAS_LAYOUT_ENTRIES, AtlasBinding, GpuTile, TILE_VERTEX_ATTRIBUTES, TileVertex,
+};
 use super::fade::MAX_CUTS;
 use crate::camera::VirtualCamera;
-use crate::gpu::{DEPTH_FORMAT, GpuContext, GpuError, IMAGE_FORMAT, RenderTarget, shaders};
+use crate::gpu::{DEPTH_FORMAT, GpuContext, NEAREST_FORMAT, RenderTarget, shaders};
 
 /// The frame uniform (`Frame` in `common.wgsl`); only the projection, the sRGB flag
 /// and the width are used by the tile pass.
@@ -41,6 +42,11 @@ pub(crate) struct FadeUniform {
 pub(crate) struct TileUniform {
     pub view_from_tile: Mat4,
     pub cuts: UVec4,
+    /// x: the share of this tile's pixels where scans on its surface win over it
+    /// (0: the tile everywhere, 1: the scans wherever they drew; between while
+    /// fading); y: how far in front of or behind the scans, metres, the tile still
+    /// counts as the same surface.
+    pub scans: Vec4,
 }
 
 /// One tile to draw and the cuts it belongs to (bit i: cut i; all bits when no fade
@@ -49,6 +55,11 @@ pub(crate) struct TileUniform {
 pub struct TileDraw<'a> {
     pub tile: &'a GpuTile,
     pub cuts: u32,
+    /// Share of the tile's pixels where the scans drawn beneath win on its surface
+    /// (see [`PassTarget::scans`]): 0 when its scans are not shown.
+    pub scan_share: f32,
+    /// Same-surface tolerance against the scans, metres (the tile's geometric error).
+    pub surface_tolerance_m: f32,
 }
 
 /// Where the tile pass draws: a colour target, its depth buffer (`DEPTH_FORMAT`, the
@@ -59,6 +70,12 @@ pub struct PassTarget<'a> {
     pub colour: RenderTarget<'a>,
     pub depth: &'a wgpu::TextureView,
     pub clear: Option<[f32; 3]>,
+    /// Scans already drawn into `colour` (the hybrid of Liu's tree, whose leaves are
+    /// the scans): their nearest distance and sigma per pixel (the scan renderer's
+    /// pre-pass target, `NEAREST_FORMAT`, the target's size). A tile fragment behind
+    /// the scans is dropped; one on the same surface gives way to them in the share of
+    /// pixels its draw says; one in front covers them.
+    pub scans: Option<&'a wgpu::TextureView>,
 }
 
 /// What a pass drew.
@@ -102,6 +119,72 @@ fn clear_colour(background: [f32; 3], format: wgpu::TextureFormat) -> wgpu::Colo
     }
 }
 
+fn frame_bind_group(
+    device: &wgpu::Device,
+    layout: &wgpu::BindGroupLayout,
+    frame_uniform: &wgpu::Buffer,
+    fade_uniform: &wgpu::Buffer,
+    scans: &wgpu::TextureView,
+) -> wgpu::BindGroup {
+    device.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some("tile frame"),
+        layout,
+        entries: &[
+            wgpu::BindGroupEntry {
+                binding: 0,
+                resource: frame_uniform.as_entire_binding(),
+            },
+            wgpu::BindGroupEntry {
+                binding: 1,
+                resource: fade_uniform.as_entire_binding(),
+            },
+            wgpu::BindGroupEntry {
+                binding: 2,
+                resource: wgpu::BindingResource::TextureView(scans),
+            },
+        ],
+    })
+}
+
+/// A 1 x 1 scan pre-pass target holding "no scan" (+infinity, as the pre-pass clears).
+fn no_scans_texture(device: &wgpu::Device, queue: &wgpu::Queue) -> wgpu::TextureView {
+    let texture = device.create_texture(&wgpu::TextureDescriptor {
+        label: Some("no scans"),
+        size: wgpu::Extent3d {
+            width: 1,
+            height: 1,
+            depth_or_array_layers: 1,
+        },
+        mip_level_count: 1,
+        sample_count: 1,
+        dimension: wgpu::TextureDimension::D2,
+        format: NEAREST_FORMAT,
+        usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+        view_formats: &[],
+    });
+    let texel = [f32::INFINITY.to_bits(), 0u32];
+    queue.write_texture(
+        wgpu::TexelCopyTextureInfo {
+            texture: &texture,
+            mip_level: 0,
+            origin: wgpu::Origin3d::ZERO,
+            aspect: wgpu::TextureAspect::All,
+        },
+        bytemuck::cast_slice(&texel),
+        wgpu::TexelCopyBufferLayout {
+            offset: 0,
+            bytes_per_row: Some(8),
+            rows_per_image: Some(1),
+        },
+        wgpu::Extent3d {
+            width: 1,
+            height: 1,
+            depth_or_array_layers: 1,
+        },
+    );
+    texture.create_view(&wgpu::TextureViewDescriptor::default())
+}
+
 /// The tile pipelines, uniforms and bind groups.
 pub struct TilePass {
     device: wgpu::Device,
@@ -112,9 +195,13 @@ pub struct TilePass {
     pipelines: HashMap<wgpu::TextureFormat, wgpu::RenderPipeline>,
     frame_uniform: wgpu::Buffer,
     fade_uniform: wgpu::Buffer,
+    frame_layout: wgpu::BindGroupLayout,
+    /// The frame bind group with a 1 x 1 "no scans" texture, for passes without scans.
     frame_bind_group: wgpu::BindGroup,
     tile_uniforms: wgpu::Buffer,
+    /// Group 1 with the blank atlas, for tiles coloured per vertex.
     tile_bind_group: wgpu::BindGroup,
+    atlas: AtlasBinding,
     /// Bytes between tiles' uniforms (the device's dynamic offset alignment).
     stride: u64,
     capacity: u64,
@@ -149,11 +236,28 @@ impl TilePass {
         let device = gpu.device.clone();
         let frame_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("tile frame"),
-            entries: &[uniform_entry(0, false), uniform_entry(1, false)],
+            entries: &[
+                uniform_entry(0, false),
+                uniform_entry(1, false),
+                wgpu::BindGroupLayoutEntry {
+                    binding: 2,
+                    visibility: wgpu::ShaderStages::FRAGMENT,
+                    ty: wgpu::BindingType::Texture {
+                        sample_type: wgpu::TextureSampleType::Uint,
+                        view_dimension: wgpu::TextureViewDimension::D2,
+                        multisampled: false,
+                    },
+                    count: None,
+                },
+            ],
         });
         let tile_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("tile"),
-            entries: &[uniform_entry(0, true)],
+            entries: &[
+                uniform_entry(0, true),
+                ATLAS_LAYOUT_ENTRIES[0],
+                ATLAS_LAYOUT_ENTRIES[1],
+            ],
         });
         let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
             label: Some("tile"),
@@ -174,25 +278,20 @@ impl TilePass {
             "tile fade uniform",
             std::mem::size_of::<FadeUniform>() as u64,
         );
-        let frame_bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("tile frame"),
-            layout: &frame_layout,
-            entries: &[
-                wgpu::BindGroupEntry {
-                    binding: 0,
-                    resource: frame_uniform.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 1,
-                    resource: fade_uniform.as_entire_binding(),
-                },
-            ],
-        });
+        let no_scans = no_scans_texture(&device, &gpu.queue);
+        let frame_bind_group = frame_bind_group(
+            &device,
+            &frame_layout,
+            &frame_uniform,
+            &fade_uniform,
+            &no_scans,
+        );
         let align = u64::from(device.limits().min_uniform_buffer_offset_alignment).max(1);
         let stride = TILE_UNIFORM_BYTES.div_ceil(align) * align;
         let capacity = 64;
+        let atlas = AtlasBinding::new(&device, &gpu.queue);
         let (tile_uniforms, tile_bind_group) =
-            Self::tile_buffer(&device, &tile_layout, stride * capacity);
+            Self::tile_buffer(&device, &tile_layout, &atlas, stride * capacity);
         Self {
             device,
             queue: gpu.queue.clone(),
@@ -202,9 +301,11 @@ impl TilePass {
             pipelines: HashMap::new(),
             frame_uniform,
             fade_uniform,
+            frame_layout,
             frame_bind_group,
             tile_uniforms,
             tile_bind_group,
+            atlas,
             stride,
             capacity,
         }
@@ -213,21 +314,11 @@ impl TilePass {
     fn tile_buffer(
         device: &wgpu::Device,
         layout: &wgpu::BindGroupLayout,
+        atlas: &AtlasBinding,
         bytes: u64,
     ) -> (wgpu::Buffer, wgpu::BindGroup) {
         let buffer = uniform_buffer(device, "tile uniforms", bytes);
-        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("tile"),
-            layout,
-            entries: &[wgpu::BindGroupEntry {
-                binding: 0,
-                resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-                    buffer: &buffer,
-                    offset: 0,
-                    size: wgpu::BufferSize::new(TILE_UNIFORM_BYTES),
-                }),
-            }],
-        });
+        let bind_group = atlas.bind_group(device, layout, &buffer, TILE_UNIFORM_BYTES, None);
         (buffer, bind_group)
     }
 
@@ -289,7 +380,7 @@ impl TilePass {
         ends: &[f32; MAX_CUTS],
         draws: &[TileDraw<'_>],
     ) -> PassCounts {
-        let (clear, depth) = (target.clear, target.depth);
+        let (clear, depth, scans) = (target.clear, target.depth, target.scans);
         let target = &target.colour;
         let bg = clear.unwrap_or([0.0; 3]);
         let frame = TileFrameUniform {
@@ -320,8 +411,12 @@ impl TilePass {
         let count = drawable.len() as u64;
         if count > self.capacity {
             self.capacity = count.next_power_of_two();
-            let (buffer, bind_group) =
-                Self::tile_buffer(&self.device, &self.tile_layout, self.stride * self.capacity);
+            let (buffer, bind_group) = Self::tile_buffer(
+                &self.device,
+                &self.tile_layout,
+                &self.atlas,
+                self.stride * self.capacity,
+            );
             self.tile_uniforms = buffer;
             self.tile_bind_group = bind_group;
         }
@@ -331,6 +426,12 @@ impl TilePass {
                 let uniform = TileUniform {
                     view_from_tile: view_from_tile(camera, d.tile.origin_m),
                     cuts: UVec4::new(d.cuts, 0, 0, 0),
+                    scans: Vec4::new(
+                        d.scan_share.clamp(0.0, 1.0),
+                        d.surface_tolerance_m.max(0.0),
+                        0.0,
+                        0.0,
+                    ),
                 };
                 let at = i * self.stride as usize;
                 bytes[at..at + TILE_UNIFORM_BYTES as usize]
@@ -343,11 +444,39 @@ impl TilePass {
                 wgpu::LoadOp::Clear(clear_colour(c, target.format)),
                 wgpu::LoadOp::Clear(0.0),
             ),
+            // Over the scans: their colour stays, the tiles' depth starts afresh (the
+            // scans' own is the pre-pass target the shader reads).
+            None if scans.is_some() => (wgpu::LoadOp::Load, wgpu::LoadOp::Clear(0.0)),
             None => (wgpu::LoadOp::Load, wgpu::LoadOp::Load),
         };
         let stride = self.stride;
-        let frame_bind_group = self.frame_bind_group.clone();
+        let frame_bind_group = match scans {
+            Some(nearest) => frame_bind_group(
+                &self.device,
+                &self.frame_layout,
+                &self.frame_uniform,
+                &self.fade_uniform,
+                nearest,
+            ),
+            None => self.frame_bind_group.clone(),
+        };
         let tile_bind_group = self.tile_bind_group.clone();
+        // Textured tiles bind their atlas beside the uniforms: made per pass, as the
+        // uniform buffer may have grown since the last.
+        let atlas_bind_groups: Vec<Option<wgpu::BindGroup>> = drawable
+            .iter()
+            .map(|d| {
+                d.tile.atlas.as_ref().map(|view| {
+                    self.atlas.bind_group(
+                        &self.device,
+                        &self.tile_layout,
+                        &self.tile_uniforms,
+                        TILE_UNIFORM_BYTES,
+                        Some(view),
+                    )
+                })
+            })
+            .collect();
         let pipeline = self.pipeline(target.format).clone();
         let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
             label: Some("tiles"),
@@ -380,7 +509,8 @@ impl TilePass {
                 continue;
             };
             let offset = u32::try_from(i as u64 * stride).unwrap_or(u32::MAX);
-            pass.set_bind_group(1, &tile_bind_group, &[offset]);
+            let group = atlas_bind_groups.get(i).and_then(Option::as_ref);
+            pass.set_bind_group(1, group.unwrap_or(&tile_bind_group), &[offset]);
             pass.set_vertex_buffer(0, vertices.slice(..));
             pass.set_index_buffer(indices.slice(..), wgpu::IndexFormat::Uint32);
             pass.draw_indexed(0..d.tile.triangles * 3, 0, 0..1);
@@ -389,116 +519,6 @@ impl TilePass {
         }
         counts
     }
-}
-
-/// A headless target: an `IMAGE_FORMAT` colour texture and its depth buffer.
-pub struct ImageTarget {
-    pub width: u32,
-    pub height: u32,
-    colour: wgpu::Texture,
-    colour_view: wgpu::TextureView,
-    depth_view: wgpu::TextureView,
-}
-
-impl ImageTarget {
-    pub fn new(gpu: &GpuContext, width: u32, height: u32) -> Result<Self, GpuError> {
-        let limit = gpu.device.limits().max_texture_dimension_2d;
-        if width == 0 || height == 0 || width > limit || height > limit {
-            return Err(GpuError::TargetSize {
-                width,
-                height,
-                limit,
-            });
-        }
-        let texture = |label: &str, format, usage| {
-            gpu.device.create_texture(&wgpu::TextureDescriptor {
-                label: Some(label),
-                size: wgpu::Extent3d {
-                    width,
-                    height,
-                    depth_or_array_layers: 1,
-                },
-                mip_level_count: 1,
-                sample_count: 1,
-                dimension: wgpu::TextureDimension::D2,
-                format,
-                usage,
-                view_formats: &[],
-            })
-        };
-        let colour = texture(
-            "tile image",
-            IMAGE_FORMAT,
-            wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
-        );
-        let depth = texture(
-            "tile depth",
-            DEPTH_FORMAT,
-            wgpu::TextureUsages::RENDER_ATTACHMENT,
-        );
-        Ok(Self {
-            width,
-            height,
-            colour_view: colour.create_view(&Default::default()),
-            depth_view: depth.create_view(&Default::default()),
-            colour,
-        })
-    }
-
-    pub fn target(&self) -> RenderTarget<'_> {
-        RenderTarget {
-            view: &self.colour_view,
-            format: IMAGE_FORMAT,
-            width: self.width,
-            height: self.height,
-        }
-    }
-
-    pub fn depth_view(&self) -> &wgpu::TextureView {
-        &self.depth_view
-    }
-
-    /// The colour texture as an image (waits for the GPU).
-    pub fn read(&self, gpu: &GpuContext) -> Result<image::RgbaImage, GpuError> {
-        crate::gpu::read_rgba_texture(&gpu.device, &gpu.queue, &self.colour)
-    }
-}
-
-/// Draws `tiles` (all of them whole, no fade) into a new image: the reference render
-/// (e.g. every finest tile) and the pass on its own.
-pub fn render_tiles_to_image(
-    gpu: &GpuContext,
-    pass: &mut TilePass,
-    tiles: &[&GpuTile],
-    camera: &VirtualCamera,
-    background: [f32; 3],
-) -> Result<(image::RgbaImage, PassCounts), GpuError> {
-    let target = ImageTarget::new(gpu, camera.width, camera.height)?;
-    let draws: Vec<TileDraw<'_>> = tiles
-        .iter()
-        .map(|t| TileDraw {
-            tile: t,
-            cuts: u32::MAX,
-        })
-        .collect();
-    let mut encoder = gpu
-        .device
-        .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-            label: Some("tiles"),
-        });
-    let counts = pass.encode(
-        &mut encoder,
-        &PassTarget {
-            colour: target.target(),
-            depth: target.depth_view(),
-            clear: Some(background),
-        },
-        camera,
-        &[1.0; MAX_CUTS],
-        &draws,
-    );
-    gpu.queue.submit(Some(encoder.finish()));
-    Ok((target.read(gpu)?, counts))
 }
 
 #[cfg(test)]

@@ -96,18 +96,28 @@ pub fn cpu_render(nodes: &[&LodNode], cam: &VirtualCamera) -> Vec<Option<[f64; 3
     let (w, h) = (cam.width as usize, cam.height as usize);
     let mut depth = vec![f64::INFINITY; w * h];
     let mut colour = vec![None; w * h];
+    // Which node drew each pixel: a textured node's pixels hold texture coordinates
+    // until its atlas is sampled below.
+    let mut owner = vec![usize::MAX; w * h];
     let view_from_world = cam.view_from_world();
     let f = cam.focal_px();
     let (cx, cy) = (w as f64 * 0.5, h as f64 * 0.5);
-    for node in nodes {
+    for (n, node) in nodes.iter().enumerate() {
         let mesh = &node.mesh;
+        let texture = node.texture.as_ref();
         for tri in &mesh.triangles {
             let verts: Vec<([f64; 3], [f64; 3])> = tri
                 .iter()
                 .map(|&v| {
                     let p = mesh.world(v as usize).unwrap();
                     let q = view_from_world * nalgebra::Point3::from(p);
-                    let c = mesh.colours[v as usize].map(f64::from);
+                    let c = match texture {
+                        Some(t) => {
+                            let uv = t.uvs[v as usize];
+                            [f64::from(uv[0]), f64::from(uv[1]), 0.0]
+                        }
+                        None => mesh.colours[v as usize].map(f64::from),
+                    };
                     ([q.x, q.y, q.z], c)
                 })
                 .collect();
@@ -117,12 +127,41 @@ pub fn cpu_render(nodes: &[&LodNode], cam: &VirtualCamera) -> Vec<Option<[f64; 3
                     [poly[0], poly[k], poly[k + 1]],
                     (w, h, f, cx, cy),
                     &mut depth,
-                    &mut colour,
+                    (&mut colour, &mut owner, n),
                 );
             }
         }
     }
+    for (c, &n) in colour.iter_mut().zip(&owner) {
+        if let (Some(value), Some(t)) = (c.as_mut(), nodes.get(n).and_then(|n| n.texture.as_ref()))
+        {
+            *value = bilinear(t, [value[0], value[1]]);
+        }
+    }
     colour
+}
+
+/// An atlas sampled as the GPU's linear, clamp-to-edge sampler does: between the
+/// four nearest texel centres.
+fn bilinear(t: &texel_lod::TileTexture, uv: [f64; 2]) -> [f64; 3] {
+    let (w, h) = (i64::from(t.width), i64::from(t.height));
+    let x = uv[0] * w as f64 - 0.5;
+    let y = uv[1] * h as f64 - 0.5;
+    let (fx, fy) = (x - x.floor(), y - y.floor());
+    let (x0, y0) = (x.floor() as i64, y.floor() as i64);
+    let texel = |i: i64, j: i64| {
+        let at = ((j.clamp(0, h - 1) * w + i.clamp(0, w - 1)) * 3) as usize;
+        [0, 1, 2].map(|c| f64::from(t.rgb[at + c]))
+    };
+    let (a, b, c, d) = (
+        texel(x0, y0),
+        texel(x0 + 1, y0),
+        texel(x0, y0 + 1),
+        texel(x0 + 1, y0 + 1),
+    );
+    [0, 1, 2].map(|k| {
+        (1.0 - fy) * ((1.0 - fx) * a[k] + fx * b[k]) + fy * ((1.0 - fx) * c[k] + fx * d[k])
+    })
 }
 
 type Vtx = ([f64; 3], [f64; 3]);
@@ -154,7 +193,7 @@ fn raster(
     t: [Vtx; 3],
     (w, h, f, cx, cy): (usize, usize, f64, f64, f64),
     depth: &mut [f64],
-    colour: &mut [Option<[f64; 3]>],
+    (colour, owner, node): (&mut [Option<[f64; 3]>], &mut [usize], usize),
 ) {
     let s: Vec<[f64; 2]> = t
         .iter()
@@ -214,6 +253,7 @@ fn raster(
                 (b0 * iz[0] * t[0].1[k] + b1 * iz[1] * t[1].1[k] + b2 * iz[2] * t[2].1[k]) * z
             });
             colour[i] = Some(c);
+            owner[i] = node;
         }
     }
 }

@@ -12,7 +12,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
 use nalgebra::{Point3, Vector3};
-use texel::model::{ScanId, ScanListing};
+use texel::model::{ModelScan, ScanId, ScanListing};
 use texel::{Pose, TexelScan};
 use texel_viewer::camera::VirtualCamera;
 use texel_viewer::composite::Mode;
@@ -95,6 +95,9 @@ pub struct ViewFigures {
     pub left_out: usize,
     /// Whether the selection settled (tiles) or every needed scan fit (scans).
     pub complete: bool,
+    /// Tiles with scans below: finest tiles showing their scans, and scans drawn.
+    pub tiles_with_scans: usize,
+    pub scans_drawn: usize,
 }
 
 /// The view with level of detail, from an empty cache: tiles loaded until the
@@ -134,6 +137,85 @@ pub fn lod_view(
             needed: updates,
             left_out: 0,
             complete: settled,
+            tiles_with_scans: 0,
+            scans_drawn: 0,
+        },
+        image,
+    ))
+}
+
+/// The view with level of detail and the scans below the finest tiles the view
+/// still finds too coarse: tiles loaded until the selection wants nothing, the
+/// scans those tiles want made resident (the planner, restricted to them, within
+/// the holder's budget), the cross-fade to them run out, then `timed` frames, each
+/// updating, choosing the scans and drawing both.
+pub fn hybrid_view(
+    gpu: &GpuContext,
+    source: &MemorySource,
+    holder: &mut ScanHolder<'_>,
+    camera: &VirtualCamera,
+    settings: TileSettings,
+    timed: usize,
+) -> Result<(ViewFigures, image::RgbaImage)> {
+    let scan_settings = scan_settings();
+    let mut r = TileRenderer::new(gpu, source.clone(), settings)?;
+    let (updates, mut now_s, settled) = settle(&mut r, camera, 0.0, 400);
+    let wanted = r.scans_wanted(&holder.model_scans, camera);
+    holder.set_only(Some(wanted));
+    let hold = holder.hold_for(camera);
+    holder.set_only(None);
+    let (plan, _) = hold?;
+    holder.renderer.release_targets();
+    // Warm-up, and the scans' fade (0.25 s by default) run out.
+    let warm_up = 2 + (settings.fade_s.max(0.0) / FRAME_S).ceil() as usize;
+    let mut frame = None;
+    for _ in 0..warm_up {
+        frame = Some(r.render_over_scans_to_image(
+            &mut holder.renderer,
+            &scan_settings,
+            &holder.model_scans,
+            camera,
+            now_s,
+        )?);
+        now_s += FRAME_S;
+    }
+    let mut times = Vec::with_capacity(timed);
+    for _ in 0..timed.max(1) {
+        let started = Instant::now();
+        frame = Some(r.render_over_scans_to_image(
+            &mut holder.renderer,
+            &scan_settings,
+            &holder.model_scans,
+            camera,
+            now_s,
+        )?);
+        times.push(started.elapsed().as_secs_f64() * 1e3);
+        now_s += FRAME_S;
+    }
+    let errors = r.take_errors();
+    anyhow::ensure!(errors.is_empty(), "tile loads failed: {errors:?}");
+    let (image, stats, hybrid) = frame.context("no frame drawn")?;
+    let scans = hybrid.scans.unwrap_or_default();
+    let scan_triangles = if hybrid.scans.is_some() {
+        let mut only = scan_settings.clone();
+        only.only = Some(r.scans_wanted(&holder.model_scans, camera));
+        holder.triangles_drawn(camera, &only)
+    } else {
+        0
+    };
+    Ok((
+        ViewFigures {
+            frame_ms: median(&times),
+            data_bytes: stats.resident_bytes + scans.scan_bytes,
+            target_bytes: scans.target_memory.total(),
+            resident: stats.resident_tiles + scans.scans,
+            drawn: stats.tiles_drawn + scans.drawn,
+            triangles: stats.triangles_drawn + scan_triangles,
+            needed: updates,
+            left_out: plan.left_out.len(),
+            complete: settled && plan.left_out.is_empty(),
+            tiles_with_scans: stats.tiles_with_scans,
+            scans_drawn: scans.drawn,
         },
         image,
     ))
@@ -143,6 +225,8 @@ pub fn lod_view(
 /// residency planner chooses for the current view within a byte budget.
 pub struct ScanHolder<'a> {
     pub renderer: Renderer,
+    /// The scans as a model lists them (no data), for choosing the scans below tiles.
+    pub model_scans: Vec<ModelScan>,
     scans: &'a [(Arc<TexelScan>, Pose)],
     plan_scans: Vec<PlanScan>,
     options: PlanOptions,
@@ -150,7 +234,7 @@ pub struct ScanHolder<'a> {
 
 impl<'a> ScanHolder<'a> {
     pub fn new(gpu: &GpuContext, scans: &'a [(Arc<TexelScan>, Pose)], budget_bytes: u64) -> Self {
-        let plan_scans = scans
+        let plan_scans: Vec<PlanScan> = scans
             .iter()
             .enumerate()
             .map(|(i, (scan, pose))| PlanScan {
@@ -161,12 +245,28 @@ impl<'a> ScanHolder<'a> {
                 state: DataState::Held,
             })
             .collect();
+        let model_scans = plan_scans
+            .iter()
+            .map(|s: &PlanScan| ModelScan {
+                id: s.id,
+                scan: None,
+                listing: s.listing,
+                world_from_scan: s.world_from_scan,
+                revisions: 0,
+            })
+            .collect();
         Self {
             renderer: Renderer::new(gpu),
+            model_scans,
             scans,
             plan_scans,
             options: PlanOptions::new(budget_bytes),
         }
+    }
+
+    /// Restricts the scans the planner may choose (`None`: any).
+    pub fn set_only(&mut self, only: Option<BTreeSet<ScanId>>) {
+        self.options.only = only;
     }
 
     /// GPU bytes of every scan, were they all uploaded.
@@ -250,6 +350,8 @@ pub fn scans_view(
             needed: p.needed,
             left_out: p.left_out.len(),
             complete: p.left_out.is_empty(),
+            tiles_with_scans: 0,
+            scans_drawn: stats.drawn,
         },
         image,
     ))

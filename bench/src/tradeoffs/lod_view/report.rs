@@ -7,7 +7,9 @@ use texel_viewer::residency::DEFAULT_BUDGET_MB;
 use texel_viewer::tiles::measure::PopMeasure;
 
 use super::render::{HEIGHT, WIDTH};
-use super::{FLY_FRAMES, Figures, LodViewArgs, PoseQuality, TILE_BUDGET, mean_quality, mib, ratio};
+use super::{
+    FLY_FRAMES, Figures, HOW, LodViewArgs, PoseQuality, TILE_BUDGET, mean_quality, mib, ratio,
+};
 
 pub(super) fn markdown(f: &Figures, args: &LodViewArgs) -> String {
     let mut s = String::new();
@@ -25,7 +27,7 @@ pub(super) fn markdown(f: &Figures, args: &LodViewArgs) -> String {
     let v = &f.views;
     let _ = writeln!(
         s,
-        "`cargo run --release -p texel-bench -- tradeoffs lod-view{frames_arg}{seed_arg}` on {} (software Vulkan on the shared 2-core machine: absolute times are slow, compare ratios within the table). Street, the first {} frames of the walk at 30 Hz ({} scans, x {:.0} to {:.0} m), placed by their true poses and fused into the default tree ({} tiles in {} levels, built in {:.1} s; {:.1} MiB on the GPU were every tile resident, against {:.1} MiB for every scan). The viewer draws at {WIDTH}x{HEIGHT} either the tiles (`TileRenderer` over a `MemorySource`, default selection, {} MiB budget, cache empty at each view and filled until the selection wants nothing) or the scans only (the residency planner choosing the scans the view needs within the viewer's default {DEFAULT_BUDGET_MB} MiB, drawn `blended`, k 4). Close view: eye 1.7 m up at the walk's middle frame, looking 40 degrees off the street's axis at the facade {:.1} m away. Overview: from ({:.0}, {:.0}, {:.0}) m looking down at the walk's middle, the whole walked street in view. Frame time: median wall time of one frame rendered into an image and read back (the GPU waited for), after two warm-up frames. GPU bytes: the tiles or scans resident (meshes and textures); the scan renderer's size-dependent targets (k-buffer, depth) are listed apart.\n",
+        "`cargo run --release -p texel-bench -- tradeoffs lod-view{frames_arg}{seed_arg}` on {} (software Vulkan on the shared 2-core machine: absolute times are slow, compare ratios within the table). Street, the first {} frames of the walk at 30 Hz ({} scans, x {:.0} to {:.0} m), placed by their true poses and fused into the default tree ({} tiles in {} levels, built in {:.1} s; {:.1} MiB on the GPU were every tile resident, against {:.1} MiB for every scan). The viewer draws at {WIDTH}x{HEIGHT} three ways: LOD, the tiles (`TileRenderer` over a `MemorySource`, default selection, {} MiB budget, cache empty at each view and filled until the selection wants nothing) with, below the finest tiles the view still finds too coarse, their scans (at most 8 per tile, acquired nearest the eye, held by the residency planner restricted to them, drawn `blended` beneath the tiles, which give way on their surface); the tiles alone; or the scans only (the residency planner choosing the scans the view needs within the viewer's default {DEFAULT_BUDGET_MB} MiB, drawn `blended`, k 4). Close view: eye 1.7 m up at the walk's middle frame, looking 40 degrees off the street's axis at the facade {:.1} m away. Overview: from ({:.0}, {:.0}, {:.0}) m looking down at the walk's middle, the whole walked street in view. Frame time: median wall time of one frame rendered into an image and read back (the GPU waited for), after two warm-up frames. GPU bytes: the tiles or scans resident (meshes and textures); the scan renderer's size-dependent targets (k-buffer, depth) are listed apart.\n",
         f.adapter,
         f.frames,
         f.scans,
@@ -48,9 +50,18 @@ pub(super) fn markdown(f: &Figures, args: &LodViewArgs) -> String {
     );
     let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|");
     for (k, name) in ["close", "overview"].iter().enumerate() {
-        for (j, how) in ["LOD", "scans only"].iter().enumerate() {
+        for (j, how) in HOW.iter().enumerate() {
             let x = &f.view[k][j];
             let notes = if j == 0 {
+                format!(
+                    "tiles and scans; settled after {} updates{}; {} finest tiles show {} scans, {} left out by the budget",
+                    x.needed,
+                    if x.complete { "" } else { " (incomplete)" },
+                    x.tiles_with_scans,
+                    x.scans_drawn,
+                    x.left_out
+                )
+            } else if j == 1 {
                 format!(
                     "tiles; settled after {} updates{}",
                     x.needed,
@@ -80,7 +91,7 @@ pub(super) fn markdown(f: &Figures, args: &LodViewArgs) -> String {
         "| ratio overview / close | frame time | GPU bytes (data) |"
     );
     let _ = writeln!(s, "|---|---|---|");
-    for (j, how) in ["LOD", "scans only"].iter().enumerate() {
+    for (j, how) in HOW.iter().enumerate() {
         let _ = writeln!(
             s,
             "| {how} | {:.2} | {:.2} |",
@@ -93,31 +104,83 @@ pub(super) fn markdown(f: &Figures, args: &LodViewArgs) -> String {
     }
     let _ = writeln!(
         s,
-        "\nQuality: PSNR against the simulator's own render (`sims::Scene::render_view`, no sensor effects) at held-out poses; near: halfway between neighbouring frames of the walk (the rendering section's `between` poses); far: from the same stretch of the walk raised 8 m and pulled back 12 m along it, looking at what the frame looked at 8 m out. Scored over the pixels where the truth has geometry (a ray from the pixel hits the scene) and both renders drew; the tiles settled with no fade. `drawn` is the share of the truth's geometry pixels each render covers.\n"
+        "\nQuality: PSNR against the simulator's own render (`sims::Scene::render_view`, no sensor effects) at held-out poses; near: halfway between neighbouring frames of the walk (the rendering section's `between` poses); far: from the same stretch of the walk raised 8 m and pulled back 12 m along it, looking at what the frame looked at 8 m out. Scored over the pixels where the truth has geometry (a ray from the pixel hits the scene) and all three renders drew; the tiles settled with no fade. `drawn` is the share of the truth's geometry pixels each render covers.\n"
     );
     let _ = writeln!(
         s,
-        "| poses | n | PSNR LOD dB | PSNR scans only dB | LOD - scans dB | drawn LOD / scans % | scored % | scans left out by the budget, max |"
+        "| poses | n | PSNR LOD dB | PSNR tiles alone dB | PSNR scans only dB | LOD - scans dB | tiles alone - scans dB | finest tiles showing scans, mean | drawn LOD / tiles / scans % | scored % | scans left out by the budget, max |"
     );
-    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|");
+    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|");
     for kind in ["near", "far"] {
         let of: Vec<&PoseQuality> = f.quality.iter().filter(|q| q.kind == kind).collect();
         let n = of.len().max(1) as f64;
-        let (l, sc, d) = mean_quality(&f.quality, kind);
+        let m = mean_quality(&f.quality, kind);
         let _ = writeln!(
             s,
-            "| {kind} | {} | {l:.2} | {sc:.2} | {d:+.2} | {:.1} / {:.1} | {:.1} | {} |",
-            of.len(),
+            "| {kind} | {} | {:.2} | {:.2} | {:.2} | {:+.2} | {:+.2} | {:.1} | {:.1} / {:.1} / {:.1} | {:.1} | {} |",
+            m.poses,
+            m.hybrid_db,
+            m.lod_db,
+            m.scans_db,
+            m.hybrid_minus_scans_db,
+            m.lod_minus_scans_db,
+            of.iter().map(|q| q.tiles_with_scans as f64).sum::<f64>() / n,
+            100.0 * of.iter().map(|q| q.hybrid_cover).sum::<f64>() / n,
             100.0 * of.iter().map(|q| q.lod_cover).sum::<f64>() / n,
             100.0 * of.iter().map(|q| q.scans_cover).sum::<f64>() / n,
             100.0 * of.iter().map(|q| q.scored).sum::<f64>() / n,
             of.iter().map(|q| q.left_out).max().unwrap_or(0)
         );
     }
+    let _ = writeln!(
+        s,
+        "\nWhat the scans below the finest tiles cost and buy, per count of scans a finest tile may show (8 by default): the close view's frame time, scans drawn and GPU bytes (tiles and scans, as above), and the mean PSNR over the held-out poses of each kind, with its difference from the scans only on the same pixels.\n"
+    );
+    let _ = writeln!(
+        s,
+        "| scans per finest tile | close: frame ms | close: scans drawn | close: GPU MiB (data) | near: PSNR dB | near: LOD - scans dB | near: scans drawn, mean | far: PSNR dB | far: LOD - scans dB |"
+    );
+    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|");
+    for (k, close) in &f.close_sweep {
+        let of = |kind: &str| -> (f64, f64, f64) {
+            let rows: Vec<(f64, f64, usize)> = f
+                .quality
+                .iter()
+                .filter(|q| q.kind == kind)
+                .filter_map(|q| {
+                    let (_, db, drawn) = q.swept_db.iter().find(|(kk, _, _)| kk == k)?;
+                    (db.is_finite() && q.scans_db.is_finite()).then_some((
+                        *db,
+                        db - q.scans_db,
+                        *drawn,
+                    ))
+                })
+                .collect();
+            let n = rows.len();
+            if n == 0 {
+                return (f64::NAN, f64::NAN, f64::NAN);
+            }
+            let n = n as f64;
+            (
+                rows.iter().map(|r| r.0).sum::<f64>() / n,
+                rows.iter().map(|r| r.1).sum::<f64>() / n,
+                rows.iter().map(|r| r.2 as f64).sum::<f64>() / n,
+            )
+        };
+        let (near_db, near_d, near_drawn) = of("near");
+        let (far_db, far_d, _) = of("far");
+        let _ = writeln!(
+            s,
+            "| {k} | {:.1} | {} | {:.1} | {near_db:.2} | {near_d:+.2} | {near_drawn:.1} | {far_db:.2} | {far_d:+.2} |",
+            close.frame_ms,
+            close.scans_drawn,
+            mib(close.data_bytes)
+        );
+    }
     let p = &f.pop;
     let _ = writeln!(
         s,
-        "\nPopping: a {FLY_FRAMES}-frame fly-through (30 Hz) from the close view to the overview, the distance growing geometrically, every tile resident from the start (`viewer/tests/tiles_flythrough.rs`'s method, `texel_viewer::tiles::measure`). Change: mean absolute RGB difference between consecutive frames, 8-bit steps; switch frames: the selection changed or a cross-fade was under way. The scans-only and finest-tiles-only fly-throughs are measured at the LOD runs' switch frames (camera motion without level of detail); `excess` is the largest amount by which a LOD frame's change exceeds the reference's at the same switch frame. Held still: each frame's image against the previous frame's tiles drawn from this frame's camera (the switch alone).\n"
+        "\nPopping: a {FLY_FRAMES}-frame fly-through (30 Hz) from the close view to the overview, the distance growing geometrically, every tile resident from the start (with the scans below the finest tiles: the scans each frame wants made resident before it is drawn, as the viewer holds them) (`viewer/tests/tiles_flythrough.rs`'s method, `texel_viewer::tiles::measure`). Change: mean absolute RGB difference between consecutive frames, 8-bit steps; switch frames: the selection changed or a cross-fade was under way (with scans below: also the finest tiles showing scans or the resident scans changed). The scans-only and finest-tiles-only fly-throughs are measured at the LOD runs' switch frames (camera motion without level of detail); `excess` is the largest amount by which a LOD frame's change exceeds the reference's at the same switch frame. Held still (tiles alone): each frame's image against the previous frame's tiles drawn from this frame's camera (the switch alone).\n"
     );
     let _ = writeln!(
         s,
@@ -125,8 +188,15 @@ pub(super) fn markdown(f: &Figures, args: &LodViewArgs) -> String {
     );
     let _ = writeln!(s, "|---|---|---|---|---|---|---|");
     let row = |s: &mut String, label: &str, m: &PopMeasure, e: Option<(f64, f64)>| {
+        let fmt = |v: f64| {
+            if v.is_finite() {
+                format!("{v:.3}")
+            } else {
+                "-".to_string()
+            }
+        };
         let (a, b) = e.map_or(("-".to_string(), "-".to_string()), |(a, b)| {
-            (format!("{a:.3}"), format!("{b:.3}"))
+            (fmt(a), fmt(b))
         });
         let _ = writeln!(
             s,
@@ -136,13 +206,28 @@ pub(super) fn markdown(f: &Figures, args: &LodViewArgs) -> String {
     };
     row(
         &mut s,
-        "LOD, fade 0.25 s",
+        &format!(
+            "LOD (scans below the finest tiles), fade 0.25 s; at most {} scans drawn",
+            p.hybrid_scans_max
+        ),
+        &p.hybrid,
+        Some((p.excess_hybrid_scans, f64::NAN)),
+    );
+    row(
+        &mut s,
+        "scans only (at the LOD run's switch frames)",
+        &p.scans_at_hybrid,
+        None,
+    );
+    row(
+        &mut s,
+        "tiles alone, fade 0.25 s",
         &p.fade,
         Some((p.excess_fade_scans, p.excess_fade_finest)),
     );
     row(
         &mut s,
-        "LOD, no fade",
+        "tiles alone, no fade",
         &p.nofade,
         Some((p.excess_nofade_scans, p.excess_nofade_finest)),
     );

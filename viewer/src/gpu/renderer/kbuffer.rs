@@ -49,6 +49,11 @@ pub(crate) struct KBufferTargets {
 }
 
 impl KBufferTargets {
+    /// The pre-pass target: nearest valid distance and its sigma per pixel.
+    pub fn nearest_view(&self) -> &wgpu::TextureView {
+        &self.nearest.view
+    }
+
     fn new(
         device: &wgpu::Device,
         pipelines: &Pipelines,

@@ -55,6 +55,9 @@ pub struct RenderSettings {
     pub strategy: Strategy,
     /// Scans switched off by the user.
     pub hidden: BTreeSet<ScanId>,
+    /// Draw only these scans (`None`: every scan): the scans below the finest
+    /// level-of-detail tiles in a hybrid frame.
+    pub only: Option<BTreeSet<ScanId>>,
 }
 
 impl Default for RenderSettings {
@@ -65,6 +68,7 @@ impl Default for RenderSettings {
             keep_stretched: false,
             strategy: Strategy::default(),
             hidden: BTreeSet::new(),
+            only: None,
         }
     }
 }
@@ -161,6 +165,9 @@ pub struct Renderer {
     pub(crate) naive: Option<naive_layers::NaiveTargets>,
     /// Submit and wait after each k-buffer phase and time it (slower; for `bench`).
     pub profile_phases: bool,
+    /// The last frame went through the k-buffer, so its pre-pass target holds that
+    /// frame's nearest scan distances.
+    nearest_ready: bool,
 }
 
 impl Renderer {
@@ -193,6 +200,7 @@ impl Renderer {
             kbuffer: None,
             naive: None,
             profile_phases: false,
+            nearest_ready: false,
         }
     }
 
@@ -291,7 +299,11 @@ impl Renderer {
         let mut visible = Vec::new();
         for (&id, placed) in &self.scans {
             stats.scan_bytes += placed.gpu.bytes;
-            if settings.hidden.contains(&id) {
+            let left_out = settings
+                .only
+                .as_ref()
+                .is_some_and(|only| !only.contains(&id));
+            if left_out || settings.hidden.contains(&id) {
                 stats.hidden += 1;
                 continue;
             }
@@ -421,6 +433,7 @@ impl Renderer {
         } else {
             Some(settings.strategy)
         };
+        self.nearest_ready = false;
         match strategy {
             None => {
                 painter::encode(&frame, &mut encoder, &visible);
@@ -450,6 +463,7 @@ impl Renderer {
                     batches,
                 )?;
                 kbuffer::encode(&frame, &mut encoder, targets, &visible, clock.as_mut());
+                self.nearest_ready = true;
                 stats.phase_ms = clock.map(|c| c.phase_ms());
                 stats.target_memory = targets.memory(depth_bytes);
             }
@@ -468,6 +482,18 @@ impl Renderer {
         }
         self.queue.submit(Some(encoder.finish()));
         Ok(stats)
+    }
+
+    /// The last frame's nearest valid scan fragment per pixel (distance from the eye
+    /// and its range sigma, `NEAREST_FORMAT`, the target's size), for drawing other
+    /// geometry over the scans with their depth (the level-of-detail tiles). `None`
+    /// unless the last frame went through the k-buffer (the painter and the naive
+    /// layers keep no such target).
+    pub fn scan_nearest(&self) -> Option<&wgpu::TextureView> {
+        if !self.nearest_ready {
+            return None;
+        }
+        self.kbuffer.as_ref().map(|t| t.nearest_view())
     }
 
     /// Waits for the GPU to finish.
