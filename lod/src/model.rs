@@ -116,6 +116,11 @@ impl LodModel {
     /// pending changes, which [`Self::rebuild`] does first): how far the hierarchy
     /// lags behind the scans.
     pub fn pending_tiles(&self) -> usize {
+        self.pending_tile_ids().len()
+    }
+
+    /// The tiles [`Self::pending_tiles`] counts.
+    pub fn pending_tile_ids(&self) -> BTreeSet<TileId> {
         let top = self.top_lod();
         let mut pending: BTreeSet<TileId> =
             self.dirty.range(..=last_of_level(top)).copied().collect();
@@ -127,7 +132,7 @@ impl LodModel {
             }
             changed = changed.iter().map(|k| parent_block(*k)).collect();
         }
-        pending.len()
+        pending
     }
 
     /// Bytes the fields hold.
@@ -154,14 +159,29 @@ impl LodModel {
     /// Tiles above the top wait until the model grows into them. Returns the tiles
     /// rebuilt.
     pub fn rebuild(&mut self, max_tiles: usize) -> usize {
+        self.rebuild_ready(max_tiles, &|_| true).len()
+    }
+
+    /// [`Self::rebuild`] of only the queued tiles `ready` accepts (the others stay
+    /// queued): a server rebuilding coarse tiles at most so often, say. Returns the
+    /// tiles rebuilt.
+    pub fn rebuild_ready(
+        &mut self,
+        max_tiles: usize,
+        ready: &dyn Fn(TileId) -> bool,
+    ) -> Vec<TileId> {
         self.follow_changes();
         let top = self.top_lod();
-        let mut rebuilt = 0;
-        while rebuilt < max_tiles {
-            // Ids order by level first: the last up to the top is the coarsest.
-            let Some(id) = self.dirty.range(..=last_of_level(top)).next_back().copied() else {
-                break;
-            };
+        // Ids order by level first: from the last up to the top, coarsest first.
+        let chosen: Vec<TileId> = self
+            .dirty
+            .range(..=last_of_level(top))
+            .rev()
+            .copied()
+            .filter(|id| ready(*id))
+            .take(max_tiles)
+            .collect();
+        for &id in &chosen {
             self.dirty.remove(&id);
             let (lo, hi) = self.grid.columns(id);
             let occupied = self
@@ -181,9 +201,8 @@ impl LodModel {
                 }
             }
             self.rebuilt.insert(id);
-            rebuilt += 1;
         }
-        rebuilt
+        chosen
     }
 
     /// The tiles rebuilt since the last call (a tile rebuilt empty is among them and

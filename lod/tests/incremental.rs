@@ -140,3 +140,33 @@ fn the_queue_reports_its_lag_and_rebuilds_the_coarsest_tiles_first() {
     assert!(model.hierarchy().unwrap().nodes.len() >= early.nodes.len() + before - 1);
     assert!(model.field_bytes() > 0 && model.mesh_bytes() > 0);
 }
+
+#[test]
+fn tiles_not_ready_stay_queued_and_the_rest_are_rebuilt() {
+    let stops = support::street_stops(40.0, 1.0, [0.0; 3]);
+    let mut model = LodModel::new(config()).unwrap();
+    for stop in &stops {
+        model.add_samples(stop);
+    }
+    // Only the finest tiles may be rebuilt: the coarser ones wait, still queued.
+    let rebuilt = model.rebuild_ready(usize::MAX, &|id| id.lod == 0);
+    assert!(!rebuilt.is_empty());
+    assert!(rebuilt.iter().all(|id| id.lod == 0), "{rebuilt:?}");
+    let waiting = model.pending_tile_ids();
+    assert!(!waiting.is_empty());
+    assert!(waiting.iter().all(|id| id.lod > 0), "{waiting:?}");
+    assert_eq!(model.pending_tiles(), waiting.len());
+    // Then the coarse ones, at most two, coarsest first.
+    let next = model.rebuild_ready(2, &|_| true);
+    assert_eq!(next.len(), 2.min(waiting.len()));
+    let top = waiting.iter().map(|id| id.lod).max().unwrap();
+    assert_eq!(next[0].lod, top);
+    // Whatever the order, the tree ends where one build of everything does.
+    model.rebuild(usize::MAX);
+    let mut once = LodModel::new(config()).unwrap();
+    for stop in &stops {
+        once.add_samples(stop);
+    }
+    once.rebuild(usize::MAX);
+    assert_eq!(model.hierarchy().unwrap(), once.hierarchy().unwrap());
+}

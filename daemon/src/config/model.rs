@@ -3,6 +3,7 @@
 //! scans). Defaults suit a small laptop.
 
 use std::path::{Path, PathBuf};
+use std::time::Duration;
 
 use serde::Deserialize;
 use texel::coverage::CoverageConfig;
@@ -43,6 +44,10 @@ pub struct LodSection {
     pub scans_per_round: usize,
     /// Tiles rebuilt per round (coarsest first).
     pub tiles_per_round: usize,
+    /// A tile above the finest level is rebuilt at most once in this many seconds,
+    /// doubled per level above the first: scans keep changing the coarse tiles, which
+    /// far views need seldom anew, and their atlases make them the dearest to build.
+    pub coarse_rebuild_interval_s: f64,
     /// New scans the stage keeps in memory while it lags; beyond that it reads them
     /// back from the store when their turn comes (so lagging costs no memory).
     pub held_scans: usize,
@@ -58,6 +63,7 @@ impl Default for LodSection {
             revise_threshold_m: 0.05,
             scans_per_round: 4,
             tiles_per_round: 2,
+            coarse_rebuild_interval_s: 1.0,
             held_scans: 8,
             tile_memory_budget_mb: 256,
         }
@@ -65,6 +71,21 @@ impl Default for LodSection {
 }
 
 impl LodSection {
+    /// The least time between two rebuilds of a tile of level `lod`.
+    pub fn coarse_interval(&self, lod: u8) -> Duration {
+        if lod == 0 {
+            return Duration::ZERO;
+        }
+        let seconds = self.coarse_rebuild_interval_s * 2f64.powi(i32::from(lod) - 1);
+        // A very coarse level waits at most an hour (and a bad value no time at all:
+        // the config is validated, this only keeps the conversion from panicking).
+        if seconds.is_finite() {
+            Duration::from_secs_f64(seconds.clamp(0.0, 3600.0))
+        } else {
+            Duration::ZERO
+        }
+    }
+
     /// The tile budget in bytes.
     pub fn tile_memory_budget_bytes(&self) -> u64 {
         self.tile_memory_budget_mb.saturating_mul(1024 * 1024)
@@ -81,6 +102,15 @@ impl LodSection {
             return Err((
                 "model.lod.revise_threshold_m",
                 format!("must be finite and >= 0, got {}", self.revise_threshold_m),
+            ));
+        }
+        if !(0.0..=3600.0).contains(&self.coarse_rebuild_interval_s) {
+            return Err((
+                "model.lod.coarse_rebuild_interval_s",
+                format!(
+                    "must be in 0..=3600 seconds, got {}",
+                    self.coarse_rebuild_interval_s
+                ),
             ));
         }
         for (key, v) in [
@@ -147,5 +177,32 @@ impl ModelSection {
             ));
         }
         self.lod.validate()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn coarse_tiles_wait_longer_the_coarser_they_are() {
+        let lod = LodSection::default();
+        assert_eq!(lod.coarse_interval(0), Duration::ZERO);
+        assert_eq!(lod.coarse_interval(1), Duration::from_secs(1));
+        assert_eq!(lod.coarse_interval(3), Duration::from_secs(4));
+        // However coarse, at most an hour.
+        assert_eq!(lod.coarse_interval(30), Duration::from_secs(3600));
+        for bad in [-1.0, f64::NAN, f64::INFINITY, 4000.0] {
+            let section = LodSection {
+                coarse_rebuild_interval_s: bad,
+                ..LodSection::default()
+            };
+            let err = section.validate().err();
+            assert_eq!(
+                err.map(|e| e.0),
+                Some("model.lod.coarse_rebuild_interval_s"),
+                "{bad}"
+            );
+        }
     }
 }

@@ -34,6 +34,8 @@ use crate::store::Store;
 /// How long an idle stage sleeps before looking again (it is woken at once by new
 /// work; this only bounds how stale the lag it reports can be).
 const IDLE_WAIT: Duration = Duration::from_millis(250);
+/// How long a round waits for scans while only coarse tiles wait their interval.
+const INTERVAL_WAIT: Duration = Duration::from_millis(20);
 
 /// What the stage is to do with one scan.
 struct Target {
@@ -189,23 +191,41 @@ impl LodStage {
         let mut published: BTreeMap<TileId, TileListing> = BTreeMap::new();
         let mut next_revision = 1u64;
         let mut counts = LodStatus::default();
-        // Arrival of the oldest scan fused but not yet in the served tiles.
-        let mut unreflected: Option<Instant> = None;
-        // Tiles waiting after the last round: while there are, rounds do not wait.
+        // Per queued tile, since when: the lag is the oldest change not yet served.
+        let mut queued_since: BTreeMap<TileId, Instant> = BTreeMap::new();
+        // When each tile was last rebuilt, for the coarse tiles' interval.
+        let mut built_at: BTreeMap<TileId, Instant> = BTreeMap::new();
+        // Tiles ready to rebuild after the last round: while there are, rounds do not
+        // wait; while only coarse tiles wait their interval, rounds wait a little.
+        let mut ready_tiles = false;
         let mut pending_tiles = 0;
         while !self.stop.load(Ordering::Acquire) {
-            let wait = if pending_tiles > 0 {
+            let wait = if ready_tiles {
                 Duration::ZERO
+            } else if pending_tiles > 0 {
+                INTERVAL_WAIT
             } else {
                 IDLE_WAIT
             };
             let (batch, closed, oldest_waiting) =
                 self.inbox.take(self.config.scans_per_round, wait);
+            // The scans' arrival, so a tile they queue counts from when they came.
+            let arrived = batch.iter().map(|(_, t)| t.since).min();
             for (id, target) in &batch {
-                unreflected = Some(unreflected.map_or(target.since, |u| u.min(target.since)));
                 self.fuse(&mut model, &mut fused, &mut counts, *id, target);
             }
-            let rebuilt = model.rebuild(self.config.tiles_per_round);
+            let now = Instant::now();
+            let interval = |lod: u8| self.config.coarse_interval(lod);
+            let ready = |id: TileId| {
+                built_at
+                    .get(&id)
+                    .is_none_or(|t| now.duration_since(*t) >= interval(id.lod))
+            };
+            let rebuilt_ids = model.rebuild_ready(self.config.tiles_per_round, &ready);
+            for id in &rebuilt_ids {
+                built_at.insert(*id, now);
+            }
+            let rebuilt = rebuilt_ids.len();
             counts.rebuilds += rebuilt as u64;
             if rebuilt > 0 {
                 let changes = self.changes(&mut model, &mut published, &mut next_revision);
@@ -216,12 +236,22 @@ impl LodStage {
                     Err(e) => tracing::error!("level of detail: tiles not published: {e}"),
                 }
             }
-            pending_tiles = model.pending_tiles();
-            if pending_tiles == 0 {
-                unreflected = None;
-            }
+            let pending = model.pending_tile_ids();
+            pending_tiles = pending.len();
             let now = Instant::now();
-            let lag_from = match (unreflected, oldest_waiting) {
+            ready_tiles = pending.iter().any(|id| {
+                built_at
+                    .get(id)
+                    .is_none_or(|t| now.duration_since(*t) >= interval(id.lod))
+            });
+            queued_since.retain(|id, _| pending.contains(id));
+            for id in pending {
+                queued_since
+                    .entry(id)
+                    .or_insert(arrived.unwrap_or(now).min(now));
+            }
+            let oldest_queued = queued_since.values().min().copied();
+            let lag_from = match (oldest_queued, oldest_waiting) {
                 (Some(a), Some(b)) => Some(a.min(b)),
                 (a, b) => a.or(b),
             };
