@@ -390,26 +390,16 @@ fn quality(
         if let Some(dir) = images {
             let truth_image = image::RgbImage::from_raw(WIDTH, HEIGHT, truth.clone())
                 .context("a truth image of the wrong size")?;
-            let save = |name: String, r: Result<(), image::ImageError>| {
-                r.with_context(|| format!("writing {}", dir.join(name).display()))
-            };
-            let name = format!("{i:02}-{kind}");
-            save(
-                format!("{name}-truth.png"),
-                truth_image.save(dir.join(format!("{name}-truth.png"))),
-            )?;
-            save(
-                format!("{name}-lod.png"),
-                hybrid.save(dir.join(format!("{name}-lod.png"))),
-            )?;
-            save(
-                format!("{name}-tiles.png"),
-                lod.save(dir.join(format!("{name}-tiles.png"))),
-            )?;
-            save(
-                format!("{name}-scans.png"),
-                scans.save(dir.join(format!("{name}-scans.png"))),
-            )?;
+            let path = dir.join(format!("{i:02}-{kind}-truth.png"));
+            truth_image
+                .save(&path)
+                .with_context(|| format!("writing {}", path.display()))?;
+            for (what, picture) in [("lod", &hybrid), ("tiles", &lod), ("scans", &scans)] {
+                let path = dir.join(format!("{i:02}-{kind}-{what}.png"));
+                picture
+                    .save(&path)
+                    .with_context(|| format!("writing {}", path.display()))?;
+            }
         }
         // The hybrid draws wherever the tiles alone do (they fill below the scans).
         let (hc, lc, sc) = (covered(&hybrid), covered(&lod), covered(&scans));

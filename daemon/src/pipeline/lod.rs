@@ -215,13 +215,14 @@ impl LodStage {
                 self.fuse(&mut model, &mut fused, &mut counts, *id, target);
             }
             let now = Instant::now();
-            let interval = |lod: u8| self.config.coarse_interval(lod);
-            let ready = |id: TileId| {
+            // A tile is due once its level's interval has passed since it was built.
+            let due = |built_at: &BTreeMap<TileId, Instant>, id: TileId, now: Instant| {
                 built_at
                     .get(&id)
-                    .is_none_or(|t| now.duration_since(*t) >= interval(id.lod))
+                    .is_none_or(|t| now.duration_since(*t) >= self.config.coarse_interval(id.lod))
             };
-            let rebuilt_ids = model.rebuild_ready(self.config.tiles_per_round, &ready);
+            let rebuilt_ids =
+                model.rebuild_ready(self.config.tiles_per_round, &|id| due(&built_at, id, now));
             for id in &rebuilt_ids {
                 built_at.insert(*id, now);
             }
@@ -239,11 +240,7 @@ impl LodStage {
             let pending = model.pending_tile_ids();
             pending_tiles = pending.len();
             let now = Instant::now();
-            ready_tiles = pending.iter().any(|id| {
-                built_at
-                    .get(id)
-                    .is_none_or(|t| now.duration_since(*t) >= interval(id.lod))
-            });
+            ready_tiles = pending.iter().any(|id| due(&built_at, *id, now));
             queued_since.retain(|id, _| pending.contains(id));
             for id in pending {
                 queued_since

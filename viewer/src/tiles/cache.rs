@@ -307,29 +307,45 @@ impl TileCache {
             .chunks_exact(3)
             .flat_map(|c| [c[0], c[1], c[2], 255])
             .collect();
-        let label = format!("tile atlas {path}");
-        self.device
-            .create_texture_with_data(
-                &self.queue,
-                &wgpu::TextureDescriptor {
-                    label: Some(&label),
-                    size: wgpu::Extent3d {
-                        width: texture.width,
-                        height: texture.height,
-                        depth_or_array_layers: 1,
-                    },
-                    mip_level_count: 1,
-                    sample_count: 1,
-                    dimension: wgpu::TextureDimension::D2,
-                    format: ATLAS_FORMAT,
-                    usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
-                    view_formats: &[],
-                },
-                wgpu::util::TextureDataOrder::LayerMajor,
-                &rgba,
-            )
-            .create_view(&wgpu::TextureViewDescriptor::default())
+        atlas_view(
+            &self.device,
+            &self.queue,
+            &format!("tile atlas {path}"),
+            (texture.width, texture.height),
+            &rgba,
+        )
     }
+}
+
+/// An `ATLAS_FORMAT` texture of `size` holding `rgba`, as the tile pass binds it.
+fn atlas_view(
+    device: &wgpu::Device,
+    queue: &wgpu::Queue,
+    label: &str,
+    (width, height): (u32, u32),
+    rgba: &[u8],
+) -> wgpu::TextureView {
+    device
+        .create_texture_with_data(
+            queue,
+            &wgpu::TextureDescriptor {
+                label: Some(label),
+                size: wgpu::Extent3d {
+                    width,
+                    height,
+                    depth_or_array_layers: 1,
+                },
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D2,
+                format: ATLAS_FORMAT,
+                usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+                view_formats: &[],
+            },
+            wgpu::util::TextureDataOrder::LayerMajor,
+            rgba,
+        )
+        .create_view(&wgpu::TextureViewDescriptor::default())
 }
 
 /// What binds a tile's atlas in the tile pass (group 1 beside the tile's uniform,
@@ -372,27 +388,7 @@ impl AtlasBinding {
             min_filter: wgpu::FilterMode::Linear,
             ..Default::default()
         });
-        let blank = device
-            .create_texture_with_data(
-                queue,
-                &wgpu::TextureDescriptor {
-                    label: Some("blank tile atlas"),
-                    size: wgpu::Extent3d {
-                        width: 1,
-                        height: 1,
-                        depth_or_array_layers: 1,
-                    },
-                    mip_level_count: 1,
-                    sample_count: 1,
-                    dimension: wgpu::TextureDimension::D2,
-                    format: ATLAS_FORMAT,
-                    usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
-                    view_formats: &[],
-                },
-                wgpu::util::TextureDataOrder::LayerMajor,
-                &[255; 4],
-            )
-            .create_view(&wgpu::TextureViewDescriptor::default());
+        let blank = atlas_view(device, queue, "blank tile atlas", (1, 1), &[255; 4]);
         Self { sampler, blank }
     }
 

@@ -168,27 +168,24 @@ pub fn hybrid_view(
     holder.renderer.release_targets();
     // Warm-up, and the scans' fade (0.25 s by default) run out.
     let warm_up = 2 + (settings.fade_s.max(0.0) / FRAME_S).ceil() as usize;
-    let mut frame = None;
-    for _ in 0..warm_up {
-        frame = Some(r.render_over_scans_to_image(
+    let mut draw = |now_s: f64| {
+        r.render_over_scans_to_image(
             &mut holder.renderer,
             &scan_settings,
             &holder.model_scans,
             camera,
             now_s,
-        )?);
+        )
+    };
+    let mut frame = None;
+    for _ in 0..warm_up {
+        frame = Some(draw(now_s)?);
         now_s += FRAME_S;
     }
     let mut times = Vec::with_capacity(timed);
     for _ in 0..timed.max(1) {
         let started = Instant::now();
-        frame = Some(r.render_over_scans_to_image(
-            &mut holder.renderer,
-            &scan_settings,
-            &holder.model_scans,
-            camera,
-            now_s,
-        )?);
+        frame = Some(draw(now_s)?);
         times.push(started.elapsed().as_secs_f64() * 1e3);
         now_s += FRAME_S;
     }
