@@ -47,6 +47,67 @@ impl SurfaceMesh {
         texel::scan::bounds_of(&self.positions)
     }
 
+    /// `count` points spread over the surface by area (systematic sampling of the
+    /// triangles' cumulative area, each point a triangle's centroid), world metres:
+    /// where the surface is, for judging who saw it. Fewer when the mesh has fewer
+    /// triangles with area; none for an empty mesh or one with an index out of range.
+    pub fn area_samples(&self, count: usize) -> Vec<[f64; 3]> {
+        let n = self.positions.len();
+        let corners = |t: &[u32; 3]| -> Option<[[f64; 3]; 3]> {
+            let mut c = [[0.0; 3]; 3];
+            for (k, &v) in t.iter().enumerate() {
+                let p = self
+                    .positions
+                    .get(v as usize)
+                    .filter(|_| (v as usize) < n)?;
+                c[k] = p.map(f64::from);
+            }
+            Some(c)
+        };
+        let mut areas = Vec::with_capacity(self.triangles.len());
+        let mut total = 0.0;
+        for t in &self.triangles {
+            let area = corners(t).map_or(0.0, |[a, b, c]| {
+                let (u, v) = (
+                    [0, 1, 2].map(|k| b[k] - a[k]),
+                    [0, 1, 2].map(|k| c[k] - a[k]),
+                );
+                let x = [
+                    u[1] * v[2] - u[2] * v[1],
+                    u[2] * v[0] - u[0] * v[2],
+                    u[0] * v[1] - u[1] * v[0],
+                ];
+                0.5 * (x[0] * x[0] + x[1] * x[1] + x[2] * x[2]).sqrt()
+            });
+            let area = if area.is_finite() { area } else { 0.0 };
+            total += area;
+            areas.push(area);
+        }
+        // Guard: no area to spread the points over.
+        if count == 0 || total <= 0.0 || total.is_nan() {
+            return Vec::new();
+        }
+        let step = total / count as f64;
+        let mut out = Vec::with_capacity(count.min(self.triangles.len()));
+        let (mut next, mut below) = (0.5 * step, 0.0);
+        let mut last = usize::MAX;
+        for (i, (t, area)) in self.triangles.iter().zip(&areas).enumerate() {
+            below += area;
+            while next < below && out.len() < count {
+                next += step;
+                // One point per triangle: a large triangle is one place however many
+                // points its area draws.
+                if i != last {
+                    if let Some([a, b, c]) = corners(t) {
+                        out.push([0, 1, 2].map(|k| self.origin_m[k] + (a[k] + b[k] + c[k]) / 3.0));
+                    }
+                    last = i;
+                }
+            }
+        }
+        out
+    }
+
     /// Bytes held by the arrays.
     pub fn heap_bytes(&self) -> usize {
         self.positions.len() * 12 + self.colours.len() * 3 + self.triangles.len() * 12
@@ -128,5 +189,64 @@ pub fn simplify(mesh: &SurfaceMesh, target_triangles: usize, max_error_m: f64) -
         } else {
             0.0
         },
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn quad(origin_m: [f64; 3], side_m: f32) -> SurfaceMesh {
+        SurfaceMesh {
+            origin_m,
+            positions: vec![
+                [0.0, 0.0, 0.0],
+                [side_m, 0.0, 0.0],
+                [side_m, side_m, 0.0],
+                [0.0, side_m, 0.0],
+            ],
+            colours: vec![[0; 3]; 4],
+            triangles: vec![[0, 1, 2], [0, 2, 3]],
+        }
+    }
+
+    #[test]
+    fn area_samples_lie_on_the_surface_spread_by_area() {
+        // A small quad and a large one beside it: the large one gets most points.
+        let mut mesh = quad([1000.0, -50.0, 2.0], 1.0);
+        let big = quad([0.0; 3], 3.0);
+        for p in &big.positions {
+            mesh.positions.push([p[0] + 10.0, p[1], p[2]]);
+        }
+        mesh.colours.extend(&big.colours);
+        mesh.triangles
+            .extend(big.triangles.iter().map(|t| t.map(|v| v + 4)));
+        let samples = mesh.area_samples(20);
+        assert_eq!(samples.len(), 4, "one point per triangle at most");
+        assert!(samples.iter().all(|p| (p[2] - 2.0).abs() < 1e-9));
+        let on_big = samples.iter().filter(|p| p[0] >= 1010.0).count();
+        assert_eq!(on_big, 2);
+        let few = mesh.area_samples(2);
+        assert_eq!(few.len(), 2);
+        assert!(
+            few.iter().all(|p| p[0] >= 1010.0),
+            "the area is on the big quad: {few:?}"
+        );
+    }
+
+    #[test]
+    fn area_samples_of_degenerate_meshes_are_empty() {
+        let mut mesh = quad([0.0; 3], 1.0);
+        assert!(mesh.area_samples(0).is_empty());
+        mesh.positions[2] = [f32::NAN, 0.0, 0.0];
+        mesh.triangles.push([0, 1, 9]);
+        let samples = mesh.area_samples(8);
+        assert!(samples.iter().all(|p| p.iter().all(|c| c.is_finite())));
+        assert!(SurfaceMesh::empty([0.0; 3]).area_samples(8).is_empty());
+        let flat = SurfaceMesh {
+            triangles: vec![[0, 0, 0]],
+            ..quad([0.0; 3], 1.0)
+        };
+        assert!(flat.area_samples(8).is_empty());
     }
 }

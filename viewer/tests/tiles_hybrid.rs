@@ -104,6 +104,7 @@ fn tile_settings(hybrid: bool, margin_m: f64) -> TileSettings {
             // Every scan reaching a tile: the frame can then match the scans alone.
             scans_per_tile: 64,
             margin_m,
+            ..HybridSettings::default()
         },
         ..TileSettings::default()
     }

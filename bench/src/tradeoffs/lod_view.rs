@@ -300,7 +300,7 @@ fn ratio(a: f64, b: f64) -> f64 {
 }
 
 /// Counts of scans per finest tile measured (the default, 8, among them).
-const SWEEP: [usize; 4] = [4, 8, 16, 32];
+const SWEEP: [usize; 5] = [4, 8, 16, 32, 64];
 
 /// The three ways the street is drawn, as the tables name them.
 const HOW: [&str; 3] = ["LOD", "tiles alone", "scans only"];

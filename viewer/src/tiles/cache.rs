@@ -61,6 +61,10 @@ fn atlas_gpu_bytes(texture: &TileTexture) -> u64 {
     u64::from(texture.width) * u64::from(texture.height) * 4
 }
 
+/// Surface points kept per resident tile: enough to tell which of a tile's scans
+/// saw which part of it, 3 KiB a tile.
+pub const SURFACE_SAMPLES: usize = 128;
+
 /// A resident tile.
 #[derive(Debug)]
 pub struct GpuTile {
@@ -75,6 +79,9 @@ pub struct GpuTile {
     pub(crate) buffers: Option<(wgpu::Buffer, wgpu::Buffer)>,
     /// The tile's atlas; `None` for a tile coloured per vertex.
     pub(crate) atlas: Option<wgpu::TextureView>,
+    /// Points spread over its surface by area, world metres (which scans saw the
+    /// tile: `scan_choice.rs`).
+    pub samples_m: Vec<[f64; 3]>,
     last_used_frame: u64,
 }
 
@@ -283,6 +290,7 @@ impl TileCache {
         let atlas = texture
             .filter(|_| buffers.is_some())
             .map(|t| self.upload_atlas(t, &node.id.path()));
+        let buffers_drawn = buffers.is_some();
         let triangles = if buffers.is_some() {
             mesh.triangle_count() as u32
         } else {
@@ -296,6 +304,11 @@ impl TileCache {
             triangles,
             buffers,
             atlas,
+            samples_m: if buffers_drawn {
+                mesh.area_samples(SURFACE_SAMPLES)
+            } else {
+                Vec::new()
+            },
             last_used_frame: frame,
         })
     }

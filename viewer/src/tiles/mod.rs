@@ -6,6 +6,7 @@
 //! module per job: `source.rs` (where bytes come from), `loader.rs` (the decode
 //! thread), `cache.rs` (GPU tiles within a budget), `fade.rs` (the cross-fade),
 //! `pass.rs` (the pipeline), `hybrid.rs` (the scans below the tiles),
+//! `scan_choice.rs` (which scans those are),
 //! `image_target.rs` (headless targets), `measure.rs` (popping figures).
 
 pub mod cache;
@@ -16,6 +17,7 @@ pub mod loader;
 pub mod measure;
 pub mod net;
 pub mod pass;
+pub mod scan_choice;
 pub mod source;
 
 use std::collections::{BTreeMap, BTreeSet};
@@ -28,10 +30,11 @@ use texel_lod::{SelectConfig, TileId, TileIndex, TileInfo, View, select};
 
 use self::cache::{Inserted, TileCache};
 use self::fade::{CrossFade, FadeFrame};
-use self::hybrid::{HybridSettings, ScanRamp, scans_below};
+use self::hybrid::{HybridSettings, ScanRamp};
 use self::image_target::ImageTarget;
 use self::loader::{LoadOutcome, TileLoader};
 use self::pass::{PassCounts, PassTarget, TileDraw, TilePass};
+use self::scan_choice::{ShownTile, scans_below};
 use self::source::{LoadError, TileEntry, TileSource};
 use crate::camera::VirtualCamera;
 use crate::gpu::{GpuContext, GpuError};
@@ -462,17 +465,22 @@ impl<S: TileSource> TileRenderer<S> {
     }
 
     /// The scans to draw below the finest tiles of the last update whose scans are
-    /// shown (see [`hybrid::scans_below`]), from the model's `scans`; empty when none
-    /// are.
+    /// shown (see [`scan_choice::scans_below`]; at the resident tiles' surface
+    /// points), from the model's `scans`; empty when none are.
     pub fn scans_wanted(
         &self,
         scans: &[texel::model::ModelScan],
         camera: &VirtualCamera,
     ) -> BTreeSet<texel::model::ScanId> {
-        let tiles: Vec<TileInfo> = self
+        let tiles: Vec<ShownTile<'_>> = self
             .ramp
             .shown()
-            .filter_map(|(id, _)| self.index.tile(id))
+            .filter_map(|(id, _)| {
+                Some(ShownTile {
+                    info: self.index.tile(id)?,
+                    samples_m: self.cache.get(id).map_or(&[], |t| &t.samples_m),
+                })
+            })
             .collect();
         scans_below(&tiles, scans, camera, &self.settings.hybrid)
     }
