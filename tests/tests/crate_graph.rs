@@ -74,6 +74,7 @@ fn the_pure_stages_and_the_shared_vocabulary_stay_free_of_services() {
         "texel",
         "texel-register",
         "texel-surface",
+        "texel-vdtm",
         "texel-lod",
         "texel-client",
     ] {
@@ -99,6 +100,7 @@ fn no_product_crate_depends_on_the_tooling_crate() {
         "texel",
         "texel-register",
         "texel-surface",
+        "texel-vdtm",
         "texel-lod",
         "texel-client",
         "calib",
