@@ -94,6 +94,9 @@ enum TradeoffsCommand {
     LodLive(tradeoffs::lod_live::LodLiveArgs),
     /// Level of detail in the viewer: frame time, GPU bytes, quality and popping.
     LodView(tradeoffs::lod_view::LodViewArgs),
+    /// The merged surface on lab and courtyard: time, memory and distance from the
+    /// truth per voxel size.
+    Surface(tradeoffs::surface::SurfaceArgs),
 }
 
 fn main() -> ExitCode {
@@ -153,6 +156,9 @@ fn main() -> ExitCode {
         }
         Command::Tradeoffs(TradeoffsCommand::LodView(args)) => {
             ("tradeoffs lod-view", tradeoffs::lod_view::run(&args))
+        }
+        Command::Tradeoffs(TradeoffsCommand::Surface(args)) => {
+            ("tradeoffs surface", tradeoffs::surface::run(&args))
         }
         Command::Calib(command) => ("calib", texel_bench::calibration::commands::run(command)),
     };

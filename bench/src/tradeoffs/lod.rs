@@ -230,7 +230,7 @@ fn measure(
 /// surface: rays cast both ways along each vertex's normal (area-weighted over its
 /// triangles) from half a metre out; the nearer hit counts. Vertices with no hit
 /// within a metre (surface the walk never reached) are left out.
-fn distances(h: &Hierarchy, lod: u8, scene: &sims::Scene) -> (f64, f64) {
+pub(crate) fn distances(h: &Hierarchy, lod: u8, scene: &sims::Scene) -> (f64, f64) {
     let mut d = Vec::new();
     for node in h.nodes.values().filter(|n| n.id.lod == lod) {
         let mesh = &node.mesh;

@@ -12,6 +12,7 @@ pub mod plot;
 pub mod registration;
 pub mod rendering;
 pub mod retirement;
+pub mod surface;
 
 use std::path::{Path, PathBuf};
 
