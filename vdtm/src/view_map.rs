@@ -98,6 +98,15 @@ pub struct Blend {
 }
 
 impl Blend {
+    /// One view, whole (a polygon only that view sees).
+    pub fn single(view: u32) -> Self {
+        Self {
+            views: [view, 0, 0],
+            weights: [1.0, 0.0, 0.0],
+            len: 1,
+        }
+    }
+
     pub fn len(&self) -> usize {
         self.len
     }
