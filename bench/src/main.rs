@@ -97,6 +97,9 @@ enum TradeoffsCommand {
     /// The merged surface on lab and courtyard: time, memory and distance from the
     /// truth per voxel size.
     Surface(tradeoffs::surface::SurfaceArgs),
+    /// View-dependent texture mapping's preprocessing on lab and courtyard: time and
+    /// memory of visibility, hole filling and view maps against the number of views.
+    VdtmPrep(tradeoffs::vdtm_prep::VdtmPrepArgs),
 }
 
 fn main() -> ExitCode {
@@ -159,6 +162,9 @@ fn main() -> ExitCode {
         }
         Command::Tradeoffs(TradeoffsCommand::Surface(args)) => {
             ("tradeoffs surface", tradeoffs::surface::run(&args))
+        }
+        Command::Tradeoffs(TradeoffsCommand::VdtmPrep(args)) => {
+            ("tradeoffs vdtm-prep", tradeoffs::vdtm_prep::run(&args))
         }
         Command::Calib(command) => ("calib", texel_bench::calibration::commands::run(command)),
     };

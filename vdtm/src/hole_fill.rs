@@ -207,6 +207,19 @@ pub fn triangle_colours(
     views: &[AcquisitionView<'_>],
     config: &HoleFillConfig,
 ) -> Vec<Option<[f32; 3]>> {
+    triangle_colours_where(mesh, seen_by, views, config, &|_| true)
+}
+
+/// [`triangle_colours`] for the triangles `wanted` says, `None` for the others:
+/// filling reads only the triangles that share a vertex with a hole, and sampling
+/// every image of every seen triangle would cost far more than the filling.
+pub fn triangle_colours_where(
+    mesh: &SurfaceMesh,
+    seen_by: &[Vec<u32>],
+    views: &[AcquisitionView<'_>],
+    config: &HoleFillConfig,
+    wanted: &dyn Fn(usize) -> bool,
+) -> Vec<Option<[f32; 3]>> {
     let n = mesh.triangles.len();
     let vertices = mesh.positions.len();
     // The first view of each id counts.
@@ -232,6 +245,10 @@ pub fn triangle_colours(
     let mut out = Vec::with_capacity(n);
     let mut neighbours: Vec<u32> = Vec::new();
     for (t, tri) in mesh.triangles.iter().enumerate() {
+        if !wanted(t) {
+            out.push(None);
+            continue;
+        }
         let ids = seen(t);
         let centroid = if valid[t] {
             local_centroid(mesh, tri)

@@ -15,6 +15,7 @@ pub mod visibility;
 
 pub use hole_fill::{
     HoleFill, HoleFillConfig, HoleFillError, HoleFillStats, fill_holes, triangle_colours,
+    triangle_colours_where,
 };
 pub use model::{Texturing, VdtmConfig, VdtmError, VdtmModel, VdtmStats};
 pub use view::AcquisitionView;

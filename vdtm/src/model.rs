@@ -8,10 +8,14 @@ use std::collections::BTreeMap;
 use nalgebra::Point3;
 use texel_surface::SurfaceMesh;
 
-use crate::hole_fill::{HoleFillConfig, HoleFillError, fill_holes, triangle_colours};
+use crate::hole_fill::{
+    HoleFill, HoleFillConfig, HoleFillError, fill_holes, triangle_colours_where,
+};
 use crate::view::AcquisitionView;
 use crate::view_map::{Blend, DEFAULT_SIDE, PolygonFrame, ViewMap, ViewMapError};
-use crate::visibility::{VisibilityConfig, VisibilityError, VisibilityStats, visibility};
+use crate::visibility::{
+    VisibilityConfig, VisibilityError, VisibilityStats, VisibleMesh, visibility,
+};
 
 /// The preprocessing's knobs.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -84,7 +88,7 @@ pub struct VdtmModel {
 
 impl VdtmModel {
     /// Prepares `mesh` for rendering from `views` (their images colour the holes'
-    /// surroundings).
+    /// surroundings): the recipe of the three steps below.
     pub fn build(
         mesh: &SurfaceMesh,
         views: &[AcquisitionView<'_>],
@@ -93,9 +97,42 @@ impl VdtmModel {
         // §5: which views see which polygons, partly visible ones subdivided.
         let (visible, visibility_stats) = visibility(mesh, views, &config.visibility)?;
         // §6: colours for the polygons no view sees, from their neighbours'.
-        let colours = triangle_colours(&visible.mesh, &visible.seen_by, views, &config.hole_fill);
-        let fill = fill_holes(&visible.mesh, &colours, &config.hole_fill)?;
+        let fill = Self::fill(&visible, views, &config.hole_fill)?;
         // §7: a view map per polygon seen by two or more views.
+        Self::assemble(visible, visibility_stats, &fill, views, config)
+    }
+
+    /// §6 on visibility's output: the seen polygons' colours, then the holes'.
+    pub fn fill(
+        visible: &VisibleMesh,
+        views: &[AcquisitionView<'_>],
+        config: &HoleFillConfig,
+    ) -> Result<HoleFill, VdtmError> {
+        // Filling reads only the polygons sharing a vertex with a hole: only those
+        // sample the images; the other seen ones count as coloured.
+        let holes: Vec<bool> = visible.seen_by.iter().map(Vec::is_empty).collect();
+        let near = near_holes(&visible.mesh, &holes);
+        let wanted = |t: usize| near.get(t).copied().unwrap_or(false);
+        let colours =
+            triangle_colours_where(&visible.mesh, &visible.seen_by, views, config, &wanted)
+                .into_iter()
+                .enumerate()
+                .map(|(t, c)| match c {
+                    None if !wanted(t) && !holes.get(t).copied().unwrap_or(true) => Some([0.0; 3]),
+                    c => c,
+                })
+                .collect::<Vec<_>>();
+        Ok(fill_holes(&visible.mesh, &colours, config)?)
+    }
+
+    /// §7: per polygon its frame and a hole, one view, or a view map.
+    pub fn assemble(
+        visible: VisibleMesh,
+        visibility_stats: VisibilityStats,
+        fill: &HoleFill,
+        views: &[AcquisitionView<'_>],
+        config: &VdtmConfig,
+    ) -> Result<Self, VdtmError> {
         let centre_of: BTreeMap<u32, Point3<f64>> =
             views.iter().map(|v| (v.id, v.centre())).collect();
         let mut stats = VdtmStats {
@@ -171,6 +208,28 @@ impl VdtmModel {
             }
         }
     }
+}
+
+/// Per triangle, whether it shares a vertex with a hole (`holes`, per triangle);
+/// indices out of range count for nothing.
+fn near_holes(mesh: &SurfaceMesh, holes: &[bool]) -> Vec<bool> {
+    let mut touched = vec![false; mesh.positions.len()];
+    for (t, tri) in mesh.triangles.iter().enumerate() {
+        if holes.get(t).copied().unwrap_or(true) {
+            for &v in tri {
+                if let Some(flag) = touched.get_mut(v as usize) {
+                    *flag = true;
+                }
+            }
+        }
+    }
+    mesh.triangles
+        .iter()
+        .map(|tri| {
+            tri.iter()
+                .any(|&v| touched.get(v as usize).copied().unwrap_or(false))
+        })
+        .collect()
 }
 
 /// A triangle's corners in the world; `None` for an index out of range or a corner

@@ -10,7 +10,9 @@ use texel::Pose;
 use texel::camera::{Distortion, PinholeCamera};
 use texel::frames::EoFrame;
 use texel_surface::SurfaceMesh;
-use texel_vdtm::{AcquisitionView, Texturing, VdtmConfig, VdtmModel};
+use texel_vdtm::{
+    AcquisitionView, Texturing, VdtmConfig, VdtmModel, fill_holes, triangle_colours, visibility,
+};
 
 /// Adds the quad `a b c d` (counter-clockwise seen from its front) as two triangles,
 /// sharing the vertices already at its corners (as a merged surface does).
@@ -143,7 +145,17 @@ fn the_model_of_a_box_on_the_ground_agrees_with_the_true_geometry() {
             image: Some(&green),
         },
     ];
-    let model = VdtmModel::build(&mesh, &views, &VdtmConfig::default()).unwrap();
+    let config = VdtmConfig::default();
+    let model = VdtmModel::build(&mesh, &views, &config).unwrap();
+    // Sampling only the polygons next to holes fills them as sampling every one does.
+    let (visible, _) = visibility(&mesh, &views, &config.visibility).unwrap();
+    let all = triangle_colours(&visible.mesh, &visible.seen_by, &views, &config.hole_fill);
+    let full = fill_holes(&visible.mesh, &all, &config.hole_fill).unwrap();
+    for (t, how) in model.texturing.iter().enumerate() {
+        if let Texturing::Hole { corners } = how {
+            assert_eq!(Some(*corners), full.corner_colours[t], "polygon {t}");
+        }
+    }
     let n = model.mesh.triangle_count();
     let s = model.stats;
     assert_eq!(s.holes + s.single + s.mapped, n);

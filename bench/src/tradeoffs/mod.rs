@@ -13,6 +13,7 @@ pub mod registration;
 pub mod rendering;
 pub mod retirement;
 pub mod surface;
+pub mod vdtm_prep;
 
 use std::path::{Path, PathBuf};
 

@@ -1,0 +1,216 @@
+//! `texel-bench tradeoffs vdtm-prep`: what view-dependent texture mapping's
+//! preprocessing (Debevec 1998 §5-7, `texel-vdtm`) costs on `lab` and `courtyard`,
+//! and how it grows with the number of views: visibility, hole filling and view maps
+//! timed apart, their memory, and how many polygons end seen by none, one, two or
+//! three and more views. Writes the "vdtm-prep" section of `docs/tradeoffs.md`.
+
+use std::fmt::Write;
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::Result;
+use texel::camera::PinholeCamera;
+use texel::capture::{TexelItem, open_texel_frames};
+use texel_lod::{Hierarchy, LodConfig, LodModel};
+use texel_surface::SurfaceMesh;
+use texel_vdtm::{AcquisitionView, VdtmConfig, VdtmModel, visibility};
+
+use crate::tradeoffs::lod::truth_placed_scans;
+use crate::tradeoffs::registration::data::{SequenceSpec, cached_capture};
+use crate::tradeoffs::rendering::report::write_tradeoffs_section;
+
+#[derive(Debug, Clone, clap::Args)]
+pub struct VdtmPrepArgs {
+    /// All views only, for a quick look (docs/ is left alone).
+    #[arg(long)]
+    pub quick: bool,
+    /// The repository root (scenes are read and the docs written under it).
+    #[arg(long, default_value = ".")]
+    pub repo: PathBuf,
+    /// Where captures are kept between runs.
+    #[arg(long, default_value = "target/tradeoffs-cache")]
+    pub cache: PathBuf,
+    /// Simulator seed.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Measure and print, but leave docs/tradeoffs.md alone.
+    #[arg(long)]
+    pub no_write: bool,
+}
+
+/// The scenes measured, with the frames of each (the whole of each scene's walk).
+const SCENES: [(&str, usize); 2] = [("lab", 36), ("courtyard", 120)];
+
+/// The merged surface's voxel, metres (`tradeoffs surface`: 1 mm median, 12 to 14 mm
+/// at the 95th percentile on these scenes).
+const VOXEL_M: f64 = 0.05;
+
+struct Row {
+    scene: &'static str,
+    views: usize,
+    polygons_in: usize,
+    polygons_out: usize,
+    seen_by_views: [usize; 4],
+    visibility_ms: f64,
+    fill_ms: f64,
+    maps_ms: f64,
+    depth_map_mib: f64,
+    view_map_mib: f64,
+}
+
+pub fn run(args: &VdtmPrepArgs) -> Result<()> {
+    let scenes_dir = args.repo.join("configs").join("scenes");
+    let mut rows = Vec::new();
+    for (scene, frames) in SCENES {
+        let spec = SequenceSpec {
+            scene,
+            frames,
+            seed: args.seed,
+            orbit_period_frames: None,
+        };
+        let capture = cached_capture(&scenes_dir, &args.cache, &spec)?;
+        let camera = eo_camera(&capture)?;
+        let placed = truth_placed_scans(&capture)?;
+        let mesh = merged_surface(&placed)?;
+        let strides: &[usize] = if args.quick { &[1] } else { &[4, 2, 1] };
+        for &stride in strides {
+            let views: Vec<AcquisitionView<'_>> = placed
+                .iter()
+                .enumerate()
+                .step_by(stride)
+                .map(|(i, (scan, pose))| AcquisitionView {
+                    id: i as u32,
+                    // The scan frame is the EO camera's optical frame.
+                    world_from_eo: *pose,
+                    camera: &camera,
+                    image: Some(scan.texture.as_ref()),
+                })
+                .collect();
+            let config = VdtmConfig::default();
+            let t = Instant::now();
+            let (visible, stats) = visibility(&mesh, &views, &config.visibility)?;
+            let visibility_ms = 1e3 * t.elapsed().as_secs_f64();
+            let t = Instant::now();
+            let fill = VdtmModel::fill(&visible, &views, &config.hole_fill)?;
+            let fill_ms = 1e3 * t.elapsed().as_secs_f64();
+            let t = Instant::now();
+            let model = VdtmModel::assemble(visible, stats, &fill, &views, &config)?;
+            let maps_ms = 1e3 * t.elapsed().as_secs_f64();
+            let mib = |bytes: usize| bytes as f64 / f64::from(1u32 << 20);
+            let row = Row {
+                scene,
+                views: views.len(),
+                polygons_in: stats.input_triangles,
+                polygons_out: stats.output_triangles,
+                seen_by_views: stats.seen_by_views,
+                visibility_ms,
+                fill_ms,
+                maps_ms,
+                depth_map_mib: mib(4 * stats.depth_map_pixels),
+                view_map_mib: mib(model.stats.view_map_bytes),
+            };
+            println!(
+                "{scene}, {} views: {} -> {} polygons, seen by 0/1/2/3+ {:?}, visibility {:.0} ms, hole filling {:.0} ms, view maps {:.0} ms, depth maps {:.1} MiB, view maps {:.1} MiB",
+                row.views,
+                row.polygons_in,
+                row.polygons_out,
+                row.seen_by_views,
+                row.visibility_ms,
+                row.fill_ms,
+                row.maps_ms,
+                row.depth_map_mib,
+                row.view_map_mib
+            );
+            rows.push(row);
+        }
+    }
+    let body = markdown(&rows, args);
+    println!("{body}");
+    if args.quick || args.no_write {
+        return Ok(());
+    }
+    write_tradeoffs_section(&args.repo, "vdtm-prep", &body)
+}
+
+/// The EO camera model the capture's first texel frame was taken with.
+fn eo_camera(capture: &std::path::Path) -> Result<PinholeCamera> {
+    for item in open_texel_frames(capture)? {
+        if let Ok(TexelItem::Pair { sensor, .. }) = item {
+            return Ok(sensor.eo.clone());
+        }
+    }
+    anyhow::bail!("{} holds no texel frame", capture.display())
+}
+
+/// The scans fused at `VOXEL_M` and the finest level's tiles joined into one mesh
+/// (no simplification, no atlas; vertices on tile borders stay apart).
+fn merged_surface(
+    placed: &[(std::sync::Arc<texel::TexelScan>, texel::Pose)],
+) -> Result<SurfaceMesh> {
+    let config = LodConfig {
+        leaf_voxel_m: VOXEL_M,
+        tile_triangle_budget: usize::MAX / 4,
+        atlas_max_px: 0,
+        ..LodConfig::default()
+    };
+    let mut model = LodModel::new(config)?;
+    for (scan, pose) in placed {
+        model.add_scan(scan, pose);
+    }
+    model.rebuild(usize::MAX);
+    Ok(join_finest(&model.hierarchy()?))
+}
+
+fn join_finest(h: &Hierarchy) -> SurfaceMesh {
+    let nodes: Vec<_> = h.nodes.values().filter(|n| n.id.lod == 0).collect();
+    let origin = nodes.first().map_or([0.0; 3], |n| n.mesh.origin_m);
+    let mut out = SurfaceMesh::empty(origin);
+    for node in nodes {
+        let m = &node.mesh;
+        let base = out.positions.len() as u32;
+        let shift = [0, 1, 2].map(|a| m.origin_m[a] - origin[a]);
+        out.positions.extend(
+            m.positions
+                .iter()
+                .map(|p| [0, 1, 2].map(|a| (f64::from(p[a]) + shift[a]) as f32)),
+        );
+        out.colours.extend(&m.colours);
+        out.triangles
+            .extend(m.triangles.iter().map(|t| t.map(|v| v + base)));
+    }
+    out
+}
+
+fn markdown(rows: &[Row], args: &VdtmPrepArgs) -> String {
+    let mut s = String::new();
+    let _ = writeln!(s, "## View-dependent texture mapping: preprocessing\n");
+    let _ = writeln!(
+        s,
+        "`cargo run --release -p texel-bench -- tradeoffs vdtm-prep` (seed {}): each scene's walk placed by its true poses, fused into the merged surface at {VOXEL_M} m (the finest tiles joined, unsimplified), then `texel-vdtm`'s preprocessing at its defaults from every 4th, every 2nd and every EO view (the scans' own images and poses): visibility (§5: a depth map per view at half the image's resolution, partly seen polygons split to depth 3), hole filling (§6: colours sampled from the images, then the unseen polygons filled in rounds) and view maps (§7: 9 × 9 per polygon seen by two or more views), timed apart on one core of a shared 2-core machine. Memory: the depth maps held during visibility and the view maps kept.\n",
+        args.seed
+    );
+    let _ = writeln!(
+        s,
+        "| scene | views | polygons in | polygons out | seen by 0 / 1 / 2 / 3+ | visibility ms | hole filling ms | view maps ms | ms per view (all) | depth maps MiB | view maps MiB |"
+    );
+    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|");
+    for r in rows {
+        let [a, b, c, d] = r.seen_by_views;
+        let total = r.visibility_ms + r.fill_ms + r.maps_ms;
+        let _ = writeln!(
+            s,
+            "| {} | {} | {} | {} | {a} / {b} / {c} / {d} | {:.0} | {:.0} | {:.0} | {:.1} | {:.1} | {:.1} |",
+            r.scene,
+            r.views,
+            r.polygons_in,
+            r.polygons_out,
+            r.visibility_ms,
+            r.fill_ms,
+            r.maps_ms,
+            total / r.views.max(1) as f64,
+            r.depth_map_mib,
+            r.view_map_mib
+        );
+    }
+    s
+}
