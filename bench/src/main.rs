@@ -99,7 +99,7 @@ enum TradeoffsCommand {
     Surface(tradeoffs::surface::SurfaceArgs),
     /// View-dependent texture mapping's preprocessing on lab and courtyard: time and
     /// memory of visibility, hole filling and view maps against the number of views.
-    VdtmPrep(tradeoffs::vdtm_prep::VdtmPrepArgs),
+    VdtmPrep(tradeoffs::surface::SurfaceArgs),
 }
 
 fn main() -> ExitCode {

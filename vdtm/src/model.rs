@@ -14,7 +14,7 @@ use crate::hole_fill::{
 use crate::view::AcquisitionView;
 use crate::view_map::{Blend, DEFAULT_SIDE, PolygonFrame, ViewMap, ViewMapError};
 use crate::visibility::{
-    VisibilityConfig, VisibilityError, VisibilityStats, VisibleMesh, visibility,
+    VisibilityConfig, VisibilityError, VisibilityStats, VisibleMesh, corners_of, visibility,
 };
 
 /// The preprocessing's knobs.
@@ -145,7 +145,11 @@ impl VdtmModel {
         let mut frames = Vec::with_capacity(n);
         let mut texturing = Vec::with_capacity(n);
         for (t, seen) in visible.seen_by.iter().enumerate() {
-            let corners = triangle_corners(&visible.mesh, t);
+            let corners = visible
+                .mesh
+                .triangles
+                .get(t)
+                .and_then(|tri| corners_of(&visible.mesh, tri));
             let centroid = corners.map_or(Point3::origin(), |[a, b, c]| {
                 Point3::from((a.coords + b.coords + c.coords) / 3.0)
             });
@@ -230,19 +234,4 @@ fn near_holes(mesh: &SurfaceMesh, holes: &[bool]) -> Vec<bool> {
                 .any(|&v| touched.get(v as usize).copied().unwrap_or(false))
         })
         .collect()
-}
-
-/// A triangle's corners in the world; `None` for an index out of range or a corner
-/// not finite.
-fn triangle_corners(mesh: &SurfaceMesh, t: usize) -> Option<[Point3<f64>; 3]> {
-    let tri = mesh.triangles.get(t)?;
-    let mut out = [Point3::origin(); 3];
-    for (k, &v) in tri.iter().enumerate() {
-        let w = mesh.world(v as usize)?;
-        if !w.iter().all(|c| c.is_finite()) {
-            return None;
-        }
-        out[k] = Point3::from(w);
-    }
-    Some(out)
 }

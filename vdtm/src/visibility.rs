@@ -330,7 +330,7 @@ fn depth_map_size(
 
 /// A triangle's corners in the world; `None` when an index is out of range or a
 /// corner is not finite.
-fn corners_of(mesh: &SurfaceMesh, t: &[u32; 3]) -> Option<[Point3<f64>; 3]> {
+pub(crate) fn corners_of(mesh: &SurfaceMesh, t: &[u32; 3]) -> Option<[Point3<f64>; 3]> {
     let mut out = [Point3::origin(); 3];
     for (slot, &v) in out.iter_mut().zip(t) {
         let w = mesh.world(v as usize)?;

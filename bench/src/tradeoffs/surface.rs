@@ -15,9 +15,12 @@ use crate::tradeoffs::lod::{distances, truth_placed_scans};
 use crate::tradeoffs::registration::data::{SequenceSpec, cached_capture};
 use crate::tradeoffs::rendering::report::write_tradeoffs_section;
 
+/// The arguments of the reports on `lab` and `courtyard`'s merged surface (this one
+/// and `vdtm-prep`).
 #[derive(Debug, Clone, clap::Args)]
 pub struct SurfaceArgs {
-    /// One voxel size, for a quick look (docs/ is left alone).
+    /// One voxel size (`surface`) or every view only (`vdtm-prep`), for a quick look
+    /// (docs/ is left alone).
     #[arg(long)]
     pub quick: bool,
     /// The repository root (scenes are read and the docs written under it).
@@ -35,7 +38,37 @@ pub struct SurfaceArgs {
 }
 
 /// The scenes measured, with the frames of each (the whole of each scene's walk).
-const SCENES: [(&str, usize); 2] = [("lab", 36), ("courtyard", 120)];
+pub(crate) const SCENES: [(&str, usize); 2] = [("lab", 36), ("courtyard", 120)];
+
+impl SurfaceArgs {
+    /// The scene files' folder.
+    pub(crate) fn scenes(&self) -> PathBuf {
+        self.repo.join("configs").join("scenes")
+    }
+
+    /// The capture of a scene's walk, rendered into the cache once.
+    pub(crate) fn capture(&self, scene: &'static str, frames: usize) -> Result<PathBuf> {
+        let spec = SequenceSpec {
+            scene,
+            frames,
+            seed: self.seed,
+            orbit_period_frames: None,
+        };
+        cached_capture(&self.scenes(), &self.cache, &spec)
+    }
+}
+
+/// The tree's settings that keep the merged surface whole at `voxel_m`: no
+/// simplification below the leaf voxel's own error, no atlases (VDTM textures from
+/// the images).
+pub(crate) fn whole_surface(voxel_m: f64) -> LodConfig {
+    LodConfig {
+        leaf_voxel_m: voxel_m,
+        tile_triangle_budget: usize::MAX / 4,
+        atlas_max_px: 0,
+        ..LodConfig::default()
+    }
+}
 
 /// One scene at one voxel size.
 struct Row {
@@ -55,30 +88,15 @@ pub fn run(args: &SurfaceArgs) -> Result<()> {
     } else {
         &[0.025, 0.05, 0.1]
     };
-    let scenes_dir = args.repo.join("configs").join("scenes");
     let mut rows = Vec::new();
     for (scene_name, frames) in SCENES {
-        let spec = SequenceSpec {
-            scene: scene_name,
-            frames,
-            seed: args.seed,
-            orbit_period_frames: None,
-        };
-        let capture = cached_capture(&scenes_dir, &args.cache, &spec)?;
-        let scene = sims::Scene::load(&scenes_dir.join(format!("{scene_name}.toml")))
+        let capture = args.capture(scene_name, frames)?;
+        let scene = sims::Scene::load(&args.scenes().join(format!("{scene_name}.toml")))
             .with_context(|| format!("loading {scene_name}"))?;
         // The true poses: the surface's own error, apart from registration's.
         let placed = truth_placed_scans(&capture)?;
         for &voxel_m in voxels {
-            let config = LodConfig {
-                leaf_voxel_m: voxel_m,
-                // The merged surface whole: no simplification below the leaf voxel's
-                // own error, no atlases (VDTM textures from the images).
-                tile_triangle_budget: usize::MAX / 4,
-                atlas_max_px: 0,
-                ..LodConfig::default()
-            };
-            let mut model = LodModel::new(config)?;
+            let mut model = LodModel::new(whole_surface(voxel_m))?;
             let t = Instant::now();
             for (scan, pose) in &placed {
                 model.add_scan(scan, pose);

@@ -5,41 +5,18 @@
 //! three and more views. Writes the "vdtm-prep" section of `docs/tradeoffs.md`.
 
 use std::fmt::Write;
-use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Result;
 use texel::camera::PinholeCamera;
 use texel::capture::{TexelItem, open_texel_frames};
-use texel_lod::{Hierarchy, LodConfig, LodModel};
+use texel_lod::{Hierarchy, LodModel};
 use texel_surface::SurfaceMesh;
 use texel_vdtm::{AcquisitionView, VdtmConfig, VdtmModel, visibility};
 
 use crate::tradeoffs::lod::truth_placed_scans;
-use crate::tradeoffs::registration::data::{SequenceSpec, cached_capture};
 use crate::tradeoffs::rendering::report::write_tradeoffs_section;
-
-#[derive(Debug, Clone, clap::Args)]
-pub struct VdtmPrepArgs {
-    /// All views only, for a quick look (docs/ is left alone).
-    #[arg(long)]
-    pub quick: bool,
-    /// The repository root (scenes are read and the docs written under it).
-    #[arg(long, default_value = ".")]
-    pub repo: PathBuf,
-    /// Where captures are kept between runs.
-    #[arg(long, default_value = "target/tradeoffs-cache")]
-    pub cache: PathBuf,
-    /// Simulator seed.
-    #[arg(long, default_value_t = 1)]
-    pub seed: u64,
-    /// Measure and print, but leave docs/tradeoffs.md alone.
-    #[arg(long)]
-    pub no_write: bool,
-}
-
-/// The scenes measured, with the frames of each (the whole of each scene's walk).
-const SCENES: [(&str, usize); 2] = [("lab", 36), ("courtyard", 120)];
+use crate::tradeoffs::surface::{SCENES, SurfaceArgs, whole_surface};
 
 /// The merged surface's voxel, metres (`tradeoffs surface`: 1 mm median, 12 to 14 mm
 /// at the 95th percentile on these scenes).
@@ -58,17 +35,10 @@ struct Row {
     view_map_mib: f64,
 }
 
-pub fn run(args: &VdtmPrepArgs) -> Result<()> {
-    let scenes_dir = args.repo.join("configs").join("scenes");
+pub fn run(args: &SurfaceArgs) -> Result<()> {
     let mut rows = Vec::new();
     for (scene, frames) in SCENES {
-        let spec = SequenceSpec {
-            scene,
-            frames,
-            seed: args.seed,
-            orbit_period_frames: None,
-        };
-        let capture = cached_capture(&scenes_dir, &args.cache, &spec)?;
+        let capture = args.capture(scene, frames)?;
         let camera = eo_camera(&capture)?;
         let placed = truth_placed_scans(&capture)?;
         let mesh = merged_surface(&placed)?;
@@ -147,13 +117,7 @@ fn eo_camera(capture: &std::path::Path) -> Result<PinholeCamera> {
 fn merged_surface(
     placed: &[(std::sync::Arc<texel::TexelScan>, texel::Pose)],
 ) -> Result<SurfaceMesh> {
-    let config = LodConfig {
-        leaf_voxel_m: VOXEL_M,
-        tile_triangle_budget: usize::MAX / 4,
-        atlas_max_px: 0,
-        ..LodConfig::default()
-    };
-    let mut model = LodModel::new(config)?;
+    let mut model = LodModel::new(whole_surface(VOXEL_M))?;
     for (scan, pose) in placed {
         model.add_scan(scan, pose);
     }
@@ -181,7 +145,7 @@ fn join_finest(h: &Hierarchy) -> SurfaceMesh {
     out
 }
 
-fn markdown(rows: &[Row], args: &VdtmPrepArgs) -> String {
+fn markdown(rows: &[Row], args: &SurfaceArgs) -> String {
     let mut s = String::new();
     let _ = writeln!(s, "## View-dependent texture mapping: preprocessing\n");
     let _ = writeln!(

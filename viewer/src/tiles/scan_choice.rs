@@ -147,12 +147,13 @@ pub fn scans_below(
         .filter_map(|s| Candidate::of(s, eye_m))
         .collect();
     let margin = settings.margin_m.max(0.0);
+    let view_from_world = camera.view_from_world();
     for tile in tiles {
         let reaching: Vec<&Candidate> = candidates
             .iter()
             .filter(|c| c.reaches(&tile.info, margin))
             .collect();
-        let points = points_in_view(tile.samples_m, camera);
+        let points = points_in_view(tile.samples_m, camera, &view_from_world);
         let mut picked = choose_for_points(&reaching, &points, eye_m, settings);
         // The slots the points leave go to the scans most reliable at the centre: a
         // scan's box is a loose stand-in for what it saw, and the scans drawn show
@@ -175,8 +176,11 @@ pub fn scans_below(
 /// The surface points the camera sees in its image (in front of it, projecting
 /// inside the frame), each with its weight: how many pixels the surface around it
 /// covers goes as the inverse square of its distance.
-fn points_in_view(samples_m: &[[f64; 3]], camera: &VirtualCamera) -> Vec<([f64; 3], f64)> {
-    let view_from_world = camera.view_from_world();
+fn points_in_view(
+    samples_m: &[[f64; 3]],
+    camera: &VirtualCamera,
+    view_from_world: &Pose,
+) -> Vec<([f64; 3], f64)> {
     let (w, h) = (f64::from(camera.width), f64::from(camera.height));
     samples_m
         .iter()
