@@ -13,3 +13,4 @@ pub mod reliability;
 pub mod residency;
 pub mod scenes;
 pub mod tiles;
+pub mod vdtm;

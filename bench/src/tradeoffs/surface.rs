@@ -9,7 +9,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, Result};
-use texel_lod::{LodConfig, LodModel};
+use texel_lod::{LodModel, whole_surface_config};
 
 use crate::tradeoffs::lod::{distances, truth_placed_scans};
 use crate::tradeoffs::registration::data::{SequenceSpec, cached_capture};
@@ -58,18 +58,6 @@ impl SurfaceArgs {
     }
 }
 
-/// The tree's settings that keep the merged surface whole at `voxel_m`: no
-/// simplification below the leaf voxel's own error, no atlases (VDTM textures from
-/// the images).
-pub(crate) fn whole_surface(voxel_m: f64) -> LodConfig {
-    LodConfig {
-        leaf_voxel_m: voxel_m,
-        tile_triangle_budget: usize::MAX / 4,
-        atlas_max_px: 0,
-        ..LodConfig::default()
-    }
-}
-
 /// One scene at one voxel size.
 struct Row {
     scene: &'static str,
@@ -96,7 +84,7 @@ pub fn run(args: &SurfaceArgs) -> Result<()> {
         // The true poses: the surface's own error, apart from registration's.
         let placed = truth_placed_scans(&capture)?;
         for &voxel_m in voxels {
-            let mut model = LodModel::new(whole_surface(voxel_m))?;
+            let mut model = LodModel::new(whole_surface_config(voxel_m))?;
             let t = Instant::now();
             for (scan, pose) in &placed {
                 model.add_scan(scan, pose);

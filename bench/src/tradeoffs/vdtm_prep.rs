@@ -10,13 +10,12 @@ use std::time::Instant;
 use anyhow::Result;
 use texel::camera::PinholeCamera;
 use texel::capture::{TexelItem, open_texel_frames};
-use texel_lod::{Hierarchy, LodModel};
-use texel_surface::SurfaceMesh;
+use texel_lod::merged_surface;
 use texel_vdtm::{AcquisitionView, VdtmConfig, VdtmModel, visibility};
 
 use crate::tradeoffs::lod::truth_placed_scans;
 use crate::tradeoffs::rendering::report::write_tradeoffs_section;
-use crate::tradeoffs::surface::{SCENES, SurfaceArgs, whole_surface};
+use crate::tradeoffs::surface::{SCENES, SurfaceArgs};
 
 /// The merged surface's voxel, metres (`tradeoffs surface`: 1 mm median, 12 to 14 mm
 /// at the 95th percentile on these scenes).
@@ -41,7 +40,7 @@ pub fn run(args: &SurfaceArgs) -> Result<()> {
         let capture = args.capture(scene, frames)?;
         let camera = eo_camera(&capture)?;
         let placed = truth_placed_scans(&capture)?;
-        let mesh = merged_surface(&placed)?;
+        let mesh = merged_surface(placed.iter().map(|(s, p)| (s.as_ref(), p)), VOXEL_M)?;
         let strides: &[usize] = if args.quick { &[1] } else { &[4, 2, 1] };
         for &stride in strides {
             let views: Vec<AcquisitionView<'_>> = placed
@@ -110,39 +109,6 @@ fn eo_camera(capture: &std::path::Path) -> Result<PinholeCamera> {
         }
     }
     anyhow::bail!("{} holds no texel frame", capture.display())
-}
-
-/// The scans fused at `VOXEL_M` and the finest level's tiles joined into one mesh
-/// (no simplification, no atlas; vertices on tile borders stay apart).
-fn merged_surface(
-    placed: &[(std::sync::Arc<texel::TexelScan>, texel::Pose)],
-) -> Result<SurfaceMesh> {
-    let mut model = LodModel::new(whole_surface(VOXEL_M))?;
-    for (scan, pose) in placed {
-        model.add_scan(scan, pose);
-    }
-    model.rebuild(usize::MAX);
-    Ok(join_finest(&model.hierarchy()?))
-}
-
-fn join_finest(h: &Hierarchy) -> SurfaceMesh {
-    let nodes: Vec<_> = h.nodes.values().filter(|n| n.id.lod == 0).collect();
-    let origin = nodes.first().map_or([0.0; 3], |n| n.mesh.origin_m);
-    let mut out = SurfaceMesh::empty(origin);
-    for node in nodes {
-        let m = &node.mesh;
-        let base = out.positions.len() as u32;
-        let shift = [0, 1, 2].map(|a| m.origin_m[a] - origin[a]);
-        out.positions.extend(
-            m.positions
-                .iter()
-                .map(|p| [0, 1, 2].map(|a| (f64::from(p[a]) + shift[a]) as f32)),
-        );
-        out.colours.extend(&m.colours);
-        out.triangles
-            .extend(m.triangles.iter().map(|t| t.map(|v| v + base)));
-    }
-    out
 }
 
 fn markdown(rows: &[Row], args: &SurfaceArgs) -> String {

@@ -64,6 +64,11 @@ pub enum GpuError {
         "{visible} visible scans need {visible} layers, over the device limit {limit} (use the k-buffer)"
     )]
     TooManyLayers { visible: usize, limit: u32 },
+    #[error(
+        "{views} VDTM views need {views} texture layers, over the device limit {limit} \
+         (lower the views VDTM textures from)"
+    )]
+    TooManyViews { views: usize, limit: u32 },
     #[error("reading back from the GPU failed: {0}")]
     Readback(String),
 }

@@ -7,15 +7,17 @@ pub const MERGE: &str = include_str!("../shaders/merge.wgsl");
 pub const COMPOSITE_KBUFFER: &str = include_str!("../shaders/composite_kbuffer.wgsl");
 pub const COMPOSITE_NAIVE: &str = include_str!("../shaders/composite_naive.wgsl");
 pub const TILE: &str = include_str!("../shaders/tile.wgsl");
+pub const VDTM: &str = include_str!("../shaders/vdtm.wgsl");
 
 /// Every shader module as (name, full source).
-pub fn modules() -> [(&'static str, String); 5] {
+pub fn modules() -> [(&'static str, String); 6] {
     [
         ("scan", source(SCAN)),
         ("merge", source(MERGE)),
         ("composite_kbuffer", source(COMPOSITE_KBUFFER)),
         ("composite_naive", source(COMPOSITE_NAIVE)),
         ("tile", source(TILE)),
+        ("vdtm", source(VDTM)),
     ]
 }
 

@@ -5,6 +5,7 @@
 //! and the headless snapshot writer consume the same channel.
 
 pub mod connection;
+pub mod eo_fit;
 pub mod fetch;
 pub mod replay;
 pub mod snapshots;

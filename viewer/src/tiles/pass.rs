@@ -100,7 +100,7 @@ pub fn view_from_tile(camera: &VirtualCamera, origin_m: [f64; 3]) -> Mat4 {
 }
 
 /// A display colour as a target of `format` stores it.
-fn clear_colour(background: [f32; 3], format: wgpu::TextureFormat) -> wgpu::Color {
+pub(crate) fn clear_colour(background: [f32; 3], format: wgpu::TextureFormat) -> wgpu::Color {
     let c = background.map(|c| {
         let c = f64::from(c.clamp(0.0, 1.0));
         if !format.is_srgb() {
