@@ -6,6 +6,7 @@ pub mod camera;
 pub mod capture_load;
 pub mod composite;
 pub mod cull;
+pub mod display_mode;
 pub mod gpu;
 pub mod headless;
 pub mod live;

@@ -12,12 +12,14 @@ use clap::{Args, Parser, Subcommand};
 use texel::pose::parse_pose;
 use texel_viewer::camera::VirtualCamera;
 use texel_viewer::capture_load::{LoadedCapture, load_capture};
-use texel_viewer::composite::{MAX_K, Mode};
+use texel_viewer::composite::MAX_K;
+use texel_viewer::display_mode::DisplayMode;
 use texel_viewer::gpu::{GpuContext, RenderSettings, Renderer, Strategy};
 use texel_viewer::headless::parse_views;
 use texel_viewer::live;
 use texel_viewer::live::snapshots::SnapshotView;
 use texel_viewer::residency::Residency;
+use texel_viewer::vdtm::{LiveVdtm, VdtmChoice, VdtmSettings, VdtmViewConfig};
 
 #[derive(Parser)]
 #[command(
@@ -122,10 +124,11 @@ struct FetchArgs {
     timeout_s: f64,
 }
 
-/// A model to render and the field of view it suggests.
+/// A model to render, the field of view it suggests and its EO camera when known.
 struct SourceModel {
     model: texel::model::Model,
     default_fov_deg: f64,
+    eo_camera: Option<texel::PinholeCamera>,
 }
 
 impl SourceArgs {
@@ -136,6 +139,7 @@ impl SourceArgs {
                 Ok(SourceModel {
                     default_fov_deg: VirtualCamera::fov_y_deg_of(&loaded.eo_camera),
                     model: loaded.model,
+                    eo_camera: Some(loaded.eo_camera),
                 })
             }
             (None, Some(addr)) => {
@@ -154,6 +158,7 @@ impl SourceArgs {
                 Ok(SourceModel {
                     model,
                     default_fov_deg,
+                    eo_camera: None,
                 })
             }
             (None, None) => bail!("give a model source (--capture or --connect)"),
@@ -163,9 +168,24 @@ impl SourceArgs {
 
 #[derive(Args, Clone)]
 struct DisplayArgs {
-    /// painter, best, blended, scan-colour or reliability.
+    /// painter, best, blended, scan-colour or reliability (the scans composited per
+    /// pixel), or vdtm (the merged surface textured view-dependently, Debevec 1998).
     #[arg(long, default_value = "blended")]
-    mode: Mode,
+    mode: DisplayMode,
+    /// vdtm: lower the weight of views that saw the surface coarser than the frame
+    /// needs.
+    #[arg(long)]
+    vdtm_resolution_term: bool,
+    /// vdtm: fade each view's weight to 0 over this many pixels at its image border
+    /// (0: off).
+    #[arg(long, default_value_t = 0.0)]
+    vdtm_feather_px: f32,
+    /// vdtm: texture from at most this many views, evenly spread over the scans.
+    #[arg(long, default_value_t = VdtmViewConfig::default().max_views)]
+    vdtm_max_views: usize,
+    /// vdtm: the merged surface's finest voxel, metres.
+    #[arg(long, default_value_t = VdtmViewConfig::default().voxel_m)]
+    vdtm_voxel_m: f64,
     /// Fragments within this reliability of the best are blended.
     #[arg(long, default_value_t = 0.15)]
     blend_threshold: f32,
@@ -204,7 +224,7 @@ impl DisplayArgs {
                 self.range_gamma
             );
         }
-        let mut s = RenderSettings::with_mode(self.mode);
+        let mut s = RenderSettings::with_mode(self.mode.scans_mode());
         s.composite.blend_threshold = self.blend_threshold;
         s.composite.k = self.k;
         s.range_gamma = self.range_gamma;
@@ -213,6 +233,42 @@ impl DisplayArgs {
             s.strategy = Strategy::NaiveLayers;
         }
         Ok(s)
+    }
+
+    /// The VDTM mode's state, when it is the mode chosen; `camera`: the EO camera
+    /// when known (else fitted from the scans).
+    fn vdtm(&self, camera: Option<texel::PinholeCamera>) -> anyhow::Result<Option<VdtmChoice>> {
+        if self.mode != DisplayMode::Vdtm {
+            return Ok(None);
+        }
+        if !(self.vdtm_feather_px.is_finite() && self.vdtm_feather_px >= 0.0) {
+            bail!(
+                "--vdtm-feather-px {} must be finite and not negative",
+                self.vdtm_feather_px
+            );
+        }
+        if self.vdtm_max_views == 0 {
+            bail!("--vdtm-max-views must be at least 1");
+        }
+        if !(self.vdtm_voxel_m.is_finite() && self.vdtm_voxel_m >= 0.005) {
+            bail!(
+                "--vdtm-voxel-m {} must be at least 0.005",
+                self.vdtm_voxel_m
+            );
+        }
+        let config = VdtmViewConfig {
+            voxel_m: self.vdtm_voxel_m,
+            max_views: self.vdtm_max_views,
+            ..VdtmViewConfig::default()
+        };
+        Ok(Some(VdtmChoice {
+            settings: VdtmSettings {
+                resolution_term: self.vdtm_resolution_term,
+                feather_px: self.vdtm_feather_px,
+            },
+            config,
+            camera,
+        }))
     }
 
     fn budget_bytes(&self) -> anyhow::Result<u64> {
@@ -348,6 +404,10 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
         views.push((args.out.clone(), pose, args.fov_deg.unwrap_or(default_fov)));
     }
     let gpu = GpuContext::headless()?;
+    if let Some(choice) = args.display.vdtm(loaded.eo_camera.clone())? {
+        let vdtm = LiveVdtm::new(&gpu, choice);
+        return render_vdtm(&gpu, vdtm, &loaded.model, &settings, &views, &args);
+    }
     if args.lod {
         return render_lod(&gpu, loaded.model, &settings, budget_bytes, &views, &args);
     }
@@ -371,6 +431,40 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
             stats.culled_frustum,
             stats.culled_facing,
             resident.describe()
+        );
+    }
+    Ok(())
+}
+
+/// `render --mode vdtm`: the merged surface prepared once (Debevec 1998 §5-7), then
+/// each view drawn from it (§8).
+fn render_vdtm(
+    gpu: &GpuContext,
+    mut vdtm: LiveVdtm,
+    model: &texel::model::Model,
+    settings: &RenderSettings,
+    views: &[(PathBuf, texel::Pose, f64)],
+    args: &RenderArgs,
+) -> anyhow::Result<()> {
+    vdtm.update(gpu, model, true);
+    eprintln!("{}", vdtm.status.describe());
+    if let Some(e) = &vdtm.status.error {
+        bail!("VDTM preprocessing failed: {e}");
+    }
+    for (out, pose, fov) in views {
+        let camera = VirtualCamera::new(*pose, *fov, args.width, args.height)?;
+        let started = std::time::Instant::now();
+        let image = vdtm
+            .render_to_image(gpu, &camera, settings.composite.background)?
+            .context("VDTM: nothing prepared to draw")?;
+        image
+            .save(out)
+            .with_context(|| format!("writing {}", out.display()))?;
+        eprintln!(
+            "{}: {} in {:.1} ms",
+            out.display(),
+            vdtm.settings.label(),
+            started.elapsed().as_secs_f64() * 1e3
         );
     }
     Ok(())
@@ -459,9 +553,11 @@ fn render_lod(
 fn open(args: OpenArgs) -> anyhow::Result<()> {
     let settings = args.display.settings()?;
     let budget_bytes = args.display.budget_bytes()?;
+    let mut eo_camera = None;
     let (events, fov, keep_alive): (_, Option<f64>, Box<dyn std::any::Any>) = if args.load {
         let loaded = load(&args.capture)?;
         let fov = VirtualCamera::fov_y_deg_of(&loaded.eo_camera);
+        eo_camera = Some(loaded.eo_camera);
         (
             live::spawn_model_feed(loaded.model),
             Some(fov),
@@ -495,6 +591,7 @@ fn open(args: OpenArgs) -> anyhow::Result<()> {
         screenshot: args.screenshot.map(|p| (p, args.frames, args.min_scans)),
         tiles: None,
         scans_below_tiles: true,
+        vdtm: args.display.vdtm(eo_camera)?,
     });
     drop(keep_alive);
     result
@@ -557,6 +654,12 @@ fn connect(args: LiveArgs, addr: String) -> anyhow::Result<()> {
         .or_else(|| (!have_display()).then(|| PathBuf::from("texel-snapshots")));
     let result = match snapshots {
         Some(dir) => {
+            if args.display.mode == DisplayMode::Vdtm {
+                bail!(
+                    "--mode vdtm draws in a window or with `render --connect`; snapshots \
+                     composite the scans (choose another --mode)"
+                );
+            }
             if !(args.every_s.is_finite() && args.every_s > 0.0) {
                 bail!("--every-s {} must be finite and positive", args.every_s);
             }
@@ -614,6 +717,7 @@ fn connect(args: LiveArgs, addr: String) -> anyhow::Result<()> {
                 None
             },
             scans_below_tiles: !args.lod_tiles_only,
+            vdtm: args.display.vdtm(None)?,
         }),
     };
     connection.stop();

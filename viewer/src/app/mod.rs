@@ -29,6 +29,7 @@ use state::window_residency;
 use crate::gpu::{GpuContext, RenderSettings, RenderTarget, Renderer};
 use crate::live::{SourceCommand, ViewerEvent};
 use crate::tiles::net::NetTileSource;
+use crate::tiles::pass::PassTarget;
 use crate::tiles::{TileRenderer, TileSettings};
 
 pub struct AppOptions {
@@ -54,6 +55,10 @@ pub struct AppOptions {
     /// With the tiles, draw the scans below the finest tiles the view finds too
     /// coarse (a check box in the panel).
     pub scans_below_tiles: bool,
+    /// Draw the merged surface textured view-dependently (Debevec 1998) instead of
+    /// the scans, rebuilt in the background as the model changes (the scans show
+    /// until the first build is done).
+    pub vdtm: Option<crate::vdtm::VdtmChoice>,
 }
 
 struct WindowState {
@@ -68,6 +73,7 @@ struct WindowState {
     tiles: Option<TileRenderer<NetTileSource>>,
     /// The tile pass's depth buffer, at the surface's size.
     tile_depth: Option<(u32, u32, wgpu::TextureView)>,
+    vdtm: Option<crate::vdtm::LiveVdtm>,
 }
 
 struct App {
@@ -177,6 +183,11 @@ impl App {
             }
             None => None,
         };
+        let vdtm = self
+            .options
+            .vdtm
+            .take()
+            .map(|choice| crate::vdtm::LiveVdtm::new(&gpu, choice));
         Ok(WindowState {
             window,
             surface,
@@ -188,6 +199,7 @@ impl App {
             egui_renderer,
             tiles,
             tile_depth: None,
+            vdtm,
         })
     }
 
@@ -245,7 +257,34 @@ impl App {
                 width,
                 height,
             };
+            let vdtm_drawn = match w.vdtm.as_mut() {
+                Some(vdtm) => {
+                    vdtm.update(&w.gpu, &self.viewer.model, false);
+                    vdtm.settings = *self.viewer.vdtm_settings.get_or_insert(vdtm.settings);
+                    self.viewer.vdtm_status = Some(vdtm.status.clone());
+                    let depth = tile_depth(&w.gpu, &mut w.tile_depth, width, height);
+                    let mut encoder =
+                        w.gpu
+                            .device
+                            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                                label: Some("vdtm"),
+                            });
+                    let pass_target = PassTarget {
+                        colour: target,
+                        depth,
+                        clear: Some(self.viewer.settings.composite.background),
+                        scans: None,
+                    };
+                    let drawn = vdtm.encode(&mut encoder, &pass_target, &camera);
+                    if drawn {
+                        w.gpu.queue.submit(Some(encoder.finish()));
+                    }
+                    drawn
+                }
+                None => false,
+            };
             match w.tiles.as_mut().filter(|_| self.viewer.show_tiles) {
+                _ if vdtm_drawn => {}
                 Some(tiles) => {
                     let now_s = now.duration_since(self.started).as_secs_f64();
                     tiles.settings.hybrid.enabled = self.viewer.scans_below_tiles;
@@ -351,7 +390,12 @@ impl App {
             && self.frames >= *after
             && ((self.viewer.model.len() >= *min_scans
                 && self.viewer.residency_stats.in_flight == 0
-                && self.viewer.residency_stats.pending == 0)
+                && self.viewer.residency_stats.pending == 0
+                && w.vdtm.as_ref().is_none_or(|v| {
+                    v.status.builds > 0
+                        && !v.status.building
+                        && v.prepared().is_some_and(|p| p.fused.len() >= *min_scans)
+                }))
                 || self.started.elapsed() > std::time::Duration::from_secs(60))
         {
             let image = read_frame(&w.gpu, &frame.texture)?;

@@ -46,6 +46,10 @@ pub struct ViewerState {
     pub scans_below_tiles: bool,
     /// The last frame's tile figures, when tiles were drawn.
     pub tile_stats: Option<crate::tiles::TileFrameStats>,
+    /// The VDTM mode's last build, when that mode is on.
+    pub vdtm_status: Option<crate::vdtm::VdtmStatus>,
+    /// The VDTM switches the panel edits.
+    pub vdtm_settings: Option<crate::vdtm::VdtmSettings>,
     camera_placed: bool,
     fov_known: bool,
 }
@@ -65,6 +69,8 @@ impl ViewerState {
             show_tiles: false,
             scans_below_tiles: true,
             tile_stats: None,
+            vdtm_status: None,
+            vdtm_settings: None,
             status: None,
             snapshot_complete: false,
             latency: LatencyMeter::default(),

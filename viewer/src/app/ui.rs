@@ -32,6 +32,19 @@ pub(super) fn panel(ctx: &egui::Context, v: &mut ViewerState, roomy: bool) {
                 v.stats.scan_bytes as f64 / 1048576.0
             ));
             residency_section(ui, v);
+            if let Some(status) = &v.vdtm_status {
+                ui.label(status.describe());
+                if let Some(s) = v.vdtm_settings.as_mut() {
+                    ui.checkbox(&mut s.resolution_term, "VDTM resolution term");
+                    let mut feather = s.feather_px > 0.0;
+                    ui.checkbox(&mut feather, "VDTM feathering at image borders");
+                    s.feather_px = if feather {
+                        crate::vdtm::VdtmSettings::FEATHER_PX
+                    } else {
+                        0.0
+                    };
+                }
+            }
             if let Some(t) = &v.tile_stats {
                 ui.checkbox(&mut v.show_tiles, "level-of-detail tiles (L)");
                 if v.show_tiles {

@@ -5,9 +5,11 @@
 //! `live.rs` keeps it up to date with a growing model on a worker thread.
 
 pub mod gpu;
+pub mod live;
 pub mod pass;
 pub mod prepare;
 
 pub use gpu::{GpuVdtm, PolygonBlend, polygon_blend};
+pub use live::{LiveVdtm, VdtmChoice, VdtmStatus};
 pub use pass::{VdtmPass, VdtmSettings, render_vdtm_to_image};
 pub use prepare::{PrepareError, PreparedVdtm, PreparedView, VdtmViewConfig, prepare};
