@@ -7,6 +7,7 @@
 //! are the truth. Writes the rendering section of `docs/tradeoffs.md` and its Pareto
 //! plot.
 
+mod flicker;
 pub mod metrics;
 mod poses;
 pub(crate) mod report;
@@ -27,6 +28,7 @@ use texel_viewer::camera::VirtualCamera;
 use texel_viewer::capture_load::{PoseSource, load_capture};
 use texel_viewer::composite::Mode;
 use texel_viewer::gpu::{GpuContext, RenderSettings, Renderer};
+use texel_viewer::vdtm::{LiveVdtm, VdtmChoice, VdtmSettings};
 
 #[derive(Debug, Clone, clap::Args)]
 pub struct TradeoffsArgs {
@@ -65,6 +67,9 @@ pub struct Config {
     /// Rendered from the model placed at the truth poses (a reference) instead of
     /// the registered ones.
     pub truth_poses: bool,
+    /// View-dependent texture mapping on the merged surface (Debevec 1998) with these
+    /// switches, instead of the scans composited in `mode`.
+    pub vdtm: Option<VdtmSettings>,
 }
 
 impl Config {
@@ -77,7 +82,21 @@ impl Config {
             width: 320,
             height: 240,
             truth_poses: false,
+            vdtm: None,
         }
+    }
+
+    pub(crate) fn vdtm(settings: VdtmSettings) -> Self {
+        Self {
+            vdtm: Some(settings),
+            ..Self::base(Mode::default())
+        }
+    }
+
+    /// The mode's name: a compositing mode, or `vdtm` with its switches.
+    pub fn mode_name(&self) -> String {
+        self.vdtm
+            .map_or_else(|| self.mode.name().to_string(), |v| v.label())
     }
 
     pub fn settings(&self) -> RenderSettings {
@@ -91,8 +110,9 @@ impl Config {
 
     /// A short label for the plot.
     pub fn label(&self) -> String {
-        let mut l = self.mode.name().to_string();
-        if self.mode == Mode::Blended {
+        let mut l = self.mode_name();
+        if self.vdtm.is_some() {
+        } else if self.mode == Mode::Blended {
             l.push_str(&format!(" k{} t{}", self.k, self.blend_threshold));
         } else if self.mode == Mode::Best {
             l.push_str(&format!(" k{}", self.k));
@@ -115,12 +135,31 @@ impl Config {
 const BACKGROUND: [f32; 3] = [1.0, 0.0, 1.0];
 pub(crate) const BACKGROUND_RGB: [u8; 3] = [255, 0, 255];
 
-/// The sweep: the three shading modes at the defaults, then one knob at a time.
+/// VDTM as published, with each switch beyond the paper, and with both.
+fn vdtm_variants() -> [VdtmSettings; 4] {
+    let feather_px = VdtmSettings::FEATHER_PX;
+    [
+        VdtmSettings::default(),
+        VdtmSettings {
+            resolution_term: true,
+            feather_px: 0.0,
+        },
+        VdtmSettings {
+            resolution_term: false,
+            feather_px,
+        },
+        VdtmSettings::improved(),
+    ]
+}
+
+/// The sweep: the three shading modes at the defaults and VDTM's variants, then one
+/// knob at a time.
 pub fn sweep(quick: bool) -> Vec<Config> {
     let mut configs: Vec<Config> = [Mode::Painter, Mode::Best, Mode::Blended]
         .into_iter()
         .map(Config::base)
         .collect();
+    configs.extend(vdtm_variants().into_iter().map(Config::vdtm));
     let ks: &[u32] = if quick { &[1] } else { &[1, 2, 8] };
     for &k in ks {
         configs.push(Config {
@@ -196,6 +235,11 @@ pub struct SceneResult {
     pub registration_ate_mm: f64,
     pub registration_s: f64,
     pub rows: Vec<Row>,
+    /// VDTM's preparation of the registered model (merged surface and §5-7) and
+    /// what it made.
+    pub vdtm: Option<texel_viewer::vdtm::VdtmStatus>,
+    /// Per mode, the fly-through's flicker (see `flicker.rs`).
+    pub flicker: Vec<flicker::FlickerRow>,
 }
 
 pub fn run(args: &TradeoffsArgs) -> Result<()> {
@@ -265,12 +309,13 @@ fn write_images(
     }
     for (c, (images, _)) in configs.iter().zip(rendered) {
         let default = Config::base(c.mode);
-        if c.label() != default.label() || c.truth_poses {
+        let is_default = c.vdtm.is_some() || c.label() == default.label();
+        if !is_default || c.truth_poses || c.width != base.width {
             continue;
         }
         for (i, rgb) in images.iter().enumerate() {
             save(
-                format!("{i:02}-{}.png", c.mode.name()),
+                format!("{i:02}-{}.png", c.mode_name()),
                 c.width,
                 c.height,
                 rgb,
@@ -337,6 +382,19 @@ fn measure_scene(
     reg_renderer.sync_model(&registered.model)?;
     let mut truth_renderer = Renderer::new(gpu);
     truth_renderer.sync_model(&truth.model)?;
+    // VDTM prepared once from the registered model, its EO camera from the capture.
+    let mut vdtm = LiveVdtm::new(
+        gpu,
+        VdtmChoice {
+            camera: Some(registered.eo_camera.clone()),
+            ..VdtmChoice::default()
+        },
+    );
+    vdtm.update(gpu, &registered.model, true);
+    if let Some(e) = &vdtm.status.error {
+        anyhow::bail!("{scene}: VDTM preparation failed: {e}");
+    }
+    eprintln!("{scene}: {}", vdtm.status.describe());
 
     // Ground truth per resolution and pose.
     let mut truth_images: std::collections::BTreeMap<(u32, u32), Vec<Vec<u8>>> = Default::default();
@@ -369,15 +427,25 @@ fn measure_scene(
             &mut reg_renderer
         };
         let settings = c.settings();
+        let mut draw = |camera: &VirtualCamera| -> Result<image::RgbaImage> {
+            match c.vdtm {
+                Some(v) => {
+                    vdtm.settings = v;
+                    vdtm.render_to_image(gpu, camera, BACKGROUND)?
+                        .context("VDTM: nothing prepared")
+                }
+                None => Ok(renderer.render_to_image(camera, &settings)?.0),
+            }
+        };
         // One warm-up frame (pipelines for the format, targets of this size).
         let warm = VirtualCamera::new(poses[0].world_from_eo, fov, c.width, c.height)?;
-        renderer.render_to_image(&warm, &settings)?;
+        draw(&warm)?;
         let mut images = Vec::with_capacity(poses.len());
         let mut times = Vec::with_capacity(poses.len());
         for p in &poses {
             let camera = VirtualCamera::new(p.world_from_eo, fov, c.width, c.height)?;
             let started = Instant::now();
-            let (image, _) = renderer.render_to_image(&camera, &settings)?;
+            let image = draw(&camera)?;
             times.push(started.elapsed().as_secs_f64() * 1e3);
             images.push(
                 image
@@ -447,6 +515,14 @@ fn measure_scene(
             frame_ms: sorted.get(sorted.len() / 2).copied().unwrap_or(f64::NAN),
         });
     }
+    let flicker = flicker::measure(
+        gpu,
+        &sim,
+        &mut reg_renderer,
+        &mut vdtm,
+        fov,
+        if args.quick { 12 } else { 36 },
+    )?;
     Ok(SceneResult {
         scene: scene.to_string(),
         frames,
@@ -455,5 +531,7 @@ fn measure_scene(
         registration_ate_mm: ate_mm(&registered.model, &truth.model),
         registration_s,
         rows,
+        vdtm: Some(vdtm.status.clone()),
+        flicker,
     })
 }

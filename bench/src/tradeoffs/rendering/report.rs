@@ -12,20 +12,22 @@ use texel_viewer::composite::Mode;
 
 fn row_line(r: &Row) -> String {
     let c = &r.config;
+    // VDTM has none of the compositing knobs.
+    let scans = c.vdtm.is_none();
     format!(
         "| {} | {} | {} | {} | {} | {}x{} | {:.2} | {:.4} | {:.1} | {:.1} | {:.1} |",
-        c.mode.name(),
-        if c.mode == Mode::Painter {
+        c.mode_name(),
+        if c.mode == Mode::Painter || !scans {
             "-".to_string()
         } else {
             c.k.to_string()
         },
-        if c.mode == Mode::Blended {
+        if c.mode == Mode::Blended && scans {
             format!("{}", c.blend_threshold)
         } else {
             "-".into()
         },
-        if c.mode == Mode::Painter {
+        if c.mode == Mode::Painter || !scans {
             "-".to_string()
         } else {
             format!("{}", c.range_gamma)
@@ -59,6 +61,33 @@ pub fn print(r: &SceneResult) {
             r.scene, best, blended
         );
     }
+    println!("{}", vdtm_text(r));
+}
+
+/// VDTM's preparation and the fly-through's flicker, as markdown.
+fn vdtm_text(r: &SceneResult) -> String {
+    let mut s = String::new();
+    if let Some(v) = &r.vdtm {
+        let _ = writeln!(
+            s,
+            "\nVDTM prepared the registered model in {:.1} s (merged surface and \
+             preprocessing; {} views, {} polygons of which {} holes) and uploaded it in {:.2} s.\n",
+            v.build_s, v.views, v.polygons, v.holes, v.upload_s
+        );
+    }
+    if !r.flicker.is_empty() {
+        let _ = writeln!(
+            s,
+            "Fly-through flicker (mean absolute change per pixel between consecutive \
+             frames, grey levels, over pixels every mode covers; the truth changes by {:.2} \
+             there):\n\n| mode | change | beyond the truth's |\n|---|---|---|",
+            r.flicker.first().map_or(f64::NAN, |f| f.truth_change)
+        );
+        for f in &r.flicker {
+            let _ = writeln!(s, "| {} | {:.2} | {:+.2} |", f.mode, f.change, f.flicker());
+        }
+    }
+    s
 }
 
 /// PSNR of `best` and `blended` minus `painter` at the defaults (registered poses).
@@ -67,6 +96,7 @@ pub fn gains(r: &SceneResult) -> Option<(f64, f64)> {
         r.rows.iter().find(|row| {
             let c = &row.config;
             c.mode == mode
+                && c.vdtm.is_none()
                 && !c.truth_poses
                 && c.width == 320
                 && c.k == 4
@@ -167,7 +197,12 @@ pub fn markdown(results: &[SceneResult], args: &TradeoffsArgs, adapter: &str) ->
          restricted to scored pixels. `coverage` is the share of the image the \
          configuration covers, `scored` the share every configuration covers. Rows \
          marked `truth` place the same scans at the simulator's true poses (a reference \
-         for what registration error costs).\n"
+         for what registration error costs). `vdtm` rows draw the merged surface fused \
+         from the registered scans by view-dependent texture mapping (Debevec 1998, \
+         `--mode vdtm`, its EO camera from the capture): as published, with the \
+         resolution term (`+res`), with feathering at image borders (`+feather`, 24 px) \
+         and with both. The fly-through crosses four acquisition intervals from a third \
+         of the way into the walk, at 320x240.\n"
     );
     for r in results {
         let _ = writeln!(
@@ -196,6 +231,7 @@ pub fn markdown(results: &[SceneResult], args: &TradeoffsArgs, adapter: &str) ->
                  `blended` {blended:+.2} dB.\n"
             );
         }
+        s.push_str(&vdtm_text(r));
     }
     let _ = writeln!(
         s,
