@@ -19,17 +19,22 @@ fn render(args: &[&str]) -> std::process::Output {
         .unwrap()
 }
 
+/// A pose as `--pose` takes it.
+fn pose_arg(world_from_eo: &texel::Pose) -> String {
+    let (t, q) = pose_to_parts(world_from_eo);
+    format!(
+        "{} {} {} {} {} {} {}",
+        t[0], t[1], t[2], q[0], q[1], q[2], q[3]
+    )
+}
+
 #[test]
 fn renders_a_capture_deterministically_and_as_the_library_does() {
     let dir = tempfile::tempdir().unwrap();
     let capture = dir.path().join("box.mcap");
     write_box_capture(&capture, PoseTopic::Truth);
     let cam = box_camera(&texel::Pose::identity());
-    let (t, q) = pose_to_parts(&cam.world_from_eo);
-    let pose = format!(
-        "{} {} {} {} {} {} {}",
-        t[0], t[1], t[2], q[0], q[1], q[2], q[3]
-    );
+    let pose = pose_arg(&cam.world_from_eo);
     let out = |name: &str| dir.path().join(name).display().to_string();
     let base = [
         "--capture",
@@ -218,11 +223,7 @@ fn renders_a_capture_as_level_of_detail_tiles() {
     let capture = dir.path().join("box.mcap");
     write_box_capture(&capture, PoseTopic::Truth);
     let cam = box_camera(&texel::Pose::identity());
-    let (t, q) = pose_to_parts(&cam.world_from_eo);
-    let pose = format!(
-        "{} {} {} {} {} {} {}",
-        t[0], t[1], t[2], q[0], q[1], q[2], q[3]
-    );
+    let pose = pose_arg(&cam.world_from_eo);
     let run = |name: &str, extra: &[&str]| {
         let out = dir.path().join(name);
         let mut args = vec![
@@ -290,11 +291,7 @@ fn renders_a_capture_by_view_dependent_texture_mapping() {
     let capture = dir.path().join("box.mcap");
     write_box_capture(&capture, PoseTopic::Truth);
     let cam = box_camera(&texel::Pose::identity());
-    let (t, q) = pose_to_parts(&cam.world_from_eo);
-    let pose = format!(
-        "{} {} {} {} {} {} {}",
-        t[0], t[1], t[2], q[0], q[1], q[2], q[3]
-    );
+    let pose = pose_arg(&cam.world_from_eo);
     let run = |name: &str, extra: &[&str]| {
         let out = dir.path().join(name);
         let mut args = vec![

@@ -10,8 +10,9 @@ use std::process::Command;
 use support::*;
 use texel::capture::PoseTopic;
 
-#[test]
-fn window_opens_and_draws_the_model() {
+/// The window on the box capture, replayed fast: its read-back frame once the model
+/// holds all three scans (`extra`: more arguments of `open`).
+fn screenshot(extra: &[&str]) -> image::RgbaImage {
     let dir = tempfile::tempdir().unwrap();
     let capture = dir.path().join("box.mcap");
     // Placed at the capture's own poses: this test is about the window, not registration.
@@ -34,6 +35,7 @@ fn window_opens_and_draws_the_model() {
             "--screenshot",
             shot.to_str().unwrap(),
         ])
+        .args(extra)
         .env("DISPLAY", &display)
         .env_remove("WAYLAND_DISPLAY")
         .output()
@@ -43,57 +45,34 @@ fn window_opens_and_draws_the_model() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let img = image::open(&shot).unwrap().to_rgba8();
+    image::open(&shot).unwrap().to_rgba8()
+}
+
+/// Pixels of the wall's blue or the box's red in the checkerboards.
+fn model_pixels(img: &image::RgbaImage) -> usize {
+    img.pixels().filter(|p| p[2] > 100 && p[0] < 90).count()
+}
+
+#[test]
+fn window_opens_and_draws_the_model() {
+    let img = screenshot(&[]);
     assert_eq!(img.dimensions(), (320, 240));
     // Not blank: many distinct colours (textured model and the overlay).
     let mut colours: Vec<[u8; 3]> = img.pixels().map(|p| [p[0], p[1], p[2]]).collect();
     colours.sort_unstable();
     colours.dedup();
     assert!(colours.len() > 50, "{} distinct colours", colours.len());
-    // The model itself, not only the overlay: the checkerboard's red of the box or
-    // blue of the wall appears.
-    let model_pixels = img.pixels().filter(|p| p[2] > 100 && p[0] < 90).count();
-    assert!(model_pixels > 1000, "{model_pixels} wall pixels");
+    // The model itself, not only the overlay.
+    let model = model_pixels(&img);
+    assert!(model > 1000, "{model} wall pixels");
 }
 
 #[test]
 fn window_draws_the_model_by_view_dependent_texture_mapping() {
-    let dir = tempfile::tempdir().unwrap();
-    let capture = dir.path().join("box.mcap");
-    write_box_capture(&capture, PoseTopic::Texel);
-    let shot = dir.path().join("shot.png");
-    let (_xvfb, display) = start_xvfb();
     // Replayed: scans arrive one by one, the surface is rebuilt in the background
     // (the EO camera fitted from the scans), and the screenshot waits for a build
     // that holds all three.
-    let out = Command::new(viewer_binary())
-        .args([
-            "open",
-            capture.to_str().unwrap(),
-            "--width",
-            "320",
-            "--height",
-            "240",
-            "--frames",
-            "8",
-            "--min-scans",
-            "3",
-            "--fast",
-            "--mode",
-            "vdtm",
-            "--screenshot",
-            shot.to_str().unwrap(),
-        ])
-        .env("DISPLAY", &display)
-        .env_remove("WAYLAND_DISPLAY")
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let img = image::open(&shot).unwrap().to_rgba8();
-    let model_pixels = img.pixels().filter(|p| p[2] > 100 && p[0] < 90).count();
-    assert!(model_pixels > 1000, "{model_pixels} wall pixels");
+    let img = screenshot(&["--mode", "vdtm"]);
+    let model = model_pixels(&img);
+    assert!(model > 1000, "{model} wall pixels");
 }

@@ -357,3 +357,42 @@ fn fullscreen_pipeline(
         cache: None,
     })
 }
+
+/// A pipeline drawing a two-sided surface mesh (the level-of-detail tiles, VDTM's
+/// merged surface) into a `format` target with the scans' reverse-z depth test: the
+/// merged surface is seen from both sides where the scans saw it so.
+pub(crate) fn surface_pipeline(
+    device: &wgpu::Device,
+    label: &str,
+    layout: &wgpu::PipelineLayout,
+    module: &wgpu::ShaderModule,
+    entry_points: (&str, &str),
+    vertex: wgpu::VertexBufferLayout<'_>,
+    format: wgpu::TextureFormat,
+) -> wgpu::RenderPipeline {
+    device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+        label: Some(label),
+        layout: Some(layout),
+        vertex: wgpu::VertexState {
+            module,
+            entry_point: Some(entry_points.0),
+            compilation_options: Default::default(),
+            buffers: &[Some(vertex)],
+        },
+        primitive: wgpu::PrimitiveState {
+            topology: wgpu::PrimitiveTopology::TriangleList,
+            cull_mode: None,
+            ..Default::default()
+        },
+        depth_stencil: depth_state(),
+        multisample: wgpu::MultisampleState::default(),
+        fragment: Some(wgpu::FragmentState {
+            module,
+            entry_point: Some(entry_points.1),
+            compilation_options: Default::default(),
+            targets: &[replace(format)],
+        }),
+        multiview_mask: None,
+        cache: None,
+    })
+}

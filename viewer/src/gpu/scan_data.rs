@@ -114,11 +114,7 @@ impl GpuScan {
             height: tex.height,
             depth_or_array_layers: 1,
         };
-        let rgba: Vec<u8> = tex
-            .rgb
-            .chunks_exact(3)
-            .flat_map(|p| [p[0], p[1], p[2], 255])
-            .collect();
+        let rgba = rgba_of_rgb(&tex.rgb);
         let texture = device.create_texture_with_data(
             queue,
             &wgpu::TextureDescriptor {
@@ -260,5 +256,12 @@ fn drawn_indices(scan: &TexelScan, keep_stretched: bool) -> Vec<u32> {
         .enumerate()
         .filter(|(t, tri)| triangle_drawn(scan, *t, keep_stretched) && tri.iter().all(|&v| v < n))
         .flat_map(|(_, tri)| *tri)
+        .collect()
+}
+
+/// RGB8 pixels as opaque RGBA8 (GPU textures have no three-channel 8-bit format).
+pub(crate) fn rgba_of_rgb(rgb: &[u8]) -> Vec<u8> {
+    rgb.chunks_exact(3)
+        .flat_map(|p| [p[0], p[1], p[2], 255])
         .collect()
 }

@@ -16,7 +16,7 @@ use super::cache::{
 };
 use super::fade::MAX_CUTS;
 use crate::camera::VirtualCamera;
-use crate::gpu::{DEPTH_FORMAT, GpuContext, NEAREST_FORMAT, RenderTarget, shaders};
+use crate::gpu::{GpuContext, NEAREST_FORMAT, RenderTarget, shaders, surface_pipeline};
 
 /// The frame uniform (`Frame` in `common.wgsl`); only the projection, the sRGB flag
 /// and the width are used by the tile pass.
@@ -325,47 +325,21 @@ impl TilePass {
     fn pipeline(&mut self, format: wgpu::TextureFormat) -> &wgpu::RenderPipeline {
         let (device, layout, module) = (&self.device, &self.pipeline_layout, &self.module);
         self.pipelines.entry(format).or_insert_with(|| {
-            device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
-                label: Some("tile"),
-                layout: Some(layout),
-                vertex: wgpu::VertexState {
-                    module,
-                    entry_point: Some("vs_tile"),
-                    compilation_options: Default::default(),
-                    buffers: &[Some(wgpu::VertexBufferLayout {
-                        array_stride: std::mem::size_of::<TileVertex>() as u64,
-                        step_mode: wgpu::VertexStepMode::Vertex,
-                        attributes: &TILE_VERTEX_ATTRIBUTES,
-                    })],
+            // Tiles are closed surfaces only where the scans saw all round; a facade
+            // seen from behind still shows (no face culling).
+            surface_pipeline(
+                device,
+                "tile",
+                layout,
+                module,
+                ("vs_tile", "fs_tile"),
+                wgpu::VertexBufferLayout {
+                    array_stride: std::mem::size_of::<TileVertex>() as u64,
+                    step_mode: wgpu::VertexStepMode::Vertex,
+                    attributes: &TILE_VERTEX_ATTRIBUTES,
                 },
-                primitive: wgpu::PrimitiveState {
-                    topology: wgpu::PrimitiveTopology::TriangleList,
-                    // Tiles are closed surfaces only where the scans saw all round;
-                    // a facade seen from behind still shows (no face culling).
-                    cull_mode: None,
-                    ..Default::default()
-                },
-                depth_stencil: Some(wgpu::DepthStencilState {
-                    format: DEPTH_FORMAT,
-                    depth_write_enabled: Some(true),
-                    depth_compare: Some(wgpu::CompareFunction::Greater),
-                    stencil: wgpu::StencilState::default(),
-                    bias: wgpu::DepthBiasState::default(),
-                }),
-                multisample: wgpu::MultisampleState::default(),
-                fragment: Some(wgpu::FragmentState {
-                    module,
-                    entry_point: Some("fs_tile"),
-                    compilation_options: Default::default(),
-                    targets: &[Some(wgpu::ColorTargetState {
-                        format,
-                        blend: None,
-                        write_mask: wgpu::ColorWrites::ALL,
-                    })],
-                }),
-                multiview_mask: None,
-                cache: None,
-            })
+                format,
+            )
         })
     }
 

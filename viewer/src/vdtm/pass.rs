@@ -11,7 +11,7 @@ use glam::{Mat4, UVec4, Vec4};
 use super::gpu::{GpuVdtm, VDTM_VERTEX_ATTRIBUTES, VdtmVertex};
 use super::prepare::PreparedVdtm;
 use crate::camera::VirtualCamera;
-use crate::gpu::{DEPTH_FORMAT, GpuContext, GpuError, gpu_from_pose_relative, shaders};
+use crate::gpu::{GpuContext, GpuError, gpu_from_pose_relative, shaders, surface_pipeline};
 use crate::tiles::image_target::ImageTarget;
 use crate::tiles::pass::PassTarget;
 
@@ -190,46 +190,19 @@ impl VdtmPass {
     fn pipeline(&mut self, format: wgpu::TextureFormat) -> &wgpu::RenderPipeline {
         let (device, layout, module) = (&self.device, &self.pipeline_layout, &self.module);
         self.pipelines.entry(format).or_insert_with(|| {
-            device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
-                label: Some("vdtm"),
-                layout: Some(layout),
-                vertex: wgpu::VertexState {
-                    module,
-                    entry_point: Some("vs_vdtm"),
-                    compilation_options: Default::default(),
-                    buffers: &[Some(wgpu::VertexBufferLayout {
-                        array_stride: std::mem::size_of::<VdtmVertex>() as u64,
-                        step_mode: wgpu::VertexStepMode::Vertex,
-                        attributes: &VDTM_VERTEX_ATTRIBUTES,
-                    })],
+            surface_pipeline(
+                device,
+                "vdtm",
+                layout,
+                module,
+                ("vs_vdtm", "fs_vdtm"),
+                wgpu::VertexBufferLayout {
+                    array_stride: std::mem::size_of::<VdtmVertex>() as u64,
+                    step_mode: wgpu::VertexStepMode::Vertex,
+                    attributes: &VDTM_VERTEX_ATTRIBUTES,
                 },
-                primitive: wgpu::PrimitiveState {
-                    topology: wgpu::PrimitiveTopology::TriangleList,
-                    // The merged surface is seen from both sides where scans saw it so.
-                    cull_mode: None,
-                    ..Default::default()
-                },
-                depth_stencil: Some(wgpu::DepthStencilState {
-                    format: DEPTH_FORMAT,
-                    depth_write_enabled: Some(true),
-                    depth_compare: Some(wgpu::CompareFunction::Greater),
-                    stencil: wgpu::StencilState::default(),
-                    bias: wgpu::DepthBiasState::default(),
-                }),
-                multisample: wgpu::MultisampleState::default(),
-                fragment: Some(wgpu::FragmentState {
-                    module,
-                    entry_point: Some("fs_vdtm"),
-                    compilation_options: Default::default(),
-                    targets: &[Some(wgpu::ColorTargetState {
-                        format,
-                        blend: None,
-                        write_mask: wgpu::ColorWrites::ALL,
-                    })],
-                }),
-                multiview_mask: None,
-                cache: None,
-            })
+                format,
+            )
         })
     }
 
