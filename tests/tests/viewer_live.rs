@@ -338,6 +338,55 @@ fn without_a_display_connect_writes_snapshots_of_the_live_model() {
 }
 
 #[test]
+fn snapshots_of_the_live_model_by_view_dependent_texture_mapping() {
+    let dir = tempfile::tempdir().unwrap();
+    let (capture, _) = lab_capture(dir.path());
+    let daemon = Daemon::start(
+        &capture,
+        &dir.path().join("rec.mcap"),
+        "127.0.0.1:0".parse().unwrap(),
+        1.0,
+        true,
+    );
+    let addr = daemon.addr.to_string();
+    // The daemon sends no camera model: the EO camera is fitted from the scans.
+    let out = run_viewer(
+        &[
+            "--connect",
+            &addr,
+            "--width",
+            "160",
+            "--height",
+            "120",
+            "--every-scans",
+            "4",
+            "--max-snapshots",
+            "1",
+            "--mode",
+            "vdtm",
+        ],
+        None,
+        dir.path(),
+    );
+    daemon.stop();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stdout.contains("snapshot-0001.png (4 scans)"),
+        "{stdout}\n{stderr}"
+    );
+    println!("{stderr}");
+    assert!(stderr.contains("VDTM: 4 scans, 4 views"), "{stderr}");
+    let shot = dir.path().join("texel-snapshots").join("snapshot-0001.png");
+    let img = image::open(&shot).unwrap().to_rgba8();
+    let lit = img
+        .pixels()
+        .filter(|p| p[0] > 20 || p[1] > 20 || p[2] > 20)
+        .count();
+    assert!(lit > 160 * 120 / 2, "{lit} lit pixels");
+}
+
+#[test]
 fn the_window_follows_a_live_daemon() {
     let dir = tempfile::tempdir().unwrap();
     let (capture, _) = lab_capture(dir.path());

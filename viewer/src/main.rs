@@ -654,12 +654,6 @@ fn connect(args: LiveArgs, addr: String) -> anyhow::Result<()> {
         .or_else(|| (!have_display()).then(|| PathBuf::from("texel-snapshots")));
     let result = match snapshots {
         Some(dir) => {
-            if args.display.mode == DisplayMode::Vdtm {
-                bail!(
-                    "--mode vdtm draws in a window or with `render --connect`; snapshots \
-                     composite the scans (choose another --mode)"
-                );
-            }
             if !(args.every_s.is_finite() && args.every_s > 0.0) {
                 bail!("--every-s {} must be finite and positive", args.every_s);
             }
@@ -689,6 +683,7 @@ fn connect(args: LiveArgs, addr: String) -> anyhow::Result<()> {
                     max_snapshots: args.max_snapshots,
                     budget_bytes,
                     commands: Some(commands),
+                    vdtm: args.display.vdtm(None)?,
                 },
                 &stop,
             )?;

@@ -50,6 +50,10 @@ pub struct SnapshotOptions {
     /// Where missing scans are asked for (a live source); `None`: every scan's data
     /// arrives as an event and is kept on the CPU.
     pub commands: Option<SyncSender<SourceCommand>>,
+    /// Draw by view-dependent texture mapping (Debevec 1998) instead of the scans:
+    /// the merged surface is prepared anew from the scans held whenever the model
+    /// has moved on by the time of a snapshot.
+    pub vdtm: Option<crate::vdtm::VdtmChoice>,
 }
 
 /// What a snapshot run did.
@@ -71,6 +75,10 @@ pub fn run(
         .with_context(|| format!("creating {}", options.dir.display()))?;
     let gpu = GpuContext::headless()?;
     let mut renderer = Renderer::new(&gpu);
+    let mut vdtm = options
+        .vdtm
+        .clone()
+        .map(|choice| crate::vdtm::LiveVdtm::new(&gpu, choice));
     let mut model = Model::new();
     let fetcher = match &options.commands {
         Some(commands) => Fetcher::Remote {
@@ -143,7 +151,10 @@ pub fn run(
         let path = options
             .dir
             .join(format!("snapshot-{:04}.png", summary.written.len() + 1));
-        shoot(&mut renderer, &camera, options, &path)?;
+        match vdtm.as_mut() {
+            Some(vdtm) => shoot_vdtm(&gpu, vdtm, &model, &camera, options, &path)?,
+            None => shoot(&mut renderer, &camera, options, &path)?,
+        }
         println!(
             "{} ({} scans), {}",
             path.display(),
@@ -201,6 +212,32 @@ fn shoot(
     path: &Path,
 ) -> anyhow::Result<()> {
     let (image, _) = renderer.render_to_image(camera, &options.settings)?;
+    save_whole(&image, path)
+}
+
+/// A VDTM snapshot: the preparation brought up to the model first (waited for).
+fn shoot_vdtm(
+    gpu: &GpuContext,
+    vdtm: &mut crate::vdtm::LiveVdtm,
+    model: &Model,
+    camera: &VirtualCamera,
+    options: &SnapshotOptions,
+    path: &Path,
+) -> anyhow::Result<()> {
+    vdtm.update(gpu, model, true);
+    eprintln!("{}", vdtm.status.describe());
+    let image = vdtm
+        .render_to_image(gpu, camera, options.settings.composite.background)?
+        .with_context(|| {
+            format!(
+                "VDTM has nothing to draw: {}",
+                vdtm.status.error.as_deref().unwrap_or("no build finished")
+            )
+        })?;
+    save_whole(&image, path)
+}
+
+fn save_whole(image: &image::RgbaImage, path: &Path) -> anyhow::Result<()> {
     // Written whole under a temporary name, then renamed: a reader never sees half
     // a PNG.
     let partial = path.with_extension("partial.png");

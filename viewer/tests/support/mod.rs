@@ -165,6 +165,12 @@ fn display_in_use(display: u32) -> bool {
 /// Starts Xvfb on the first display number that no running server holds (a lock
 /// left by a server that was killed is cleared first).
 pub fn start_xvfb() -> (Xvfb, String) {
+    // Tests of one binary run in parallel: one at a time picks a display and waits
+    // for its server, so a second never clears the first's files as stale.
+    static STARTING: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    let _starting = STARTING
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
     for n in 90..140 {
         if display_in_use(n) {
             continue;
