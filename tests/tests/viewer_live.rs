@@ -292,8 +292,10 @@ fn the_connection_reconnects_and_resynchronises() {
     daemon.stop();
 }
 
-#[test]
-fn without_a_display_connect_writes_snapshots_of_the_live_model() {
+/// One snapshot of a live daemon's `lab` model after four scans, taken without a
+/// display (`extra`: more viewer arguments): the viewer's stdout and stderr, and how
+/// many pixels of the snapshot are lit.
+fn one_live_snapshot(extra: &[&str]) -> (String, String, usize) {
     let dir = tempfile::tempdir().unwrap();
     let (capture, _) = lab_capture(dir.path());
     let daemon = Daemon::start(
@@ -304,85 +306,51 @@ fn without_a_display_connect_writes_snapshots_of_the_live_model() {
         true,
     );
     let addr = daemon.addr.to_string();
-    let out = run_viewer(
-        &[
-            "--connect",
-            &addr,
-            "--width",
-            "160",
-            "--height",
-            "120",
-            "--every-scans",
-            "4",
-            "--max-snapshots",
-            "1",
-        ],
-        None,
-        dir.path(),
-    );
+    let mut args = vec![
+        "--connect",
+        &addr,
+        "--width",
+        "160",
+        "--height",
+        "120",
+        "--every-scans",
+        "4",
+        "--max-snapshots",
+        "1",
+    ];
+    args.extend_from_slice(extra);
+    let out = run_viewer(&args, None, dir.path());
     daemon.stop();
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    let folder = dir.path().join("texel-snapshots");
-    assert!(
-        stdout.contains("texel-snapshots") && stdout.contains("no DISPLAY"),
-        "{stdout}"
-    );
-    let shot = folder.join("snapshot-0001.png");
-    assert!(stdout.contains("snapshot-0001.png (4 scans)"), "{stdout}");
-    let img = image::open(&shot).unwrap().to_rgba8();
-    let lit = img
-        .pixels()
-        .filter(|p| p[0] > 20 || p[1] > 20 || p[2] > 20)
-        .count();
-    assert!(lit > 160 * 120 / 2, "{lit} lit pixels");
-}
-
-#[test]
-fn snapshots_of_the_live_model_by_view_dependent_texture_mapping() {
-    let dir = tempfile::tempdir().unwrap();
-    let (capture, _) = lab_capture(dir.path());
-    let daemon = Daemon::start(
-        &capture,
-        &dir.path().join("rec.mcap"),
-        "127.0.0.1:0".parse().unwrap(),
-        1.0,
-        true,
-    );
-    let addr = daemon.addr.to_string();
-    // The daemon sends no camera model: the EO camera is fitted from the scans.
-    let out = run_viewer(
-        &[
-            "--connect",
-            &addr,
-            "--width",
-            "160",
-            "--height",
-            "120",
-            "--every-scans",
-            "4",
-            "--max-snapshots",
-            "1",
-            "--mode",
-            "vdtm",
-        ],
-        None,
-        dir.path(),
-    );
-    daemon.stop();
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    let stderr = String::from_utf8_lossy(&out.stderr);
+    let stdout = String::from_utf8_lossy(&out.stdout).to_string();
+    let stderr = String::from_utf8_lossy(&out.stderr).to_string();
     assert!(
         stdout.contains("snapshot-0001.png (4 scans)"),
         "{stdout}\n{stderr}"
     );
-    println!("{stderr}");
-    assert!(stderr.contains("VDTM: 4 scans, 4 views"), "{stderr}");
     let shot = dir.path().join("texel-snapshots").join("snapshot-0001.png");
     let img = image::open(&shot).unwrap().to_rgba8();
     let lit = img
         .pixels()
         .filter(|p| p[0] > 20 || p[1] > 20 || p[2] > 20)
         .count();
+    (stdout, stderr, lit)
+}
+
+#[test]
+fn without_a_display_connect_writes_snapshots_of_the_live_model() {
+    let (stdout, _, lit) = one_live_snapshot(&[]);
+    assert!(
+        stdout.contains("texel-snapshots") && stdout.contains("no DISPLAY"),
+        "{stdout}"
+    );
+    assert!(lit > 160 * 120 / 2, "{lit} lit pixels");
+}
+
+#[test]
+fn snapshots_of_the_live_model_by_view_dependent_texture_mapping() {
+    // The daemon sends no camera model: the EO camera is fitted from the scans.
+    let (_, stderr, lit) = one_live_snapshot(&["--mode", "vdtm"]);
+    assert!(stderr.contains("VDTM: 4 scans, 4 views"), "{stderr}");
     assert!(lit > 160 * 120 / 2, "{lit} lit pixels");
 }
 

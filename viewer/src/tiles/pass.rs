@@ -18,15 +18,36 @@ use super::fade::MAX_CUTS;
 use crate::camera::VirtualCamera;
 use crate::gpu::{GpuContext, NEAREST_FORMAT, RenderTarget, shaders, surface_pipeline};
 
-/// The frame uniform (`Frame` in `common.wgsl`); only the projection, the sRGB flag
-/// and the width are used by the tile pass.
+/// The frame uniform (`Frame` in `common.wgsl`) of the surface passes (tiles, VDTM):
+/// only the projection, the sRGB flag and the width are used.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
-pub(crate) struct TileFrameUniform {
+pub(crate) struct SurfaceFrameUniform {
     pub clip_from_view: Mat4,
     pub background: Vec4,
     pub params: Vec4,
     pub counts: UVec4,
+}
+
+impl SurfaceFrameUniform {
+    pub(crate) fn new(
+        camera: &VirtualCamera,
+        target: &RenderTarget<'_>,
+        background: [f32; 3],
+    ) -> Self {
+        let bg = background;
+        Self {
+            clip_from_view: camera.clip_from_view(),
+            background: Vec4::new(bg[0], bg[1], bg[2], 1.0),
+            params: Vec4::new(
+                0.0,
+                1.0,
+                if target.format.is_srgb() { 1.0 } else { 0.0 },
+                0.0,
+            ),
+            counts: UVec4::new(0, 0, 0, target.width),
+        }
+    }
 }
 
 /// `Fade` in `tile.wgsl`.
@@ -220,7 +241,7 @@ fn uniform_entry(binding: u32, dynamic: bool) -> wgpu::BindGroupLayoutEntry {
     }
 }
 
-fn uniform_buffer(device: &wgpu::Device, label: &str, size: u64) -> wgpu::Buffer {
+pub(crate) fn uniform_buffer(device: &wgpu::Device, label: &str, size: u64) -> wgpu::Buffer {
     device.create_buffer(&wgpu::BufferDescriptor {
         label: Some(label),
         size,
@@ -271,7 +292,7 @@ impl TilePass {
         let frame_uniform = uniform_buffer(
             &device,
             "tile frame uniform",
-            std::mem::size_of::<TileFrameUniform>() as u64,
+            std::mem::size_of::<SurfaceFrameUniform>() as u64,
         );
         let fade_uniform = uniform_buffer(
             &device,
@@ -357,17 +378,7 @@ impl TilePass {
         let (clear, depth, scans) = (target.clear, target.depth, target.scans);
         let target = &target.colour;
         let bg = clear.unwrap_or([0.0; 3]);
-        let frame = TileFrameUniform {
-            clip_from_view: camera.clip_from_view(),
-            background: Vec4::new(bg[0], bg[1], bg[2], 1.0),
-            params: Vec4::new(
-                0.0,
-                1.0,
-                if target.format.is_srgb() { 1.0 } else { 0.0 },
-                0.0,
-            ),
-            counts: UVec4::new(0, 0, 0, target.width),
-        };
+        let frame = SurfaceFrameUniform::new(camera, target, bg);
         self.queue
             .write_buffer(&self.frame_uniform, 0, bytemuck::bytes_of(&frame));
         let fade = FadeUniform {
@@ -518,7 +529,7 @@ mod tests {
     fn uniforms_and_vertices_match_the_shader() {
         let size = |b: usize| u32::try_from(b).unwrap();
         assert_eq!(
-            size(std::mem::size_of::<TileFrameUniform>()),
+            size(std::mem::size_of::<SurfaceFrameUniform>()),
             wgsl_size("Frame")
         );
         assert_eq!(size(std::mem::size_of::<FadeUniform>()), wgsl_size("Fade"));

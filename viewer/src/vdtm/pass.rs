@@ -6,14 +6,14 @@
 use std::collections::HashMap;
 
 use bytemuck::{Pod, Zeroable};
-use glam::{Mat4, UVec4, Vec4};
+use glam::{Mat4, Vec4};
 
 use super::gpu::{GpuVdtm, VDTM_VERTEX_ATTRIBUTES, VdtmVertex};
 use super::prepare::PreparedVdtm;
 use crate::camera::VirtualCamera;
 use crate::gpu::{GpuContext, GpuError, gpu_from_pose_relative, shaders, surface_pipeline};
 use crate::tiles::image_target::ImageTarget;
-use crate::tiles::pass::PassTarget;
+use crate::tiles::pass::{PassTarget, SurfaceFrameUniform, uniform_buffer};
 
 /// The switches beyond the paper (its §9) and the background.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -61,16 +61,6 @@ impl VdtmSettings {
     }
 }
 
-/// The frame uniform (`Frame` in `common.wgsl`): projection, sRGB flag and width.
-#[repr(C)]
-#[derive(Debug, Clone, Copy, Pod, Zeroable)]
-struct FrameUniform {
-    clip_from_view: Mat4,
-    background: Vec4,
-    params: Vec4,
-    counts: UVec4,
-}
-
 /// `VdtmFrame` in `vdtm.wgsl`.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
@@ -87,15 +77,6 @@ fn layout_entry(binding: u32, ty: wgpu::BindingType) -> wgpu::BindGroupLayoutEnt
         ty,
         count: None,
     }
-}
-
-fn uniform_buffer(device: &wgpu::Device, label: &str, size: u64) -> wgpu::Buffer {
-    device.create_buffer(&wgpu::BufferDescriptor {
-        label: Some(label),
-        size,
-        usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-        mapped_at_creation: false,
-    })
 }
 
 /// The VDTM pipelines and per-frame uniforms.
@@ -157,7 +138,7 @@ impl VdtmPass {
         let frame_uniform = uniform_buffer(
             &device,
             "vdtm frame uniform",
-            std::mem::size_of::<FrameUniform>() as u64,
+            std::mem::size_of::<SurfaceFrameUniform>() as u64,
         );
         let vdtm_uniform = uniform_buffer(
             &device,
@@ -221,18 +202,7 @@ impl VdtmPass {
         let eye = camera.centre_world();
         model.update_blends(&self.queue, prepared, &eye);
         let colour = &target.colour;
-        let bg = target.clear.unwrap_or([0.0; 3]);
-        let frame = FrameUniform {
-            clip_from_view: camera.clip_from_view(),
-            background: Vec4::new(bg[0], bg[1], bg[2], 1.0),
-            params: Vec4::new(
-                0.0,
-                1.0,
-                if colour.format.is_srgb() { 1.0 } else { 0.0 },
-                0.0,
-            ),
-            counts: UVec4::new(0, 0, 0, colour.width),
-        };
+        let frame = SurfaceFrameUniform::new(camera, colour, target.clear.unwrap_or([0.0; 3]));
         let view_from_world = camera.view_from_world();
         let eye_model = eye - model.world_from_model.translation.vector;
         let feather_px = if settings.feather_px.is_finite() {
