@@ -472,6 +472,10 @@ fn render_vdtm(
 
 /// `render --lod`: the model's scans fused into a level-of-detail hierarchy, each
 /// view drawn from the tiles it selects (every wanted tile loaded first, no fade).
+/// Frames `render` draws of a level-of-detail view before the one it writes, each
+/// choosing more scans where the tiles still showed.
+const COVERAGE_FEEDBACK_FRAMES: usize = 4;
+
 fn render_lod(
     gpu: &GpuContext,
     mut model: texel::model::Model,
@@ -523,20 +527,30 @@ fn render_lod(
         for e in tiles.take_errors() {
             eprintln!("{e}");
         }
-        residency.options.only = Some(tiles.scans_wanted(model.scans(), &camera));
-        let resident = residency.step(&mut model, &mut renderer, &camera);
-        let (image, stats, hybrid) = tiles.render_over_scans_to_image(
-            &mut renderer,
-            scan_settings,
-            model.scans(),
-            &camera,
-            0.0,
-        )?;
+        // Each frame's coverage feedback chooses more scans where the tiles still
+        // showed (`tiles::coverage`): a few frames, holding what is wanted before
+        // each, as the window does; the last one is written.
+        let mut frame = None;
+        for _ in 0..=COVERAGE_FEEDBACK_FRAMES {
+            residency.options.only = Some(tiles.scans_wanted(model.scans(), &camera));
+            let resident = residency.step(&mut model, &mut renderer, &camera);
+            let drawn = tiles.render_over_scans_to_image(
+                &mut renderer,
+                scan_settings,
+                model.scans(),
+                &camera,
+                0.0,
+            )?;
+            frame = Some((drawn, resident));
+        }
+        let Some(((image, stats, hybrid), resident)) = frame else {
+            anyhow::bail!("no frame drawn");
+        };
         image
             .save(out)
             .with_context(|| format!("writing {}", out.display()))?;
         eprintln!(
-            "{}: {} tiles drawn, {} triangles, {} tiles resident ({} bytes); {} finest tiles show their scans, {} scans drawn; {}",
+            "{}: {} tiles drawn, {} triangles, {} tiles resident ({} bytes); {} finest tiles show their scans, {} scans drawn, {} points where tiles still showed ({} given up); {}",
             out.display(),
             stats.tiles_drawn,
             stats.triangles_drawn,
@@ -544,6 +558,8 @@ fn render_lod(
             stats.resident_bytes,
             stats.tiles_with_scans,
             hybrid.scans.map_or(0, |s| s.drawn),
+            tiles.coverage_counts().0,
+            tiles.coverage_counts().1,
             resident.describe()
         );
     }

@@ -120,19 +120,31 @@ struct Frames {
 }
 
 fn frames(model: &Model, h: &Hierarchy, camera: &VirtualCamera, margin_m: f64) -> Frames {
+    frames_with(model, h, camera, tile_settings(true, margin_m), 2)
+}
+
+/// As [`frames`], with the hybrid's settings and number of frames given (the last is
+/// returned; each feeds its coverage back).
+fn frames_with(
+    model: &Model,
+    h: &Hierarchy,
+    camera: &VirtualCamera,
+    hybrid_settings: TileSettings,
+    count: usize,
+) -> Frames {
+    let margin_m = hybrid_settings.hybrid.margin_m;
     let gpu = support::gpu();
     let mut renderer = Renderer::new(gpu);
     renderer.sync_model(model).unwrap();
     let settings = scan_settings();
-    let mut hybrid =
-        TileRenderer::new(gpu, MemorySource::new(h), tile_settings(true, margin_m)).unwrap();
+    let mut hybrid = TileRenderer::new(gpu, MemorySource::new(h), hybrid_settings).unwrap();
     hybrid.preload_all(std::time::Duration::from_secs(60));
     let mut tiles_alone =
         TileRenderer::new(gpu, MemorySource::new(h), tile_settings(false, margin_m)).unwrap();
     tiles_alone.preload_all(std::time::Duration::from_secs(60));
-    // Two frames: the first selects, the second draws what it settled on.
+    // Two frames at least: the first selects, the second draws what it settled on.
     let mut last = None;
-    for now_s in [0.0, 1.0] {
+    for now_s in (0..count.max(2)).map(|i| i as f64) {
         last = Some(
             hybrid
                 .render_over_scans_to_image(&mut renderer, &settings, model.scans(), camera, now_s)
@@ -266,4 +278,128 @@ fn a_tile_in_front_of_the_scans_covers_them_and_one_behind_does_not_show() {
         .filter(|(x, y, p)| drawn(scans.get_pixel(*x, *y)) && p[0] > 240 && p[1] < 40)
         .count();
     assert_eq!(red_through, 0, "the plane behind shows through the scans");
+}
+
+#[test]
+fn coverage_feedback_brings_in_the_scans_where_the_tiles_still_showed() {
+    // One scan a tile leaves most of what the scans alone draw to the tiles; each
+    // frame's feedback then asks for scans holding the points where tiles showed.
+    let model = corridor();
+    let h = corridor_tiles(&model);
+    // Six metres from the wall, the view takes in more of it than three scans saw.
+    let cam = camera([6.0, -0.3, -1.0], [6.3, -0.2, 5.05]);
+    let settings = |feedback: usize| {
+        let mut s = tile_settings(true, 0.5);
+        s.hybrid.scans_per_tile = 1;
+        s.hybrid.feedback_scans_per_tile = feedback;
+        s
+    };
+    let matched = |f: &Frames| {
+        let scans = &f.scans;
+        agreement(&f.hybrid, scans, &|x, y| drawn(scans.get_pixel(x, y)), 2).0
+    };
+    let without = frames_with(&model, &h, &cam, settings(0), 6);
+    let with = frames_with(&model, &h, &cam, settings(16), 6);
+    let (a, b) = (matched(&without), matched(&with));
+    eprintln!(
+        "where the scans alone drew: {a:.4} matched without the feedback ({} scans), {b:.4} with it ({} scans)",
+        without.scans_drawn, with.scans_drawn
+    );
+    assert!(
+        with.scans_drawn > without.scans_drawn,
+        "the feedback drew {} scans, without it {}",
+        with.scans_drawn,
+        without.scans_drawn
+    );
+    assert!(
+        b > a + 0.05 && b > 0.9,
+        "where the scans alone drew, the hybrid frame matches them at {b:.4} with the feedback, {a:.4} without"
+    );
+}
+
+/// A wall scanned once from the origin by a 320x240 lidar with isolated samples
+/// knocked out (dropouts), and a red tile plane on the wall.
+fn holey_wall() -> (Model, Hierarchy, VirtualCamera) {
+    let sensor = scenes::sensor(320, 240, 320, 240);
+    let scene = scenes::Scene {
+        surfaces: vec![scenes::Surface {
+            shape: scenes::Shape::Plane {
+                normal: [0.0, 0.0, 1.0],
+                offset: 5.05,
+            },
+            checker_m: 0.4,
+            colour_a: [200, 190, 170],
+            colour_b: [50, 90, 60],
+        }],
+    };
+    let pose = scenes::look_at([0.0, 0.0, 0.0], [2.5, -0.5, 5.05]);
+    let (mut range, eo) = scenes::frames(&scene, &sensor, &pose, [1.0; 3], 0);
+    let w = range.width;
+    for v in (3..range.height - 3).step_by(5) {
+        for u in (3..w - 3).step_by(5) {
+            range.ranges_m[(v * w + u) as usize] = f32::NAN;
+        }
+    }
+    let scan = texel::fuse(&range, eo, &sensor, &texel::FuseConfig::default()).unwrap();
+    let mut model = Model::new();
+    model
+        .apply(texel::model::ModelEvent::ScanAdded {
+            id: model.next_id(),
+            scan: std::sync::Arc::new(scan),
+            world_from_scan: pose,
+        })
+        .unwrap();
+    let camera = VirtualCamera::new(pose, 60.0, WIDTH, HEIGHT).unwrap();
+    (model, plane_tiles(5.05, [255, 0, 0]), camera)
+}
+
+#[test]
+fn holes_the_drawn_scans_enclose_are_filled_from_them_and_the_tiles_give_way() {
+    let (model, tiles, cam) = holey_wall();
+    let red = |p: &image::Rgba<u8>| p[0] > 200 && p[1] < 60 && p[2] < 60;
+    let run = |fill: bool| {
+        let mut s = tile_settings(true, 0.5);
+        s.hybrid.fill_scan_holes = fill;
+        s.hybrid.feedback_scans_per_tile = 0;
+        frames_with(&model, &tiles, &cam, s, 2)
+    };
+    let (holes, filled) = (run(false), run(true));
+    assert!(holes.scans_drawn > 0 && filled.scans_drawn > 0);
+    // Where both the scan and the tiles draw: the tile shows through the scan's
+    // holes unless they are filled.
+    // Where the tiles draw, inside the scan's outline (its holes included).
+    let both = |x: u32, y: u32| {
+        drawn(holes.tiles.get_pixel(x, y))
+            && (x.saturating_sub(2)..=x + 2)
+                .any(|u| u < WIDTH && drawn(holes.scans.get_pixel(u, y)))
+    };
+    let count = |img: &image::RgbaImage| {
+        img.enumerate_pixels()
+            .filter(|(x, y, p)| both(*x, *y) && red(p))
+            .count()
+    };
+    let area = holes
+        .hybrid
+        .enumerate_pixels()
+        .filter(|(x, y, _)| both(*x, *y))
+        .count();
+    let (red_holes, red_filled) = (count(&holes.hybrid), count(&filled.hybrid));
+    eprintln!("the tile shows in {red_holes} of {area} pixels unfilled, {red_filled} filled");
+    assert!(area > 5_000, "the scan and the tiles share {area} pixels");
+    assert!(
+        red_holes > 200,
+        "the tile shows through the holes in {red_holes} pixels only"
+    );
+    assert!(
+        red_filled * 3 < red_holes,
+        "filled: the tile still shows in {red_filled} pixels, {red_holes} unfilled"
+    );
+    // The filled frame is the scan's colour: every pixel neither background nor red
+    // where both drew is within the wall's colours (its two checker colours and the
+    // mixes of them a blend or a fill makes).
+    for (x, y, p) in filled.hybrid.enumerate_pixels() {
+        if both(x, y) && !red(p) {
+            assert!(drawn(p), "({x}, {y}) left empty");
+        }
+    }
 }

@@ -83,7 +83,7 @@ struct Figures {
     /// [close, overview] x [LOD with scans below, tiles alone, scans only].
     view: [[ViewFigures; 3]; 2],
     /// The close view with LOD at each count of scans per tile.
-    close_sweep: Vec<(usize, ViewFigures)>,
+    close_sweep: Vec<(Sweep, ViewFigures)>,
     quality: Vec<PoseQuality>,
     pop: Popping,
     timings: Vec<(&'static str, f64)>,
@@ -103,7 +103,7 @@ struct PoseQuality {
     tiles_with_scans: usize,
     hybrid_scans: usize,
     /// LOD at each count of scans per tile: the count, PSNR dB and scans drawn.
-    swept_db: Vec<(usize, f64, usize)>,
+    swept_db: Vec<(Sweep, f64, usize)>,
     scored: f64,
     /// Scans the planner left out of the budget at this pose.
     left_out: usize,
@@ -200,7 +200,9 @@ pub fn run(args: &LodViewArgs) -> Result<()> {
         let settings = per_tile(tile_settings(0.25, TILE_BUDGET), k);
         let (f, _) = hybrid_view(&gpu, &source, &mut holder, &close_cam, settings, timed)?;
         println!(
-            "close, LOD with {k} scans per tile: {:.1} ms/frame, {} scans drawn, {:.1} MiB data",
+            "close, LOD with {} scans per tile, {} more from feedback: {:.1} ms/frame, {} scans drawn, {:.1} MiB data",
+            k.0,
+            k.1,
             f.frame_ms,
             f.scans_drawn,
             mib(f.data_bytes)
@@ -219,7 +221,7 @@ pub fn run(args: &LodViewArgs) -> Result<()> {
     // 2. Quality at held-out poses.
     let t = Instant::now();
     let poses = held_out(&sim, if args.quick { 3 } else { 8 });
-    let sweep: &[usize] = if args.quick { &[4, 8] } else { &SWEEP };
+    let sweep: &[Sweep] = if args.quick { &SWEEP[..2] } else { &SWEEP };
     let quality = quality(
         &gpu,
         &source,
@@ -299,15 +301,20 @@ fn ratio(a: f64, b: f64) -> f64 {
     if b > 0.0 { a / b } else { f64::NAN }
 }
 
-/// Counts of scans per finest tile measured (the default, 8, among them).
-const SWEEP: [usize; 5] = [4, 8, 16, 32, 64];
+/// Scans a finest tile may show, and how many more its coverage feedback may add.
+type Sweep = (usize, usize);
+
+/// The counts measured: the default (8 and 64) and without the feedback first.
+const SWEEP: [Sweep; 7] = [(8, 64), (8, 0), (8, 16), (4, 64), (16, 0), (32, 0), (64, 0)];
 
 /// The three ways the street is drawn, as the tables name them.
 const HOW: [&str; 3] = ["LOD", "tiles alone", "scans only"];
 
-/// Tile settings with `k` scans below each finest tile.
-fn per_tile(mut settings: TileSettings, k: usize) -> TileSettings {
-    settings.hybrid.scans_per_tile = k;
+/// Tile settings with `k.0` scans below each finest tile and `k.1` more from its
+/// coverage feedback.
+fn per_tile(mut settings: TileSettings, k: Sweep) -> TileSettings {
+    settings.hybrid.scans_per_tile = k.0;
+    settings.hybrid.feedback_scans_per_tile = k.1;
     settings
 }
 
@@ -353,7 +360,7 @@ fn quality(
     sim: &sims::Simulator,
     poses: &[(&'static str, Pose)],
     fov: f64,
-    (images, sweep): (Option<&Path>, &[usize]),
+    (images, sweep): (Option<&Path>, &[Sweep]),
 ) -> Result<Vec<PoseQuality>> {
     if let Some(dir) = images {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
@@ -381,7 +388,10 @@ fn quality(
                 hybrid_view(gpu, source, holder, &cam, per_tile(tiles, k), 1)?,
             ));
         }
-        let default_k = tiles.hybrid.scans_per_tile;
+        let default_k = (
+            tiles.hybrid.scans_per_tile,
+            tiles.hybrid.feedback_scans_per_tile,
+        );
         let (hybrid_figures, hybrid) = swept
             .iter()
             .find(|(k, _)| *k == default_k)

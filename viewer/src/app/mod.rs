@@ -9,10 +9,11 @@ mod controls;
 mod state;
 mod ui;
 
+use std::collections::BTreeSet;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::mpsc::{Receiver, SyncSender};
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use winit::application::ApplicationHandler;
@@ -31,6 +32,7 @@ use crate::live::{SourceCommand, ViewerEvent};
 use crate::tiles::net::NetTileSource;
 use crate::tiles::pass::PassTarget;
 use crate::tiles::{TileRenderer, TileSettings};
+use texel::model::ScanId;
 
 pub struct AppOptions {
     pub title: String,
@@ -61,6 +63,9 @@ pub struct AppOptions {
     pub vdtm: Option<crate::vdtm::VdtmChoice>,
 }
 
+/// How often the window reads its tile depth back for the coverage feedback.
+const FEEDBACK_EVERY: Duration = Duration::from_millis(200);
+
 struct WindowState {
     window: Arc<Window>,
     surface: wgpu::Surface<'static>,
@@ -73,6 +78,8 @@ struct WindowState {
     tiles: Option<TileRenderer<NetTileSource>>,
     /// The tile pass's depth buffer, at the surface's size.
     tile_depth: Option<(u32, u32, wgpu::TextureView)>,
+    /// When the tile depth was last read back for the coverage feedback.
+    last_feedback: Option<Instant>,
     vdtm: Option<crate::vdtm::LiveVdtm>,
 }
 
@@ -199,6 +206,7 @@ impl App {
             egui_renderer,
             tiles,
             tile_depth: None,
+            last_feedback: None,
             vdtm,
         })
     }
@@ -306,6 +314,25 @@ impl App {
                     )?;
                     if let Some(scan_stats) = hybrid.scans {
                         self.viewer.stats = scan_stats;
+                    }
+                    // Where the tiles still showed over their scans, a few times a
+                    // second: a read-back waits for the GPU.
+                    let due = w
+                        .last_feedback
+                        .is_none_or(|t| now.duration_since(t) >= FEEDBACK_EVERY);
+                    if due && hybrid.scans.is_some() && w.renderer.scan_nearest().is_some() {
+                        w.last_feedback = Some(now);
+                        let drawn: BTreeSet<ScanId> = wanted
+                            .iter()
+                            .copied()
+                            .filter(|id| w.renderer.has_scan(*id))
+                            .collect();
+                        tiles.feed_back_coverage(
+                            depth.texture(),
+                            &camera,
+                            self.viewer.model.scans(),
+                            &drawn,
+                        )?;
                     }
                 }
                 None => {
@@ -443,7 +470,8 @@ fn tile_depth<'a>(
             sample_count: 1,
             dimension: wgpu::TextureDimension::D2,
             format: crate::gpu::DEPTH_FORMAT,
-            usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
+            // Read back for the coverage feedback.
+            usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
             view_formats: &[],
         });
         let view = texture.create_view(&wgpu::TextureViewDescriptor::default());

@@ -164,7 +164,11 @@ impl Pipelines {
         });
         let kbuffer_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("composite k-buffer"),
-            entries: &[uniform_entry(0, fs, false), storage_entry(1, fs, true)],
+            entries: &[
+                uniform_entry(0, fs, false),
+                storage_entry(1, fs, true),
+                texture_entry(2, fs, UINT, D2),
+            ],
         });
         let naive_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("composite naive"),

@@ -155,6 +155,32 @@ pub fn read_rgba_texture(
         .ok_or_else(|| GpuError::Readback("image size mismatch".into()))
 }
 
+/// Reads a `Depth32Float` texture (made with `COPY_SRC`) back, row-major.
+pub fn read_depth_texture(
+    device: &wgpu::Device,
+    queue: &wgpu::Queue,
+    texture: &wgpu::Texture,
+) -> Result<Vec<f32>, GpuError> {
+    if texture.format() != wgpu::TextureFormat::Depth32Float {
+        return Err(GpuError::Readback(format!(
+            "depth read-back of a {:?} texture",
+            texture.format()
+        )));
+    }
+    let size = texture.size();
+    let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+        label: Some("depth read-back"),
+    });
+    let (buffer, row) = copy_texture(device, &mut encoder, texture, 1, 4);
+    queue.submit(Some(encoder.finish()));
+    let rows = map_rows(device, &buffer, row, size.width * 4, size.height, 1)?;
+    let bytes = rows.into_iter().next().unwrap_or_default();
+    Ok(bytes
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect())
+}
+
 impl Renderer {
     /// Renders a frame into an offscreen RGBA8 image (the headless path: the same
     /// passes as the window, into a texture instead of a swapchain image).

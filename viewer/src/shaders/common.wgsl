@@ -20,6 +20,24 @@ struct Frame {
     counts: vec4<u32>,
 }
 
+// Neighbours (of 8) that must enclose a pixel (`encloses`) for it to count as a
+// sampling hole of the scans drawn in a hybrid frame (composite_kbuffer.wgsl,
+// tile.wgsl).
+const FILL_MIN_NEIGHBOURS: u32 = 6u;
+
+// Whether a neighbour whose nearest scan surface lies at `neighbour` (sigma
+// `neighbour_sigma`) encloses a pixel whose own nearest lies at `here` (+infinity for
+// none): the neighbour holds a surface and the pixel holds nothing, or only something
+// clearly behind it (beyond 3 sigma and 5 % of the distance, which a slanted surface's
+// neighbouring pixels stay within).
+fn encloses(here: f32, neighbour: f32, neighbour_sigma: f32) -> bool {
+    if !(neighbour < 3.0e38) {
+        return false;
+    }
+    let tolerance = max(3.0 * neighbour_sigma, 0.05 * neighbour);
+    return !(here <= neighbour + tolerance);
+}
+
 // One fragment of one scan at one pixel.
 struct Frag {
     colour: vec3<f32>,

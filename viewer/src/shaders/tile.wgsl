@@ -18,7 +18,8 @@ struct Tile {
     // x: bit i set when the tile belongs to cut i
     cuts: vec4<u32>,
     // x: share of the tile's pixels where scans on its surface win over it; y: the
-    // same-surface tolerance, metres
+    // same-surface tolerance, metres; z: 1 when the scan pass fills the holes its
+    // scans enclose (composite_kbuffer.wgsl)
     scans: vec4<f32>,
 }
 
@@ -108,6 +109,35 @@ fn ray_slant(p_view: vec3<f32>) -> f32 {
     return 1.0 / max(c, 0.125);
 }
 
+// Whether the scan pass filled this pixel as a hole its scans enclose
+// (composite_kbuffer.wgsl: at least FILL_MIN_NEIGHBOURS neighbours `encloses` it) with
+// the tile on their surface or behind it: the tile gives way there as it does to the
+// scans themselves.
+fn in_filled_hole(at: vec2<u32>, size: vec2<u32>, tile_distance: f32, slant: f32) -> bool {
+    let here = bitcast<f32>(textureLoad(scan_nearest, at, 0).x);
+    var enclosing = 0u;
+    var under = 0u;
+    for (var dy = -1; dy <= 1; dy = dy + 1) {
+        for (var dx = -1; dx <= 1; dx = dx + 1) {
+            let q = vec2<i32>(at) + vec2<i32>(dx, dy);
+            let inside = q.x >= 0 && q.y >= 0 && u32(q.x) < size.x && u32(q.y) < size.y;
+            if (dx != 0 || dy != 0) && inside {
+                let near = textureLoad(scan_nearest, vec2<u32>(q), 0).xy;
+                let d = bitcast<f32>(near.x);
+                let sigma = bitcast<f32>(near.y);
+                if encloses(here, d, sigma) {
+                    enclosing = enclosing + 1u;
+                    let tolerance = max(tile.scans.y * slant, 3.0 * sigma);
+                    if tile_distance >= d - tolerance {
+                        under = under + 1u;
+                    }
+                }
+            }
+        }
+    }
+    return enclosing >= FILL_MIN_NEIGHBOURS && under >= FILL_MIN_NEIGHBOURS;
+}
+
 // Whether the scans drawn beneath show at this pixel instead of the tile: they lie in
 // front of it, or on the same surface (within the tile's tolerance across the surface,
 // `slant` times that along the ray, or 3 sigma of their range noise) in the share of
@@ -118,6 +148,11 @@ fn gives_way_to_scans(pixel: vec2<u32>, tile_distance: f32, slant: f32) -> bool 
     let at = min(pixel, max(size, vec2<u32>(1u)) - vec2<u32>(1u));
     let near = textureLoad(scan_nearest, at, 0).xy;
     let scan_distance = bitcast<f32>(near.x);
+    // A hole the scan pass filled from the scans around it, the tile on their
+    // surface: the fill shows in the share of pixels the switch has faded in.
+    if tile.scans.z > 0.5 && in_filled_hole(at, size, tile_distance, slant) {
+        return bayer8(pixel + vec2<u32>(4u, 2u)) < tile.scans.x;
+    }
     // No scan here (+infinity), or not a number: the tile stays.
     if !(scan_distance < 3.0e38) {
         return false;

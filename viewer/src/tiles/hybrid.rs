@@ -5,15 +5,19 @@
 //! over them, giving way on their surface (`tile.wgsl`), so a tile still fills
 //! wherever the chosen scans did not reach: no hole. Every tile gives way where scans
 //! drew, not only those that asked for them: the scans are drawn anyway and carry the
-//! EO images' detail.
+//! EO images' detail. Where the tiles still showed over ground whose scans were
+//! asked for, the frame's depth is read back as demand for the next choice
+//! ([`TileRenderer::feed_back_coverage`], `coverage.rs`).
 
 use std::collections::{BTreeMap, BTreeSet};
 
 use texel::model::{ModelScan, ScanId};
-use texel_lod::TileId;
+use texel_lod::{TileId, TileIndex};
 
+use super::coverage::depth_samples;
 use super::image_target::ImageTarget;
 use super::pass::PassTarget;
+use super::scan_choice::drawn_holding;
 use super::source::TileSource;
 use super::{TileError, TileFrameStats, TileRenderer};
 use crate::camera::VirtualCamera;
@@ -32,6 +36,16 @@ pub struct HybridSettings {
     pub scans_per_point: usize,
     /// A scan counts for a tile, or a point, when its bounds come this close, metres.
     pub margin_m: f64,
+    /// Scans drawn per tile beyond `scans_per_tile` for the points where earlier
+    /// frames still showed the tile (`coverage.rs`); 0 turns the feedback off.
+    pub feedback_scans_per_tile: usize,
+    /// The feedback reads every this many pixels across and down.
+    pub feedback_stride_px: u32,
+    /// One demand point per cell of this size, metres.
+    pub feedback_cell_m: f64,
+    /// The scan pass fills the holes the drawn scans enclose, and the tiles give way
+    /// there ([`RenderSettings::fill_enclosed_holes`]).
+    pub fill_scan_holes: bool,
 }
 
 impl Default for HybridSettings {
@@ -41,6 +55,10 @@ impl Default for HybridSettings {
             scans_per_tile: 8,
             scans_per_point: 4,
             margin_m: 0.5,
+            feedback_scans_per_tile: 64,
+            feedback_stride_px: 4,
+            feedback_cell_m: 0.1,
+            fill_scan_holes: true,
         }
     }
 }
@@ -143,6 +161,7 @@ impl<S: TileSource> TileRenderer<S> {
         if !wanted.is_empty() {
             let mut scan_settings = settings.clone();
             scan_settings.only = Some(wanted.clone());
+            scan_settings.fill_enclosed_holes = self.settings.hybrid.fill_scan_holes;
             // The tiles need the k-buffer's pre-pass: the naive layers keep none.
             if scan_settings.strategy == Strategy::NaiveLayers {
                 scan_settings.strategy = Strategy::default();
@@ -195,6 +214,11 @@ impl<S: TileSource> TileRenderer<S> {
         camera: &VirtualCamera,
     ) -> Result<(image::RgbaImage, HybridStats), TileError> {
         let wanted = self.scans_wanted(scans, camera);
+        let drawn: BTreeSet<ScanId> = wanted
+            .iter()
+            .copied()
+            .filter(|id| renderer.has_scan(*id))
+            .collect();
         let image = match self.image.take() {
             Some(t) if (t.width, t.height) == (camera.width, camera.height) => t,
             _ => ImageTarget::new(&self.gpu, camera.width, camera.height)?,
@@ -207,9 +231,53 @@ impl<S: TileSource> TileRenderer<S> {
             &image.target(),
             image.depth_view(),
         );
-        let read = stats.and_then(|s| Ok((image.read(&self.gpu)?, s)));
+        let read = stats.and_then(|s| {
+            if s.scans.is_some() && renderer.scan_nearest().is_some() {
+                self.feed_back_coverage(image.depth_texture(), camera, scans, &drawn)?;
+            }
+            Ok((image.read(&self.gpu)?, s))
+        });
         self.image = Some(image);
         Ok(read?)
+    }
+
+    /// Reads back the tile depth of a hybrid frame just drawn (`depth`, made with
+    /// `COPY_SRC`) and records where the tiles still showed over ground whose scans
+    /// were asked for, with the `drawn` scans (from the model's `scans`) that did not
+    /// cover it: demand for the next [`Self::scans_wanted`] (`coverage.rs`). Only
+    /// once the scans have faded in fully (before, the tiles show over them by
+    /// design) and when the feedback is on. Returns the points recorded.
+    pub fn feed_back_coverage(
+        &mut self,
+        depth: &wgpu::Texture,
+        camera: &VirtualCamera,
+        scans: &[ModelScan],
+        drawn: &BTreeSet<ScanId>,
+    ) -> Result<usize, GpuError> {
+        let hybrid = self.settings.hybrid;
+        if !hybrid.enabled || hybrid.feedback_scans_per_tile == 0 || self.ramp.share() < 1.0 {
+            return Ok(0);
+        }
+        let shown: Vec<(TileId, texel_lod::TileInfo)> = self
+            .ramp
+            .shown()
+            .filter_map(|(id, _)| Some((id, self.index.tile(id)?)))
+            .collect();
+        if shown.is_empty() {
+            return Ok(0);
+        }
+        let size = depth.size();
+        let values = crate::gpu::read_depth_texture(&self.gpu.device, &self.gpu.queue, depth)?;
+        let samples = depth_samples(&values, size.width, size.height, hybrid.feedback_stride_px);
+        let holding = drawn_holding(scans, drawn, hybrid.margin_m);
+        Ok(self
+            .coverage
+            .record(&samples, camera, &shown, hybrid.feedback_cell_m, holding))
+    }
+
+    /// Demand points kept, and those given up (`coverage.rs`).
+    pub fn coverage_counts(&self) -> (usize, usize) {
+        self.coverage.counts()
     }
 }
 

@@ -13,6 +13,7 @@ pub struct ImageTarget {
     pub height: u32,
     colour: wgpu::Texture,
     colour_view: wgpu::TextureView,
+    depth: wgpu::Texture,
     depth_view: wgpu::TextureView,
 }
 
@@ -47,16 +48,18 @@ impl ImageTarget {
             IMAGE_FORMAT,
             wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
         );
+        // Read back for the coverage feedback (`coverage.rs`).
         let depth = texture(
             "tile depth",
             DEPTH_FORMAT,
-            wgpu::TextureUsages::RENDER_ATTACHMENT,
+            wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
         );
         Ok(Self {
             width,
             height,
             colour_view: colour.create_view(&Default::default()),
             depth_view: depth.create_view(&Default::default()),
+            depth,
             colour,
         })
     }
@@ -72,6 +75,10 @@ impl ImageTarget {
 
     pub fn depth_view(&self) -> &wgpu::TextureView {
         &self.depth_view
+    }
+
+    pub fn depth_texture(&self) -> &wgpu::Texture {
+        &self.depth
     }
 
     /// The colour texture as an image (waits for the GPU).
@@ -97,6 +104,7 @@ pub fn render_tiles_to_image(
             cuts: u32::MAX,
             scan_share: 0.0,
             surface_tolerance_m: 0.0,
+            scan_holes_filled: false,
         })
         .collect();
     let mut encoder = gpu

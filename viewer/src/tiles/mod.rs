@@ -6,10 +6,12 @@
 //! module per job: `source.rs` (where bytes come from), `loader.rs` (the decode
 //! thread), `cache.rs` (GPU tiles within a budget), `fade.rs` (the cross-fade),
 //! `pass.rs` (the pipeline), `hybrid.rs` (the scans below the tiles),
-//! `scan_choice.rs` (which scans those are),
+//! `scan_choice.rs` (which scans those are), `coverage.rs` (where a frame still
+//! showed a tile over its scans),
 //! `image_target.rs` (headless targets), `measure.rs` (popping figures).
 
 pub mod cache;
+pub mod coverage;
 pub mod fade;
 pub mod hybrid;
 pub mod image_target;
@@ -29,6 +31,7 @@ use texel_lod::select::in_frustum;
 use texel_lod::{SelectConfig, TileId, TileIndex, TileInfo, View, select};
 
 use self::cache::{Inserted, TileCache};
+use self::coverage::CoverageFeedback;
 use self::fade::{CrossFade, FadeFrame};
 use self::hybrid::{HybridSettings, ScanRamp};
 use self::image_target::ImageTarget;
@@ -180,6 +183,8 @@ pub struct TileRenderer<S: TileSource> {
     plan: FadeFrame,
     /// Finest tiles showing their scans, and how far faded in.
     ramp: ScanRamp,
+    /// Where earlier frames still showed a tile over its scans.
+    coverage: CoverageFeedback,
     refined: BTreeSet<TileId>,
     last_draw: Vec<TileId>,
     /// Requested from the source, bytes not arrived yet.
@@ -206,6 +211,7 @@ impl<S: TileSource> TileRenderer<S> {
             fade: CrossFade::new(),
             plan: FadeFrame::default(),
             ramp: ScanRamp::default(),
+            coverage: CoverageFeedback::default(),
             refined: BTreeSet::new(),
             last_draw: Vec::new(),
             awaiting: BTreeSet::new(),
@@ -273,6 +279,8 @@ impl<S: TileSource> TileRenderer<S> {
             BTreeSet::new()
         };
         self.ramp.update(&below_finest, now_s, self.settings.fade_s);
+        let shown: BTreeSet<TileId> = self.ramp.shown().map(|(id, _)| id).collect();
+        self.coverage.retain_tiles(&shown);
         // The top tiles stay resident too: without them selection has nothing to
         // start from and their ground would be empty until they load again.
         let roots = self.index.roots();
@@ -479,6 +487,7 @@ impl<S: TileSource> TileRenderer<S> {
                 Some(ShownTile {
                     info: self.index.tile(id)?,
                     samples_m: self.cache.get(id).map_or(&[], |t| &t.samples_m),
+                    demand: self.coverage.points(id),
                 })
             })
             .collect();
@@ -505,6 +514,8 @@ impl<S: TileSource> TileRenderer<S> {
                         .index
                         .tile(*id)
                         .map_or(0.0, |info| info.geometric_error_m.max(0.0) as f32),
+                    scan_holes_filled: self.settings.hybrid.enabled
+                        && self.settings.hybrid.fill_scan_holes,
                 })
             })
             .collect();

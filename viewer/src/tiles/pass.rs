@@ -81,6 +81,9 @@ pub struct TileDraw<'a> {
     pub scan_share: f32,
     /// Same-surface tolerance against the scans, metres (the tile's geometric error).
     pub surface_tolerance_m: f32,
+    /// The scan pass fills the holes its scans enclose
+    /// ([`crate::gpu::RenderSettings::fill_enclosed_holes`]): the tile gives way there.
+    pub scan_holes_filled: bool,
 }
 
 /// Where the tile pass draws: a colour target, its depth buffer (`DEPTH_FORMAT`, the
@@ -414,7 +417,7 @@ impl TilePass {
                     scans: Vec4::new(
                         d.scan_share.clamp(0.0, 1.0),
                         d.surface_tolerance_m.max(0.0),
-                        0.0,
+                        if d.scan_holes_filled { 1.0 } else { 0.0 },
                         0.0,
                     ),
                 };

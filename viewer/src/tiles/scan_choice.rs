@@ -4,7 +4,9 @@
 //! chosen greedily so that the few a tile may show cover as much of what the view
 //! sees of it as they can. Scans acquired a frame apart see nearly the same ground:
 //! ranking them at one point would spend every slot on such near-twins and leave the
-//! rest of the tile to the coarser tile mesh.
+//! rest of the tile to the coarser tile mesh. Then, from the frames already drawn,
+//! the points where the tile still showed (`coverage.rs`): each asks for a scan
+//! holding it that has not been drawn there in vain.
 
 use std::collections::BTreeSet;
 
@@ -14,6 +16,7 @@ use texel::Pose;
 use texel::model::{ModelScan, ScanId};
 use texel_lod::TileInfo;
 
+use super::coverage::DemandPoint;
 use super::hybrid::HybridSettings;
 use crate::camera::VirtualCamera;
 use crate::cull::{ScanBounds, Visibility, classify};
@@ -24,6 +27,8 @@ use crate::cull::{ScanBounds, Visibility, classify};
 pub struct ShownTile<'a> {
     pub info: TileInfo,
     pub samples_m: &'a [[f64; 3]],
+    /// Where earlier frames still showed the tile (`coverage.rs`).
+    pub demand: &'a [DemandPoint],
 }
 
 /// How reliable a scan acquired at `cop_m` is for a view from `eye_m` of a surface
@@ -128,7 +133,9 @@ fn drawn_from(scan: &ModelScan, camera: &VirtualCamera) -> bool {
 /// at most `settings.scans_per_tile` of the scans whose world bounds come within the
 /// margin of the tile's and that the scan renderer would draw from `camera` (not
 /// culled: `crate::cull`), first those [`choose_for_points`] picks at the tile's
-/// surface points in view, then the most reliable at its centre.
+/// surface points in view, then the most reliable at its centre; and beyond those,
+/// at most `settings.feedback_scans_per_tile` that [`choose_for_demand`] picks for
+/// the tile's demand points in view.
 pub fn scans_below(
     tiles: &[ShownTile<'_>],
     scans: &[ModelScan],
@@ -168,7 +175,13 @@ pub fn scans_below(
                 picked.push(id);
             }
         }
+        let demand = demand_in_view(tile.demand, camera, &view_from_world);
+        // Scans other tiles chose are drawn too: a point they hold is covered.
+        let mut drawn = picked.clone();
+        drawn.extend(chosen.iter().copied());
+        let extra = choose_for_demand(&reaching, &demand, &drawn, eye_m, settings);
         chosen.extend(picked);
+        chosen.extend(extra);
     }
     chosen
 }
@@ -181,18 +194,23 @@ fn points_in_view(
     camera: &VirtualCamera,
     view_from_world: &Pose,
 ) -> Vec<([f64; 3], f64)> {
-    let (w, h) = (f64::from(camera.width), f64::from(camera.height));
     samples_m
         .iter()
-        .filter_map(|p| {
-            let v = view_from_world * Point3::new(p[0], p[1], p[2]);
-            let [x, y] = camera.project_view(&v.coords)?;
-            let inside = (0.0..=w).contains(&x) && (0.0..=h).contains(&y);
-            // Guard: a point at the eye (weights stay finite, at most 100 per m²).
-            let weight = 1.0 / v.coords.norm_squared().max(0.01);
-            (inside && weight.is_finite()).then_some((*p, weight))
-        })
+        .filter_map(|p| Some((*p, weight_in_view(*p, camera, view_from_world)?)))
         .collect()
+}
+
+/// A point's weight when the camera sees it in its image (in front of it,
+/// projecting inside the frame): how many pixels the surface around it covers goes
+/// as the inverse square of its distance. `None` out of the image.
+fn weight_in_view(p: [f64; 3], camera: &VirtualCamera, view_from_world: &Pose) -> Option<f64> {
+    let (w, h) = (f64::from(camera.width), f64::from(camera.height));
+    let v = view_from_world * Point3::new(p[0], p[1], p[2]);
+    let [x, y] = camera.project_view(&v.coords)?;
+    let inside = (0.0..=w).contains(&x) && (0.0..=h).contains(&y);
+    // Guard: a point at the eye (weights stay finite, at most 100 per m²).
+    let weight = 1.0 / v.coords.norm_squared().max(0.01);
+    (inside && weight.is_finite()).then_some(weight)
 }
 
 /// The scans, at most `settings.scans_per_tile`, that blending would pick at the
@@ -210,35 +228,73 @@ fn choose_for_points(
     let margin = settings.margin_m.max(0.0);
     let per_point = settings.scans_per_point.max(1);
     // Step 1: per point, the most reliable scans holding it (index into candidates).
-    let tops: Vec<(f64, Vec<(usize, f64)>)> = points
+    let tops: Vec<PointTop> = points
         .iter()
-        .map(|(p, weight)| {
-            let mut top: Vec<(usize, f64)> = candidates
-                .iter()
-                .enumerate()
-                .filter(|(_, c)| c.holds(*p, margin))
-                .map(|(i, c)| (i, view_reliability(c.cop, eye_m, *p)))
-                .filter(|(_, r)| *r > 0.0)
-                .collect();
-            top.sort_by(|a, b| {
-                b.1.total_cmp(&a.1)
-                    .then(candidates[a.0].eye_d2.total_cmp(&candidates[b.0].eye_d2))
-                    .then(candidates[a.0].id.cmp(&candidates[b.0].id))
-            });
-            top.truncate(per_point);
-            (*weight, top)
+        .map(|(p, weight)| PointTop {
+            weight: *weight,
+            top: most_reliable(candidates, *p, eye_m, per_point, |c| c.holds(*p, margin)),
+            covered: 0,
         })
         .collect();
     // Step 2: greedy cover with diminishing gain per point.
-    let mut chosen = vec![false; candidates.len()];
-    let mut count_at = vec![0u32; tops.len()];
+    greedy_cover(
+        candidates,
+        tops,
+        vec![false; candidates.len()],
+        settings.scans_per_tile,
+    )
+}
+
+/// A point's most reliable scans (index into the candidates, reliability), its
+/// weight, and how many of them are chosen already.
+struct PointTop {
+    weight: f64,
+    top: Vec<(usize, f64)>,
+    covered: u32,
+}
+
+/// The `count` candidates `eligible` for a point that are most reliable for the view
+/// of it ([`view_reliability`] above 0; ties to the nearest acquisition, then the
+/// lower id), as (index, reliability).
+fn most_reliable(
+    candidates: &[&Candidate],
+    at_m: [f64; 3],
+    eye_m: [f64; 3],
+    count: usize,
+    eligible: impl Fn(&Candidate) -> bool,
+) -> Vec<(usize, f64)> {
+    let mut top: Vec<(usize, f64)> = candidates
+        .iter()
+        .enumerate()
+        .filter(|(_, c)| eligible(c))
+        .map(|(i, c)| (i, view_reliability(c.cop, eye_m, at_m)))
+        .filter(|(_, r)| *r > 0.0)
+        .collect();
+    top.sort_by(|a, b| {
+        b.1.total_cmp(&a.1)
+            .then(candidates[a.0].eye_d2.total_cmp(&candidates[b.0].eye_d2))
+            .then(candidates[a.0].id.cmp(&candidates[b.0].id))
+    });
+    top.truncate(count);
+    top
+}
+
+/// Greedy cover: at most `budget` candidates not `chosen` already, each time the one
+/// whose points gain most, a point's gain `weight · reliability / (1 + covered)`
+/// shrinking with every scan of its own chosen.
+fn greedy_cover(
+    candidates: &[&Candidate],
+    mut tops: Vec<PointTop>,
+    mut chosen: Vec<bool>,
+    budget: usize,
+) -> Vec<ScanId> {
     let mut out = Vec::new();
-    while out.len() < settings.scans_per_tile {
+    while out.len() < budget {
         let mut gain = vec![0.0f64; candidates.len()];
-        for ((weight, top), n) in tops.iter().zip(&count_at) {
-            for (i, r) in top {
+        for t in &tops {
+            for (i, r) in &t.top {
                 if !chosen[*i] {
-                    gain[*i] += weight * r / f64::from(1 + n);
+                    gain[*i] += t.weight * r / f64::from(1 + t.covered);
                 }
             }
         }
@@ -255,13 +311,91 @@ fn choose_for_points(
         };
         chosen[best] = true;
         out.push(candidates[best].id);
-        for ((_, top), n) in tops.iter().zip(count_at.iter_mut()) {
-            if top.iter().any(|(i, _)| *i == best) {
-                *n += 1;
+        for t in tops.iter_mut() {
+            if t.top.iter().any(|(i, _)| *i == best) {
+                t.covered += 1;
             }
         }
     }
     out
+}
+
+/// The demand points the camera sees in its image and that still ask for a scan
+/// (not given up), with their weights as [`points_in_view`] gives them.
+fn demand_in_view<'a>(
+    demand: &'a [DemandPoint],
+    camera: &VirtualCamera,
+    view_from_world: &Pose,
+) -> Vec<(&'a DemandPoint, f64)> {
+    demand
+        .iter()
+        .filter(|d| !d.exhausted())
+        .filter_map(|d| Some((d, weight_in_view(d.at_m, camera, view_from_world)?)))
+        .collect()
+}
+
+/// The scans, at most `settings.feedback_scans_per_tile` and none of `picked`, for
+/// points where earlier frames still showed the tile: per point the
+/// `settings.scans_per_point` most reliable scans holding it that it has not tried
+/// (a tried scan was drawn and did not cover it), then greedily as
+/// [`choose_for_points`], a point counting as covered already by each picked scan
+/// among them.
+fn choose_for_demand(
+    candidates: &[&Candidate],
+    demand: &[(&DemandPoint, f64)],
+    picked: &[ScanId],
+    eye_m: [f64; 3],
+    settings: &HybridSettings,
+) -> Vec<ScanId> {
+    let margin = settings.margin_m.max(0.0);
+    let per_point = settings.scans_per_point.max(1);
+    if settings.feedback_scans_per_tile == 0 || demand.is_empty() {
+        return Vec::new();
+    }
+    // Step 1: per point, the most reliable untried scans holding it, and how many of
+    // them are picked already.
+    let tops: Vec<PointTop> = demand
+        .iter()
+        .map(|(point, weight)| {
+            let top = most_reliable(candidates, point.at_m, eye_m, per_point, |c| {
+                !point.tried.contains(&c.id) && c.holds(point.at_m, margin)
+            });
+            let covered = top
+                .iter()
+                .filter(|(i, _)| picked.contains(&candidates[*i].id))
+                .count() as u32;
+            PointTop {
+                weight: *weight,
+                top,
+                covered,
+            }
+        })
+        .collect();
+    // Step 2: greedy cover with diminishing gain per point.
+    let chosen: Vec<bool> = candidates.iter().map(|c| picked.contains(&c.id)).collect();
+    greedy_cover(candidates, tops, chosen, settings.feedback_scans_per_tile)
+}
+
+/// Which of the `drawn` scans hold a point in their own-frame box (grown by
+/// `margin_m`): the scans a point showing the tile has tried in vain.
+pub fn drawn_holding(
+    scans: &[ModelScan],
+    drawn: &BTreeSet<ScanId>,
+    margin_m: f64,
+) -> impl Fn([f64; 3]) -> Vec<ScanId> + use<> {
+    let candidates: Vec<Candidate> = scans
+        .iter()
+        .filter(|s| drawn.contains(&s.id))
+        .filter_map(|s| Candidate::of(s, [0.0; 3]))
+        .collect();
+    let margin = margin_m.max(0.0);
+    move |p| {
+        candidates
+            .iter()
+            .filter(|c| c.holds(p, margin))
+            .map(|c| c.id)
+            .collect()
+    }
 }
 
 /// The `count` scans most reliable for the view of one point (ties to the nearest

@@ -18,6 +18,7 @@ use texel_viewer::camera::VirtualCamera;
 use texel_viewer::composite::Mode;
 use texel_viewer::gpu::{GpuContext, RenderSettings, Renderer, scan_gpu_bytes};
 use texel_viewer::residency::{DataState, Plan, PlanOptions, PlanScan, plan};
+use texel_viewer::tiles::hybrid::HybridStats;
 use texel_viewer::tiles::source::MemorySource;
 use texel_viewer::tiles::{TileFrameStats, TileRenderer, TileSettings, look_at};
 
@@ -160,32 +161,37 @@ pub fn hybrid_view(
     let scan_settings = scan_settings();
     let mut r = TileRenderer::new(gpu, source.clone(), settings)?;
     let (updates, mut now_s, settled) = settle(&mut r, camera, 0.0, 400);
-    let wanted = r.scans_wanted(&holder.model_scans, camera);
-    holder.set_only(Some(wanted));
-    let hold = holder.hold_for(camera);
-    holder.set_only(None);
-    let (plan, _) = hold?;
-    holder.renderer.release_targets();
-    // Warm-up, and the scans' fade (0.25 s by default) run out.
-    let warm_up = 2 + (settings.fade_s.max(0.0) / FRAME_S).ceil() as usize;
-    let mut draw = |now_s: f64| {
-        r.render_over_scans_to_image(
-            &mut holder.renderer,
+    // Warm-up, the scans' fade (0.25 s by default) run out, then the coverage
+    // feedback's rounds: before each frame the wanted scans are made resident, as
+    // the window does.
+    let warm_up = 2 + (settings.fade_s.max(0.0) / FRAME_S).ceil() as usize + FEEDBACK_ROUNDS;
+    let mut frame = None;
+    let mut plan = None;
+    for _ in 0..warm_up {
+        plan = Some(hold_wanted(&r, holder, camera)?);
+        frame = Some(draw_over_held(
+            &mut r,
+            holder,
             &scan_settings,
-            &holder.model_scans,
             camera,
             now_s,
-        )
-    };
-    let mut frame = None;
-    for _ in 0..warm_up {
-        frame = Some(draw(now_s)?);
+        )?);
         now_s += FRAME_S;
     }
+    let plan = match plan {
+        Some(p) => p,
+        None => hold_wanted(&r, holder, camera)?,
+    };
     let mut times = Vec::with_capacity(timed);
     for _ in 0..timed.max(1) {
         let started = Instant::now();
-        frame = Some(draw(now_s)?);
+        frame = Some(draw_over_held(
+            &mut r,
+            holder,
+            &scan_settings,
+            camera,
+            now_s,
+        )?);
         times.push(started.elapsed().as_secs_f64() * 1e3);
         now_s += FRAME_S;
     }
@@ -216,6 +222,42 @@ pub fn hybrid_view(
         },
         image,
     ))
+}
+
+/// Frames after the fade whose coverage feedback (`coverage.rs`) chooses more scans
+/// before a view is timed or scored: each records where the tiles still showed.
+pub const FEEDBACK_ROUNDS: usize = 4;
+
+/// One hybrid frame over the scans the holder holds.
+fn draw_over_held(
+    r: &mut TileRenderer<MemorySource>,
+    holder: &mut ScanHolder<'_>,
+    settings: &RenderSettings,
+    camera: &VirtualCamera,
+    now_s: f64,
+) -> Result<(image::RgbaImage, TileFrameStats, HybridStats)> {
+    Ok(r.render_over_scans_to_image(
+        &mut holder.renderer,
+        settings,
+        &holder.model_scans,
+        camera,
+        now_s,
+    )?)
+}
+
+/// Makes the scans the tiles want resident (the planner restricted to them).
+fn hold_wanted(
+    r: &TileRenderer<MemorySource>,
+    holder: &mut ScanHolder<'_>,
+    camera: &VirtualCamera,
+) -> Result<Plan> {
+    let wanted = r.scans_wanted(&holder.model_scans, camera);
+    holder.set_only(Some(wanted));
+    let hold = holder.hold_for(camera);
+    holder.set_only(None);
+    let (plan, _) = hold?;
+    holder.renderer.release_targets();
+    Ok(plan)
 }
 
 /// The placed scans as the viewer holds them: a scan renderer with the scans the

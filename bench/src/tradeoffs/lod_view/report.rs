@@ -27,7 +27,7 @@ pub(super) fn markdown(f: &Figures, args: &LodViewArgs) -> String {
     let v = &f.views;
     let _ = writeln!(
         s,
-        "`cargo run --release -p texel-bench -- tradeoffs lod-view{frames_arg}{seed_arg}` on {} (software Vulkan on the shared 2-core machine: absolute times are slow, compare ratios within the table). Street, the first {} frames of the walk at 30 Hz ({} scans, x {:.0} to {:.0} m), placed by their true poses and fused into the default tree ({} tiles in {} levels, built in {:.1} s; {:.1} MiB on the GPU were every tile resident, against {:.1} MiB for every scan). The viewer draws at {WIDTH}x{HEIGHT} three ways: LOD, the tiles (`TileRenderer` over a `MemorySource`, default selection, {} MiB budget, cache empty at each view and filled until the selection wants nothing) with, below the finest tiles the view still finds too coarse, their scans (at most 8 per tile, chosen to cover the tile's surface points in view, held by the residency planner restricted to them, drawn `blended` beneath the tiles, which give way on their surface); the tiles alone; or the scans only (the residency planner choosing the scans the view needs within the viewer's default {DEFAULT_BUDGET_MB} MiB, drawn `blended`, k 4). Close view: eye 1.7 m up at the walk's middle frame, looking 40 degrees off the street's axis at the facade {:.1} m away. Overview: from ({:.0}, {:.0}, {:.0}) m looking down at the walk's middle, the whole walked street in view. Frame time: median wall time of one frame rendered into an image and read back (the GPU waited for), after two warm-up frames. GPU bytes: the tiles or scans resident (meshes and textures); the scan renderer's size-dependent targets (k-buffer, depth) are listed apart.\n",
+        "`cargo run --release -p texel-bench -- tradeoffs lod-view{frames_arg}{seed_arg}` on {} (software Vulkan on the shared 2-core machine: absolute times are slow, compare ratios within the table). Street, the first {} frames of the walk at 30 Hz ({} scans, x {:.0} to {:.0} m), placed by their true poses and fused into the default tree ({} tiles in {} levels, built in {:.1} s; {:.1} MiB on the GPU were every tile resident, against {:.1} MiB for every scan). The viewer draws at {WIDTH}x{HEIGHT} three ways: LOD, the tiles (`TileRenderer` over a `MemorySource`, default selection, {} MiB budget, cache empty at each view and filled until the selection wants nothing) with, below the finest tiles the view still finds too coarse, their scans (at most 8 per tile chosen to cover the tile's surface points in view and 64 more for the points where earlier frames still showed the tile, held by the residency planner restricted to them, drawn `blended` beneath the tiles, which give way on their surface); the tiles alone; or the scans only (the residency planner choosing the scans the view needs within the viewer's default {DEFAULT_BUDGET_MB} MiB, drawn `blended`, k 4). Close view: eye 1.7 m up at the walk's middle frame, looking 40 degrees off the street's axis at the facade {:.1} m away. Overview: from ({:.0}, {:.0}, {:.0}) m looking down at the walk's middle, the whole walked street in view. Frame time: median wall time of one frame rendered into an image and read back (the GPU waited for), after two warm-up frames. GPU bytes: the tiles or scans resident (meshes and textures); the scan renderer's size-dependent targets (k-buffer, depth) are listed apart.\n",
         f.adapter,
         f.frames,
         f.scans,
@@ -134,13 +134,13 @@ pub(super) fn markdown(f: &Figures, args: &LodViewArgs) -> String {
     }
     let _ = writeln!(
         s,
-        "\nWhat the scans below the finest tiles cost and buy, per count of scans a finest tile may show (8 by default): the close view's frame time, scans drawn and GPU bytes (tiles and scans, as above), and the mean PSNR over the held-out poses of each kind, with its difference from the scans only on the same pixels.\n"
+        "\nWhat the scans below the finest tiles cost and buy, per count of scans a finest tile may show (8 by default) and of those its coverage feedback may add (64 by default: after the fade, each frame reads back where the tiles still showed and asks for scans holding those points; `viewer/src/tiles/coverage.rs`; the view is drawn 4 frames more before it is timed or scored): the close view's frame time, scans drawn and GPU bytes (tiles and scans, as above), and the mean PSNR over the held-out poses of each kind, with its difference from the scans only on the same pixels.\n"
     );
     let _ = writeln!(
         s,
-        "| scans per finest tile | close: frame ms | close: scans drawn | close: GPU MiB (data) | near: PSNR dB | near: LOD - scans dB | near: scans drawn, mean | far: PSNR dB | far: LOD - scans dB |"
+        "| scans per finest tile | more from feedback | close: frame ms | close: scans drawn | close: GPU MiB (data) | near: PSNR dB | near: LOD - scans dB | near: scans drawn, mean | far: PSNR dB | far: LOD - scans dB |"
     );
-    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|");
+    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|");
     for (k, close) in &f.close_sweep {
         let of = |kind: &str| -> (f64, f64, f64) {
             let rows: Vec<(f64, f64, usize)> = f
@@ -171,7 +171,9 @@ pub(super) fn markdown(f: &Figures, args: &LodViewArgs) -> String {
         let (far_db, far_d, _) = of("far");
         let _ = writeln!(
             s,
-            "| {k} | {:.1} | {} | {:.1} | {near_db:.2} | {near_d:+.2} | {near_drawn:.1} | {far_db:.2} | {far_d:+.2} |",
+            "| {} | {} | {:.1} | {} | {:.1} | {near_db:.2} | {near_d:+.2} | {near_drawn:.1} | {far_db:.2} | {far_d:+.2} |",
+            k.0,
+            k.1,
             close.frame_ms,
             close.scans_drawn,
             mib(close.data_bytes)

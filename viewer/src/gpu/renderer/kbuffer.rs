@@ -137,6 +137,10 @@ impl KBufferTargets {
                     binding: 1,
                     resource: kbuffer.as_entire_binding(),
                 },
+                wgpu::BindGroupEntry {
+                    binding: 2,
+                    resource: wgpu::BindingResource::TextureView(&nearest.view),
+                },
             ],
         });
         Self {

@@ -58,6 +58,11 @@ pub struct RenderSettings {
     /// Draw only these scans (`None`: every scan): the scans below the finest
     /// level-of-detail tiles in a hybrid frame.
     pub only: Option<BTreeSet<ScanId>>,
+    /// Fill a pixel no scan drew from its neighbours when at least 6 of its 8 hold
+    /// scans (`composite_kbuffer.wgsl`; the k-buffer composite only): in a hybrid
+    /// frame, a few chosen scans leave their dropouts and the gaps between their
+    /// triangles as holes that every scan together would have covered.
+    pub fill_enclosed_holes: bool,
 }
 
 impl Default for RenderSettings {
@@ -69,6 +74,7 @@ impl Default for RenderSettings {
             strategy: Strategy::default(),
             hidden: BTreeSet::new(),
             only: None,
+            fill_enclosed_holes: false,
         }
     }
 }
@@ -348,7 +354,11 @@ impl Renderer {
                 c.effective_threshold(),
                 gamma,
                 if target.format.is_srgb() { 1.0 } else { 0.0 },
-                0.0,
+                if settings.fill_enclosed_holes {
+                    1.0
+                } else {
+                    0.0
+                },
             ),
             counts: UVec4::new(
                 c.mode.code(),

@@ -34,6 +34,7 @@ fn tile(x0: f64, x1: f64) -> ShownTile<'static> {
             geometric_error_m: 0.05,
         },
         samples_m: &[],
+        demand: &[],
     }
 }
 
@@ -70,6 +71,7 @@ fn each_tile_gets_the_scans_reaching_it_most_reliable_for_the_view() {
             geometric_error_m: 0.05,
         },
         samples_m: &[],
+        demand: &[],
     };
     let mut behind = scan(40, 11.0);
     behind.world_from_scan = Pose::translation(11.0, 0.0, -40.0);
@@ -159,6 +161,7 @@ fn the_points_seen_by_no_chosen_scan_draw_the_next_choice() {
     let with_points = ShownTile {
         info,
         samples_m: &samples,
+        demand: &[],
     };
     let got = scans_below(&[with_points], &scans, &camera(5.0), &settings);
     assert_eq!(got.len(), 3, "{got:?}");
@@ -170,6 +173,7 @@ fn the_points_seen_by_no_chosen_scan_draw_the_next_choice() {
     let at_centre = ShownTile {
         info,
         samples_m: &[],
+        demand: &[],
     };
     let got = scans_below(&[at_centre], &scans, &camera(5.0), &settings);
     assert_eq!(got.len(), 3);
@@ -195,6 +199,7 @@ fn points_out_of_view_do_not_count() {
     let shown = |samples_m| ShownTile {
         info: tile(0.0, 10.0).info,
         samples_m,
+        demand: &[],
     };
     let cam = camera(0.0);
     let without = scans_below(&[shown(&[])], &scans, &cam, &settings);
@@ -215,4 +220,83 @@ fn points_out_of_view_do_not_count() {
         scans_below(&[shown(&odd)], &scans, &cam, &settings),
         without
     );
+}
+
+#[test]
+fn demand_points_bring_in_an_untried_scan_holding_them_beyond_the_tile_s_slots() {
+    use crate::tiles::coverage::{DemandPoint, MAX_TRIED};
+    // Scans at x = 0..19, each 2 m wide; the camera at x = 0 ranks the near ones
+    // first, so the tile's two slots go to scans far from x = 15.5.
+    let scans: Vec<ModelScan> = (0..20u32)
+        .map(|i| scan(u64::from(i), f64::from(i)))
+        .collect();
+    let settings = HybridSettings {
+        scans_per_tile: 2,
+        feedback_scans_per_tile: 1,
+        margin_m: 0.0,
+        ..HybridSettings::default()
+    };
+    let cam = camera(0.0);
+    let base = scans_below(&[tile(0.0, 20.0)], &scans, &cam, &settings);
+    assert_eq!(base.len(), 2);
+    assert!(!base.contains(&15) && !base.contains(&16), "{base:?}");
+    let point = |tried: Vec<u64>| DemandPoint {
+        at_m: [15.5, 0.0, 3.0],
+        tried,
+        seen: 1,
+    };
+    let with = |demand: &[DemandPoint]| {
+        let shown = ShownTile {
+            info: tile(0.0, 20.0).info,
+            samples_m: &[],
+            demand,
+        };
+        scans_below(&[shown], &scans, &cam, &settings)
+    };
+    // Scans 15 and 16 hold the point; one more slot brings the more reliable in.
+    let got = with(&[point(vec![])]);
+    assert_eq!(got.len(), 3, "{got:?}");
+    let extra: Vec<u64> = got.difference(&base).copied().collect();
+    assert!(extra == vec![15] || extra == vec![16], "{extra:?}");
+    // That one drawn in vain: the other.
+    let other = if extra == vec![15] { 16 } else { 15 };
+    let got = with(&[point(extra.clone())]);
+    assert_eq!(
+        got.difference(&base).copied().collect::<Vec<_>>(),
+        vec![other]
+    );
+    // Both tried, or the point given up: nothing more.
+    assert_eq!(with(&[point(vec![15, 16])]), base);
+    assert_eq!(
+        with(&[point((100..100 + MAX_TRIED as u64).collect())]),
+        base
+    );
+    // Out of view, or the feedback off: nothing more.
+    let mut behind = point(vec![]);
+    behind.at_m[2] = -40.0;
+    assert_eq!(with(&[behind]), base);
+    let off = HybridSettings {
+        feedback_scans_per_tile: 0,
+        ..settings
+    };
+    let shown = ShownTile {
+        info: tile(0.0, 20.0).info,
+        samples_m: &[],
+        demand: &[point(vec![])],
+    };
+    assert_eq!(scans_below(&[shown], &scans, &cam, &off), base);
+}
+
+#[test]
+fn drawn_holding_lists_the_drawn_scans_whose_box_holds_a_point() {
+    let scans: Vec<ModelScan> = (0..5u32)
+        .map(|i| scan(u64::from(i), 2.0 * f64::from(i)))
+        .collect();
+    let holding = drawn_holding(&scans, &BTreeSet::from([1u64, 2, 3]), 0.0);
+    // x = 3.5 lies in scan 2's box only (x 3..5); scan 1 (1..3) ends before it.
+    assert_eq!(holding([3.5, 0.0, 3.0]), vec![2]);
+    // x = 1.5 lies in scans 0 and 1; 0 was not drawn.
+    assert_eq!(holding([1.5, 0.0, 3.0]), vec![1]);
+    assert!(holding([1.5, 0.0, 9.0]).is_empty());
+    assert!(holding([f64::NAN, 0.0, 3.0]).is_empty());
 }
