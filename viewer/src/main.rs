@@ -474,7 +474,7 @@ fn render_vdtm(
 /// view drawn from the tiles it selects (every wanted tile loaded first, no fade).
 /// Frames `render` draws of a level-of-detail view before the one it writes, each
 /// choosing more scans where the tiles still showed.
-const COVERAGE_FEEDBACK_FRAMES: usize = 4;
+const COVERAGE_FEEDBACK_FRAMES: usize = 10;
 
 fn render_lod(
     gpu: &GpuContext,

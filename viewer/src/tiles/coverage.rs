@@ -22,9 +22,12 @@ use texel_lod::{TileId, TileInfo};
 use crate::camera::VirtualCamera;
 
 /// A scan drawn while a point still showed the tile did not cover it; after this
-/// many such scans the point is given up (no scan sees it, or the tile lies in
-/// front of what they saw), which bounds what a point keeps.
-pub const MAX_TRIED: usize = 32;
+/// many such scans the point is given up (no scan sees it, or the tile lies in front
+/// of what they saw), which bounds what a point keeps. Generous on purpose: a
+/// scan's box holds far more than it saw, so dozens of drawn scans may hold a point
+/// none of them covers, and giving up after a few dozen left grazing strips that
+/// only scans taken right beside them saw to the tile.
+pub const MAX_TRIED: usize = 256;
 
 /// Demand points a tile keeps; the oldest go first.
 pub const MAX_POINTS_PER_TILE: usize = 2048;

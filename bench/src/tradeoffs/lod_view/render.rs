@@ -226,7 +226,7 @@ pub fn hybrid_view(
 
 /// Frames after the fade whose coverage feedback (`coverage.rs`) chooses more scans
 /// before a view is timed or scored: each records where the tiles still showed.
-pub const FEEDBACK_ROUNDS: usize = 4;
+pub const FEEDBACK_ROUNDS: usize = 10;
 
 /// One hybrid frame over the scans the holder holds.
 fn draw_over_held(

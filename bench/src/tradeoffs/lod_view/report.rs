@@ -134,7 +134,7 @@ pub(super) fn markdown(f: &Figures, args: &LodViewArgs) -> String {
     }
     let _ = writeln!(
         s,
-        "\nWhat the scans below the finest tiles cost and buy, per count of scans a finest tile may show (8 by default) and of those its coverage feedback may add (64 by default: after the fade, each frame reads back where the tiles still showed and asks for scans holding those points; `viewer/src/tiles/coverage.rs`; the view is drawn 4 frames more before it is timed or scored): the close view's frame time, scans drawn and GPU bytes (tiles and scans, as above), and the mean PSNR over the held-out poses of each kind, with its difference from the scans only on the same pixels.\n"
+        "\nWhat the scans below the finest tiles cost and buy, per count of scans a finest tile may show (8 by default) and of those its coverage feedback may add (64 by default: after the fade, each frame reads back where the tiles still showed and asks for scans holding those points; `viewer/src/tiles/coverage.rs`; the view is drawn 10 frames more before it is timed or scored): the close view's frame time, scans drawn and GPU bytes (tiles and scans, as above), and the mean PSNR over the held-out poses of each kind, with its difference from the scans only on the same pixels.\n"
     );
     let _ = writeln!(
         s,
