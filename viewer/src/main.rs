@@ -546,6 +546,7 @@ fn render_lod(
         let Some(((image, stats, hybrid), resident)) = frame else {
             anyhow::bail!("no frame drawn");
         };
+        let (demand, given_up) = tiles.coverage_counts();
         image
             .save(out)
             .with_context(|| format!("writing {}", out.display()))?;
@@ -558,8 +559,8 @@ fn render_lod(
             stats.resident_bytes,
             stats.tiles_with_scans,
             hybrid.scans.map_or(0, |s| s.drawn),
-            tiles.coverage_counts().0,
-            tiles.coverage_counts().1,
+            demand,
+            given_up,
             resident.describe()
         );
     }

@@ -9,7 +9,6 @@ mod controls;
 mod state;
 mod ui;
 
-use std::collections::BTreeSet;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::mpsc::{Receiver, SyncSender};
@@ -32,7 +31,6 @@ use crate::live::{SourceCommand, ViewerEvent};
 use crate::tiles::net::NetTileSource;
 use crate::tiles::pass::PassTarget;
 use crate::tiles::{TileRenderer, TileSettings};
-use texel::model::ScanId;
 
 pub struct AppOptions {
     pub title: String,
@@ -320,18 +318,15 @@ impl App {
                     let due = w
                         .last_feedback
                         .is_none_or(|t| now.duration_since(t) >= FEEDBACK_EVERY);
-                    if due && hybrid.scans.is_some() && w.renderer.scan_nearest().is_some() {
+                    if due {
                         w.last_feedback = Some(now);
-                        let drawn: BTreeSet<ScanId> = wanted
-                            .iter()
-                            .copied()
-                            .filter(|id| w.renderer.has_scan(*id))
-                            .collect();
                         tiles.feed_back_coverage(
+                            &w.renderer,
+                            &hybrid,
+                            &wanted,
                             depth.texture(),
                             &camera,
                             self.viewer.model.scans(),
-                            &drawn,
                         )?;
                     }
                 }

@@ -38,6 +38,16 @@ fn encloses(here: f32, neighbour: f32, neighbour_sigma: f32) -> bool {
     return !(here <= neighbour + tolerance);
 }
 
+// The k-th (0 to 7, row by row) of a pixel's 8 neighbours in a `size` image, or
+// (-1, -1) where it falls outside.
+fn neighbour(at: vec2<u32>, k: u32, size: vec2<u32>) -> vec2<i32> {
+    // Index in the 3 x 3 block around the pixel, skipping its centre (4).
+    let d = k + select(0u, 1u, k >= 4u);
+    let q = vec2<i32>(at) + vec2<i32>(i32(d % 3u) - 1, i32(d / 3u) - 1);
+    let inside = q.x >= 0 && q.y >= 0 && u32(q.x) < size.x && u32(q.y) < size.y;
+    return select(vec2<i32>(-1), q, inside);
+}
+
 // One fragment of one scan at one pixel.
 struct Frag {
     colour: vec3<f32>,

@@ -38,20 +38,18 @@ fn fs_composite(in: FullscreenOut) -> @location(0) vec4<f32> {
         let here = bitcast<f32>(textureLoad(scan_nearest, xy, 0).x);
         var sum = vec3<f32>(0.0);
         var n = 0u;
-        for (var dy = -1; dy <= 1; dy = dy + 1) {
-            for (var dx = -1; dx <= 1; dx = dx + 1) {
-                let q = vec2<i32>(xy) + vec2<i32>(dx, dy);
-                let inside = q.x >= 0 && q.y >= 0 && u32(q.x) < size.x && u32(q.y) < size.y;
-                if (dx != 0 || dy != 0) && inside {
-                    let near = textureLoad(scan_nearest, vec2<u32>(q), 0).xy;
-                    if encloses(here, bitcast<f32>(near.x), bitcast<f32>(near.y)) {
-                        var entries: array<Ranked, MAX_K>;
-                        let c = gather(vec2<u32>(q), &entries);
-                        if c > 0u {
-                            sum = sum + shade(&entries, c);
-                            n = n + 1u;
-                        }
-                    }
+        for (var k = 0u; k < 8u; k = k + 1u) {
+            let q = neighbour(xy, k, size);
+            if q.x < 0 {
+                continue;
+            }
+            let near = textureLoad(scan_nearest, vec2<u32>(q), 0).xy;
+            if encloses(here, bitcast<f32>(near.x), bitcast<f32>(near.y)) {
+                var entries: array<Ranked, MAX_K>;
+                let c = gather(vec2<u32>(q), &entries);
+                if c > 0u {
+                    sum = sum + shade(&entries, c);
+                    n = n + 1u;
                 }
             }
         }

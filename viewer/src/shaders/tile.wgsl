@@ -117,21 +117,19 @@ fn in_filled_hole(at: vec2<u32>, size: vec2<u32>, tile_distance: f32, slant: f32
     let here = bitcast<f32>(textureLoad(scan_nearest, at, 0).x);
     var enclosing = 0u;
     var under = 0u;
-    for (var dy = -1; dy <= 1; dy = dy + 1) {
-        for (var dx = -1; dx <= 1; dx = dx + 1) {
-            let q = vec2<i32>(at) + vec2<i32>(dx, dy);
-            let inside = q.x >= 0 && q.y >= 0 && u32(q.x) < size.x && u32(q.y) < size.y;
-            if (dx != 0 || dy != 0) && inside {
-                let near = textureLoad(scan_nearest, vec2<u32>(q), 0).xy;
-                let d = bitcast<f32>(near.x);
-                let sigma = bitcast<f32>(near.y);
-                if encloses(here, d, sigma) {
-                    enclosing = enclosing + 1u;
-                    let tolerance = max(tile.scans.y * slant, 3.0 * sigma);
-                    if tile_distance >= d - tolerance {
-                        under = under + 1u;
-                    }
-                }
+    for (var k = 0u; k < 8u; k = k + 1u) {
+        let q = neighbour(at, k, size);
+        if q.x < 0 {
+            continue;
+        }
+        let near = textureLoad(scan_nearest, vec2<u32>(q), 0).xy;
+        let d = bitcast<f32>(near.x);
+        let sigma = bitcast<f32>(near.y);
+        if encloses(here, d, sigma) {
+            enclosing = enclosing + 1u;
+            let tolerance = max(tile.scans.y * slant, 3.0 * sigma);
+            if tile_distance >= d - tolerance {
+                under = under + 1u;
             }
         }
     }

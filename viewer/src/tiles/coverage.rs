@@ -57,12 +57,13 @@ pub struct CoverageFeedback {
     round: u64,
 }
 
+/// One tile's demand: one point per cell of the grid of `cell_m`, in cell order
+/// (`keys[i]` is `points[i]`'s cell), so [`CoverageFeedback::points`] lends them as
+/// they are kept.
 #[derive(Debug, Clone, Default)]
 struct TileDemand {
-    /// Keyed by the point's cell on a grid of `cell_m`: one point per cell.
-    points: BTreeMap<[i64; 3], DemandPoint>,
-    /// The same points in the order kept, for [`CoverageFeedback::points`].
-    list: Vec<DemandPoint>,
+    keys: Vec<[i64; 3]>,
+    points: Vec<DemandPoint>,
 }
 
 /// A pixel of the tile pass's depth: where a tile drew, reverse z (`near / z`).
@@ -81,16 +82,16 @@ impl CoverageFeedback {
 
     /// The demand points of a tile (empty when it has none).
     pub fn points(&self, id: TileId) -> &[DemandPoint] {
-        self.tiles.get(&id).map_or(&[], |t| &t.list)
+        self.tiles.get(&id).map_or(&[], |t| &t.points)
     }
 
     /// Demand points over all tiles, and those given up.
     pub fn counts(&self) -> (usize, usize) {
-        let all = self.tiles.values().map(|t| t.list.len()).sum();
+        let all = self.tiles.values().map(|t| t.points.len()).sum();
         let exhausted = self
             .tiles
             .values()
-            .flat_map(|t| &t.list)
+            .flat_map(|t| &t.points)
             .filter(|p| p.exhausted())
             .count();
         (all, exhausted)
@@ -126,12 +127,7 @@ impl CoverageFeedback {
                 continue;
             };
             let key = at_m.map(|c| (c / cell_m).floor() as i64);
-            let tile = self.tiles.entry(*id).or_default();
-            let point = tile.points.entry(key).or_insert_with(|| DemandPoint {
-                at_m,
-                tried: Vec::new(),
-                seen: 0,
-            });
+            let point = self.tiles.entry(*id).or_default().point_at(key, at_m);
             point.seen = self.round;
             for scan in holding(point.at_m) {
                 if point.tried.len() < MAX_TRIED && !point.tried.contains(&scan) {
@@ -148,19 +144,45 @@ impl CoverageFeedback {
 }
 
 impl TileDemand {
-    /// Keeps at most `MAX_POINTS_PER_TILE` points (the most recently seen) and
-    /// refreshes the list.
-    fn trim(&mut self) {
-        if self.points.len() > MAX_POINTS_PER_TILE {
-            let mut order: Vec<([i64; 3], u64)> =
-                self.points.iter().map(|(k, p)| (*k, p.seen)).collect();
-            // Latest seen first; ties in key order, so the cut is deterministic.
-            order.sort_unstable_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
-            for (key, _) in &order[MAX_POINTS_PER_TILE..] {
-                self.points.remove(key);
+    /// The point of cell `key`, made at `at_m` when the cell has none yet.
+    fn point_at(&mut self, key: [i64; 3], at_m: [f64; 3]) -> &mut DemandPoint {
+        let i = match self.keys.binary_search(&key) {
+            Ok(i) => i,
+            Err(i) => {
+                self.keys.insert(i, key);
+                let point = DemandPoint {
+                    at_m,
+                    tried: Vec::new(),
+                    seen: 0,
+                };
+                self.points.insert(i, point);
+                i
             }
+        };
+        &mut self.points[i]
+    }
+
+    /// Keeps at most `MAX_POINTS_PER_TILE` points: the most recently seen, ties in
+    /// cell order, so the cut is deterministic.
+    fn trim(&mut self) {
+        if self.points.len() <= MAX_POINTS_PER_TILE {
+            return;
         }
-        self.list = self.points.values().cloned().collect();
+        let mut order: Vec<usize> = (0..self.points.len()).collect();
+        order.sort_unstable_by(|a, b| {
+            self.points[*b]
+                .seen
+                .cmp(&self.points[*a].seen)
+                .then(self.keys[*a].cmp(&self.keys[*b]))
+        });
+        let mut keep = vec![false; self.points.len()];
+        for i in &order[..MAX_POINTS_PER_TILE] {
+            keep[*i] = true;
+        }
+        let mut k = keep.iter();
+        self.keys.retain(|_| k.next().copied().unwrap_or(false));
+        let mut k = keep.iter();
+        self.points.retain(|_| k.next().copied().unwrap_or(false));
     }
 }
 

@@ -214,11 +214,6 @@ impl<S: TileSource> TileRenderer<S> {
         camera: &VirtualCamera,
     ) -> Result<(image::RgbaImage, HybridStats), TileError> {
         let wanted = self.scans_wanted(scans, camera);
-        let drawn: BTreeSet<ScanId> = wanted
-            .iter()
-            .copied()
-            .filter(|id| renderer.has_scan(*id))
-            .collect();
         let image = match self.image.take() {
             Some(t) if (t.width, t.height) == (camera.width, camera.height) => t,
             _ => ImageTarget::new(&self.gpu, camera.width, camera.height)?,
@@ -232,30 +227,38 @@ impl<S: TileSource> TileRenderer<S> {
             image.depth_view(),
         );
         let read = stats.and_then(|s| {
-            if s.scans.is_some() && renderer.scan_nearest().is_some() {
-                self.feed_back_coverage(image.depth_texture(), camera, scans, &drawn)?;
-            }
+            let depth = image.depth_texture();
+            self.feed_back_coverage(renderer, &s, &wanted, depth, camera, scans)?;
             Ok((image.read(&self.gpu)?, s))
         });
         self.image = Some(image);
         Ok(read?)
     }
 
-    /// Reads back the tile depth of a hybrid frame just drawn (`depth`, made with
-    /// `COPY_SRC`) and records where the tiles still showed over ground whose scans
-    /// were asked for, with the `drawn` scans (from the model's `scans`) that did not
-    /// cover it: demand for the next [`Self::scans_wanted`] (`coverage.rs`). Only
-    /// once the scans have faded in fully (before, the tiles show over them by
-    /// design) and when the feedback is on. Returns the points recorded.
+    /// Reads back the tile depth of a hybrid frame just drawn (`frame`, over the
+    /// `wanted` scans; `depth` made with `COPY_SRC`) and records where the tiles
+    /// still showed over ground whose scans were asked for, with the wanted scans
+    /// `renderer` holds (from the model's `scans`) that did not cover it: demand for
+    /// the next [`Self::scans_wanted`] (`coverage.rs`). Only when scans were drawn
+    /// beneath with their nearest distances, once they have faded in fully (before,
+    /// the tiles show over them by design), and when the feedback is on. Returns the
+    /// points recorded.
     pub fn feed_back_coverage(
         &mut self,
+        renderer: &Renderer,
+        frame: &HybridStats,
+        wanted: &BTreeSet<ScanId>,
         depth: &wgpu::Texture,
         camera: &VirtualCamera,
         scans: &[ModelScan],
-        drawn: &BTreeSet<ScanId>,
     ) -> Result<usize, GpuError> {
         let hybrid = self.settings.hybrid;
-        if !hybrid.enabled || hybrid.feedback_scans_per_tile == 0 || self.ramp.share() < 1.0 {
+        let scans_beneath = frame.scans.is_some() && renderer.scan_nearest().is_some();
+        if !scans_beneath
+            || !hybrid.enabled
+            || hybrid.feedback_scans_per_tile == 0
+            || self.ramp.share() < 1.0
+        {
             return Ok(0);
         }
         let shown: Vec<(TileId, texel_lod::TileInfo)> = self
@@ -269,7 +272,12 @@ impl<S: TileSource> TileRenderer<S> {
         let size = depth.size();
         let values = crate::gpu::read_depth_texture(&self.gpu.device, &self.gpu.queue, depth)?;
         let samples = depth_samples(&values, size.width, size.height, hybrid.feedback_stride_px);
-        let holding = drawn_holding(scans, drawn, hybrid.margin_m);
+        let drawn: BTreeSet<ScanId> = wanted
+            .iter()
+            .copied()
+            .filter(|id| renderer.has_scan(*id))
+            .collect();
+        let holding = drawn_holding(scans, &drawn, hybrid.margin_m);
         Ok(self
             .coverage
             .record(&samples, camera, &shown, hybrid.feedback_cell_m, holding))

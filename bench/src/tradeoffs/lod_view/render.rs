@@ -18,7 +18,6 @@ use texel_viewer::camera::VirtualCamera;
 use texel_viewer::composite::Mode;
 use texel_viewer::gpu::{GpuContext, RenderSettings, Renderer, scan_gpu_bytes};
 use texel_viewer::residency::{DataState, Plan, PlanOptions, PlanScan, plan};
-use texel_viewer::tiles::hybrid::HybridStats;
 use texel_viewer::tiles::source::MemorySource;
 use texel_viewer::tiles::{TileFrameStats, TileRenderer, TileSettings, look_at};
 
@@ -167,34 +166,27 @@ pub fn hybrid_view(
     let warm_up = 2 + (settings.fade_s.max(0.0) / FRAME_S).ceil() as usize + FEEDBACK_ROUNDS;
     let mut frame = None;
     let mut plan = None;
-    for _ in 0..warm_up {
-        plan = Some(hold_wanted(&r, holder, camera)?);
-        frame = Some(draw_over_held(
-            &mut r,
-            holder,
-            &scan_settings,
-            camera,
-            now_s,
-        )?);
-        now_s += FRAME_S;
-    }
-    let plan = match plan {
-        Some(p) => p,
-        None => hold_wanted(&r, holder, camera)?,
-    };
     let mut times = Vec::with_capacity(timed);
-    for _ in 0..timed.max(1) {
+    for i in 0..warm_up + timed.max(1) {
+        // Timed frames draw what the warm-up made resident, as a steady view does.
+        let is_timed = i >= warm_up;
+        if !is_timed {
+            plan = Some(hold_wanted(&r, holder, camera)?);
+        }
         let started = Instant::now();
-        frame = Some(draw_over_held(
-            &mut r,
-            holder,
+        frame = Some(r.render_over_scans_to_image(
+            &mut holder.renderer,
             &scan_settings,
+            &holder.model_scans,
             camera,
             now_s,
         )?);
-        times.push(started.elapsed().as_secs_f64() * 1e3);
+        if is_timed {
+            times.push(started.elapsed().as_secs_f64() * 1e3);
+        }
         now_s += FRAME_S;
     }
+    let plan = plan.context("no warm-up frame")?;
     let errors = r.take_errors();
     anyhow::ensure!(errors.is_empty(), "tile loads failed: {errors:?}");
     let (image, stats, hybrid) = frame.context("no frame drawn")?;
@@ -227,23 +219,6 @@ pub fn hybrid_view(
 /// Frames after the fade whose coverage feedback (`coverage.rs`) chooses more scans
 /// before a view is timed or scored: each records where the tiles still showed.
 pub const FEEDBACK_ROUNDS: usize = 10;
-
-/// One hybrid frame over the scans the holder holds.
-fn draw_over_held(
-    r: &mut TileRenderer<MemorySource>,
-    holder: &mut ScanHolder<'_>,
-    settings: &RenderSettings,
-    camera: &VirtualCamera,
-    now_s: f64,
-) -> Result<(image::RgbaImage, TileFrameStats, HybridStats)> {
-    Ok(r.render_over_scans_to_image(
-        &mut holder.renderer,
-        settings,
-        &holder.model_scans,
-        camera,
-        now_s,
-    )?)
-}
 
 /// Makes the scans the tiles want resident (the planner restricted to them).
 fn hold_wanted(
