@@ -403,3 +403,55 @@ fn holes_the_drawn_scans_enclose_are_filled_from_them_and_the_tiles_give_way() {
         }
     }
 }
+
+#[test]
+fn at_a_silhouette_the_scans_edge_shows_not_the_tiles_coarser_one() {
+    // A box in front of a wall, every scan drawn: the tiles' box, rounded outward by
+    // its voxels, reaches past the scans' edge and lies in front of the wall they
+    // show there. The scans show the box right beside such a pixel, so the tile
+    // gives way to them; an occluder the scans lack still covers them (the test
+    // above with the plane in front).
+    let model = scenes::model_of(
+        &scenes::box_scene(),
+        &scenes::test_sensor(),
+        &scenes::box_scene_poses(),
+        &texel::Pose::identity(),
+    );
+    let h = corridor_tiles(&model);
+    let cam = camera([1.2, -0.6, -0.4], [0.0, 0.0, 5.0]);
+    let f = frames_with(&model, &h, &cam, tile_settings(true, 1.5), 2);
+    assert!(
+        f.scans_drawn == model.scans().len(),
+        "{} scans drawn",
+        f.scans_drawn
+    );
+    let scans = &f.scans;
+    // Where the scans alone drew, within 2 pixels of the box's outline in their
+    // image: the box is red or yellow, the wall white or blue.
+    let boxy = |p: &image::Rgba<u8>| p[0] > 200 && p[2] < 120;
+    let near_outline = |x: u32, y: u32| {
+        let here = boxy(scans.get_pixel(x, y));
+        (x.saturating_sub(2)..(x + 3).min(WIDTH)).any(|u| {
+            (y.saturating_sub(2)..(y + 3).min(HEIGHT))
+                .any(|v| drawn(scans.get_pixel(u, v)) && boxy(scans.get_pixel(u, v)) != here)
+        })
+    };
+    let (outline, n) = agreement(
+        &f.hybrid,
+        scans,
+        &|x, y| drawn(scans.get_pixel(x, y)) && near_outline(x, y),
+        8,
+    );
+    let (elsewhere, m) = agreement(
+        &f.hybrid,
+        scans,
+        &|x, y| drawn(scans.get_pixel(x, y)) && !near_outline(x, y),
+        8,
+    );
+    eprintln!(
+        "the hybrid matches the scans at {outline:.4} of {n} pixels by the box's outline, {elsewhere:.4} of {m} elsewhere"
+    );
+    assert!(n > 300 && m > 10_000, "{n} outline and {m} other pixels");
+    assert!(elsewhere > 0.99, "away from the outline {elsewhere:.4}");
+    assert!(outline > 0.97, "by the box's outline {outline:.4}");
+}

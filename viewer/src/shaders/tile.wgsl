@@ -140,7 +140,8 @@ fn in_filled_hole(at: vec2<u32>, size: vec2<u32>, tile_distance: f32, slant: f32
 // front of it, or on the same surface (within the tile's tolerance across the surface,
 // `slant` times that along the ray, or 3 sigma of their range noise) in the share of
 // pixels the tile gives way (a screen door, decorrelated from the cut's by an offset).
-// A tile in front of the scans covers them.
+// A tile in front of the scans covers them, except at the edge of a surface the
+// scans show beside the pixel (`scans_show_beside`).
 fn gives_way_to_scans(pixel: vec2<u32>, tile_distance: f32, slant: f32) -> bool {
     let size = textureDimensions(scan_nearest);
     let at = min(pixel, max(size, vec2<u32>(1u)) - vec2<u32>(1u));
@@ -159,6 +160,39 @@ fn gives_way_to_scans(pixel: vec2<u32>, tile_distance: f32, slant: f32) -> bool 
     if tile_distance > scan_distance + tolerance {
         return true;
     }
-    return tile_distance >= scan_distance - tolerance
-        && bayer8(pixel + vec2<u32>(4u, 2u)) < tile.scans.x;
+    let screen_door = bayer8(pixel + vec2<u32>(4u, 2u)) < tile.scans.x;
+    if tile_distance >= scan_distance - tolerance {
+        return screen_door;
+    }
+    // The tile in front of the scans: an occluder they lack covers them, but the
+    // tile's own surface, where the scans show it beside this pixel, is only its
+    // coarser edge reaching past theirs (a voxel rounds a corner outward).
+    return screen_door && scans_show_beside(at, size, tile_distance, slant);
+}
+
+// Neighbours (of 8) whose scans must show the tile's surface for a tile in front of
+// the scans to be taken for that surface's edge: a straight edge leaves at least 2
+// on the surface's side; one could be a stray fragment.
+const EDGE_MIN_NEIGHBOURS: u32 = 2u;
+
+// Whether at least EDGE_MIN_NEIGHBOURS of the pixel's neighbours hold a scan surface
+// at the tile's distance (within the same tolerance as the same-surface test).
+fn scans_show_beside(at: vec2<u32>, size: vec2<u32>, tile_distance: f32, slant: f32) -> bool {
+    var on_surface = 0u;
+    for (var k = 0u; k < 8u; k = k + 1u) {
+        let q = neighbour(at, k, size);
+        if q.x < 0 {
+            continue;
+        }
+        let near = textureLoad(scan_nearest, vec2<u32>(q), 0).xy;
+        let d = bitcast<f32>(near.x);
+        if !(d < 3.0e38) {
+            continue;
+        }
+        let tolerance = max(tile.scans.y * slant, 3.0 * bitcast<f32>(near.y));
+        if abs(tile_distance - d) <= tolerance {
+            on_surface = on_surface + 1u;
+        }
+    }
+    return on_surface >= EDGE_MIN_NEIGHBOURS;
 }
