@@ -85,6 +85,11 @@ impl CoverageFeedback {
         self.tiles.get(&id).map_or(&[], |t| &t.points)
     }
 
+    /// Feedback rounds recorded so far (the next round's number).
+    pub fn round(&self) -> u64 {
+        self.round
+    }
+
     /// Demand points over all tiles, and those given up.
     pub fn counts(&self) -> (usize, usize) {
         let all = self.tiles.values().map(|t| t.points.len()).sum();
@@ -220,17 +225,22 @@ fn inside(info: &TileInfo, p: [f64; 3]) -> bool {
     (0..3).all(|a| p[a] >= info.bounds_min_m[a] - grow && p[a] <= info.bounds_max_m[a] + grow)
 }
 
-/// Every `stride`-th pixel of a depth image (row-major, `width` wide) where a tile
-/// drew (depth above 0).
-pub fn depth_samples(depth: &[f32], width: u32, height: u32, stride: u32) -> Vec<DepthSample> {
+/// Every `stride`-th pixel across and down of a depth image (row-major, `width`
+/// wide) where a tile drew (depth above 0), at the offset in each stride block that
+/// [`grid_offset`] gives the feedback round.
+pub fn depth_samples(
+    depth: &[f32],
+    width: u32,
+    height: u32,
+    stride: u32,
+    round: u64,
+) -> Vec<DepthSample> {
     let stride = stride.max(1);
     let mut out = Vec::new();
-    // Sample the middle of each stride block so a coarse grid is not biased to the
-    // top-left.
-    let offset = stride / 2;
-    let mut y = offset.min(height.saturating_sub(1));
+    let (offset_x, offset_y) = grid_offset(stride, round);
+    let mut y = offset_y.min(height.saturating_sub(1));
     while y < height {
-        let mut x = offset.min(width.saturating_sub(1));
+        let mut x = offset_x.min(width.saturating_sub(1));
         while x < width {
             let i = y as usize * width as usize + x as usize;
             if let Some(&d) = depth.get(i)
@@ -244,6 +254,23 @@ pub fn depth_samples(depth: &[f32], width: u32, height: u32, stride: u32) -> Vec
         y += stride;
     }
     out
+}
+
+/// Where in each `stride` x `stride` block round `round` samples: the middle first
+/// (a coarse grid is then not biased to the top-left), then along the block's
+/// diagonals, one diagonal every `stride` rounds, so each such run samples every row
+/// and every column of the block once and `stride`² rounds every pixel: a strip one
+/// pixel wide, such as a facade seen edge-on, is found within a few rounds wherever
+/// it lies.
+pub fn grid_offset(stride: u32, round: u64) -> (u32, u32) {
+    let s = u64::from(stride.max(1));
+    let k = round % (s * s);
+    let (diagonal, along) = (k / s, k % s);
+    let middle = s / 2;
+    (
+        ((along + middle) % s) as u32,
+        ((along + diagonal + middle) % s) as u32,
+    )
 }
 
 #[cfg(test)]
@@ -296,7 +323,8 @@ mod tests {
         depth[(w + 1) as usize] = 0.5; // (1, 1): on the stride-2 grid
         depth[(2 * w + 2) as usize] = 0.5; // (2, 2): off it
         depth[(3 * w + 5) as usize] = f32::NAN; // (5, 3): on it, not a number
-        let s = depth_samples(&depth, w, h, 2);
+        // Round 0 samples the middle of each 2 x 2 block, (1, 1) among them.
+        let s = depth_samples(&depth, w, h, 2, 0);
         assert_eq!(
             s,
             vec![DepthSample {
@@ -305,9 +333,42 @@ mod tests {
                 depth: 0.5
             }]
         );
-        assert_eq!(depth_samples(&depth, w, h, 1).len(), 2);
-        assert!(depth_samples(&[], 0, 0, 0).is_empty());
-        assert!(depth_samples(&depth[..3], w, h, 1).is_empty());
+        // Round 1 the block's opposite corner, (2, 2) among them.
+        assert_eq!(grid_offset(2, 1), (0, 0));
+        let s = depth_samples(&depth, w, h, 2, 1);
+        assert_eq!(s.len(), 1);
+        assert_eq!((s[0].x, s[0].y), (2, 2));
+        assert_eq!(depth_samples(&depth, w, h, 1, 7).len(), 2);
+        assert!(depth_samples(&[], 0, 0, 0, 0).is_empty());
+        assert!(depth_samples(&depth[..3], w, h, 1, 0).is_empty());
+    }
+
+    #[test]
+    fn the_grid_offset_visits_every_pixel_of_a_block_and_each_row_and_column_in_turn() {
+        for stride in 1..=6u32 {
+            let n = u64::from(stride * stride);
+            // Round 0 is the middle of the block.
+            assert_eq!(grid_offset(stride, 0), (stride / 2, stride / 2));
+            let offsets: Vec<(u32, u32)> = (0..n).map(|r| grid_offset(stride, r)).collect();
+            let distinct: BTreeSet<(u32, u32)> = offsets.iter().copied().collect();
+            assert_eq!(distinct.len() as u64, n, "stride {stride}: {offsets:?}");
+            assert!(offsets.iter().all(|(x, y)| *x < stride && *y < stride));
+            // Each run of `stride` rounds covers every row and every column.
+            for start in (0..n).step_by(stride as usize) {
+                let run: Vec<(u32, u32)> = (start..start + u64::from(stride))
+                    .map(|r| grid_offset(stride, r))
+                    .collect();
+                let rows: BTreeSet<u32> = run.iter().map(|p| p.1).collect();
+                let columns: BTreeSet<u32> = run.iter().map(|p| p.0).collect();
+                assert_eq!(rows.len() as u32, stride, "stride {stride} from {start}");
+                assert_eq!(columns.len() as u32, stride, "stride {stride} from {start}");
+            }
+            // The walk repeats after stride² rounds, and a huge round is no trouble.
+            assert_eq!(grid_offset(stride, n + 3), grid_offset(stride, 3));
+            assert!(grid_offset(stride, u64::MAX).0 < stride);
+        }
+        // A stride of 0 reads every pixel.
+        assert_eq!(grid_offset(0, 5), (0, 0));
     }
 
     #[test]

@@ -271,7 +271,13 @@ impl<S: TileSource> TileRenderer<S> {
         }
         let size = depth.size();
         let values = crate::gpu::read_depth_texture(&self.gpu.device, &self.gpu.queue, depth)?;
-        let samples = depth_samples(&values, size.width, size.height, hybrid.feedback_stride_px);
+        let samples = depth_samples(
+            &values,
+            size.width,
+            size.height,
+            hybrid.feedback_stride_px,
+            self.coverage.round(),
+        );
         let drawn: BTreeSet<ScanId> = wanted
             .iter()
             .copied()
