@@ -473,8 +473,9 @@ fn render_vdtm(
 /// `render --lod`: the model's scans fused into a level-of-detail hierarchy, each
 /// view drawn from the tiles it selects (every wanted tile loaded first, no fade).
 /// Frames `render` draws of a level-of-detail view before the one it writes, each
-/// choosing more scans where the tiles still showed.
-const COVERAGE_FEEDBACK_FRAMES: usize = 10;
+/// choosing more scans where the tiles still showed: 16 read every pixel of the
+/// feedback's 4 x 4 blocks once (`tiles::coverage::grid_offset`).
+const COVERAGE_FEEDBACK_FRAMES: usize = 16;
 
 fn render_lod(
     gpu: &GpuContext,

@@ -217,8 +217,10 @@ pub fn hybrid_view(
 }
 
 /// Frames after the fade whose coverage feedback (`coverage.rs`) chooses more scans
-/// before a view is timed or scored: each records where the tiles still showed.
-pub const FEEDBACK_ROUNDS: usize = 10;
+/// before a view is timed or scored: each records where the tiles still showed, at a
+/// different pixel of each 4 x 4 block (`coverage::grid_offset`), so 16 read every
+/// pixel once.
+pub const FEEDBACK_ROUNDS: usize = 16;
 
 /// Makes the scans the tiles want resident (the planner restricted to them).
 fn hold_wanted(
