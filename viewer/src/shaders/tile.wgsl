@@ -114,7 +114,7 @@ fn ray_slant(p_view: vec3<f32>) -> f32 {
 // the tile on their surface or behind it: the tile gives way there as it does to the
 // scans themselves.
 fn in_filled_hole(at: vec2<u32>, size: vec2<u32>, tile_distance: f32, slant: f32) -> bool {
-    let here = bitcast<f32>(textureLoad(scan_nearest, at, 0).x);
+    let here = nearest_scan(at).x;
     var enclosing = 0u;
     var under = 0u;
     for (var k = 0u; k < 8u; k = k + 1u) {
@@ -122,18 +122,28 @@ fn in_filled_hole(at: vec2<u32>, size: vec2<u32>, tile_distance: f32, slant: f32
         if q.x < 0 {
             continue;
         }
-        let near = textureLoad(scan_nearest, vec2<u32>(q), 0).xy;
-        let d = bitcast<f32>(near.x);
-        let sigma = bitcast<f32>(near.y);
-        if encloses(here, d, sigma) {
+        let near = nearest_scan(vec2<u32>(q));
+        if encloses(here, near.x, near.y) {
             enclosing = enclosing + 1u;
-            let tolerance = max(tile.scans.y * slant, 3.0 * sigma);
-            if tile_distance >= d - tolerance {
+            if tile_distance >= near.x - same_surface_tolerance(near.y, slant) {
                 under = under + 1u;
             }
         }
     }
     return enclosing >= FILL_MIN_NEIGHBOURS && under >= FILL_MIN_NEIGHBOURS;
+}
+
+// The scans' nearest surface at a pixel: its distance from the eye (+infinity where
+// no scan drew) and its range sigma.
+fn nearest_scan(at: vec2<u32>) -> vec2<f32> {
+    return bitcast<vec2<f32>>(textureLoad(scan_nearest, at, 0).xy);
+}
+
+// How far along the ray a tile and a scan surface `sigma` apart in range may lie and
+// still be one surface: the tile's tolerance across the surface, `slant` times that
+// along the ray, or 3 sigma of the scan's range noise.
+fn same_surface_tolerance(sigma: f32, slant: f32) -> f32 {
+    return max(tile.scans.y * slant, 3.0 * sigma);
 }
 
 // Whether the scans drawn beneath show at this pixel instead of the tile: they lie in
@@ -145,8 +155,8 @@ fn in_filled_hole(at: vec2<u32>, size: vec2<u32>, tile_distance: f32, slant: f32
 fn gives_way_to_scans(pixel: vec2<u32>, tile_distance: f32, slant: f32) -> bool {
     let size = textureDimensions(scan_nearest);
     let at = min(pixel, max(size, vec2<u32>(1u)) - vec2<u32>(1u));
-    let near = textureLoad(scan_nearest, at, 0).xy;
-    let scan_distance = bitcast<f32>(near.x);
+    let near = nearest_scan(at);
+    let scan_distance = near.x;
     // A hole the scan pass filled from the scans around it, the tile on their
     // surface: the fill shows in the share of pixels the switch has faded in.
     if tile.scans.z > 0.5 && in_filled_hole(at, size, tile_distance, slant) {
@@ -156,7 +166,7 @@ fn gives_way_to_scans(pixel: vec2<u32>, tile_distance: f32, slant: f32) -> bool 
     if !(scan_distance < 3.0e38) {
         return false;
     }
-    let tolerance = max(tile.scans.y * slant, 3.0 * bitcast<f32>(near.y));
+    let tolerance = same_surface_tolerance(near.y, slant);
     if tile_distance > scan_distance + tolerance {
         return true;
     }
@@ -184,13 +194,9 @@ fn scans_show_beside(at: vec2<u32>, size: vec2<u32>, tile_distance: f32, slant: 
         if q.x < 0 {
             continue;
         }
-        let near = textureLoad(scan_nearest, vec2<u32>(q), 0).xy;
-        let d = bitcast<f32>(near.x);
-        if !(d < 3.0e38) {
-            continue;
-        }
-        let tolerance = max(tile.scans.y * slant, 3.0 * bitcast<f32>(near.y));
-        if abs(tile_distance - d) <= tolerance {
+        let near = nearest_scan(vec2<u32>(q));
+        // No scan there: +infinity, which no finite distance is within reach of.
+        if near.x < 3.0e38 && abs(tile_distance - near.x) <= same_surface_tolerance(near.y, slant) {
             on_surface = on_surface + 1u;
         }
     }
