@@ -472,11 +472,6 @@ fn render_vdtm(
 
 /// `render --lod`: the model's scans fused into a level-of-detail hierarchy, each
 /// view drawn from the tiles it selects (every wanted tile loaded first, no fade).
-/// Frames `render` draws of a level-of-detail view before the one it writes, each
-/// choosing more scans where the tiles still showed: 16 read every pixel of the
-/// feedback's 4 x 4 blocks once (`tiles::coverage::grid_offset`).
-const COVERAGE_FEEDBACK_FRAMES: usize = 16;
-
 fn render_lod(
     gpu: &GpuContext,
     mut model: texel::model::Model,
@@ -529,10 +524,11 @@ fn render_lod(
             eprintln!("{e}");
         }
         // Each frame's coverage feedback chooses more scans where the tiles still
-        // showed (`tiles::coverage`): a few frames, holding what is wanted before
-        // each, as the window does; the last one is written.
+        // showed (`tiles::coverage`): frames until it has read every pixel once,
+        // holding what is wanted before each, as the window does; then one more,
+        // which is written.
         let mut frame = None;
-        for _ in 0..=COVERAGE_FEEDBACK_FRAMES {
+        for _ in 0..=settings.hybrid.feedback_rounds_to_read_every_pixel() {
             residency.options.only = Some(tiles.scans_wanted(model.scans(), &camera));
             let resident = residency.step(&mut model, &mut renderer, &camera);
             let drawn = tiles.render_over_scans_to_image(

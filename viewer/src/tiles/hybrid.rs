@@ -48,6 +48,16 @@ pub struct HybridSettings {
     pub fill_scan_holes: bool,
 }
 
+impl HybridSettings {
+    /// Feedback rounds that read every pixel once: each reads one pixel of every
+    /// `feedback_stride_px`-square block, a different one each round
+    /// ([`super::coverage::grid_offset`]).
+    pub fn feedback_rounds_to_read_every_pixel(&self) -> usize {
+        let stride = self.feedback_stride_px.max(1) as usize;
+        stride * stride
+    }
+}
+
 impl Default for HybridSettings {
     fn default() -> Self {
         Self {

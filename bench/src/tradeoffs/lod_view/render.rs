@@ -163,7 +163,9 @@ pub fn hybrid_view(
     // Warm-up, the scans' fade (0.25 s by default) run out, then the coverage
     // feedback's rounds: before each frame the wanted scans are made resident, as
     // the window does.
-    let warm_up = 2 + (settings.fade_s.max(0.0) / FRAME_S).ceil() as usize + FEEDBACK_ROUNDS;
+    let warm_up = 2
+        + (settings.fade_s.max(0.0) / FRAME_S).ceil() as usize
+        + settings.hybrid.feedback_rounds_to_read_every_pixel();
     let mut frame = None;
     let mut plan = None;
     let mut times = Vec::with_capacity(timed);
@@ -215,12 +217,6 @@ pub fn hybrid_view(
         image,
     ))
 }
-
-/// Frames after the fade whose coverage feedback (`coverage.rs`) chooses more scans
-/// before a view is timed or scored: each records where the tiles still showed, at a
-/// different pixel of each 4 x 4 block (`coverage::grid_offset`), so 16 read every
-/// pixel once.
-pub const FEEDBACK_ROUNDS: usize = 16;
 
 /// Makes the scans the tiles want resident (the planner restricted to them).
 fn hold_wanted(

@@ -6,7 +6,7 @@ use std::fmt::Write;
 use texel_viewer::residency::DEFAULT_BUDGET_MB;
 use texel_viewer::tiles::measure::PopMeasure;
 
-use super::render::{FEEDBACK_ROUNDS, HEIGHT, WIDTH};
+use super::render::{HEIGHT, WIDTH};
 use super::{
     FLY_FRAMES, Figures, HOW, LodViewArgs, PoseQuality, TILE_BUDGET, mean_quality, mib, ratio,
 };
@@ -132,9 +132,14 @@ pub(super) fn markdown(f: &Figures, args: &LodViewArgs) -> String {
             of.iter().map(|q| q.left_out).max().unwrap_or(0)
         );
     }
+    let hybrid = texel_viewer::tiles::hybrid::HybridSettings::default();
+    let (feedback_rounds, stride) = (
+        hybrid.feedback_rounds_to_read_every_pixel(),
+        hybrid.feedback_stride_px,
+    );
     let _ = writeln!(
         s,
-        "\nWhat the scans below the finest tiles cost and buy, per count of scans a finest tile may show (8 by default) and of those its coverage feedback may add (64 by default: after the fade, each frame reads back where the tiles still showed and asks for scans holding those points; `viewer/src/tiles/coverage.rs`; the view is drawn {FEEDBACK_ROUNDS} frames more before it is timed or scored, each reading a different pixel of every 4 x 4 block, so every pixel is read once): the close view's frame time, scans drawn and GPU bytes (tiles and scans, as above), and the mean PSNR over the held-out poses of each kind, with its difference from the scans only on the same pixels.\n"
+        "\nWhat the scans below the finest tiles cost and buy, per count of scans a finest tile may show (8 by default) and of those its coverage feedback may add (64 by default: after the fade, each frame reads back where the tiles still showed and asks for scans holding those points; `viewer/src/tiles/coverage.rs`; the view is drawn {feedback_rounds} frames more before it is timed or scored, each reading a different pixel of every {stride} x {stride} block, so every pixel is read once): the close view's frame time, scans drawn and GPU bytes (tiles and scans, as above), and the mean PSNR over the held-out poses of each kind, with its difference from the scans only on the same pixels.\n"
     );
     let _ = writeln!(
         s,
