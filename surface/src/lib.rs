@@ -14,4 +14,7 @@ pub mod tsdf;
 pub use integrate::{integrate_scan, remove_scan, scan_samples};
 pub use mesh::{SimplifyOutcome, SurfaceMesh, simplify};
 pub use nets::{VoxelRegion, extract};
-pub use tsdf::{BlockKey, Sample, Tsdf, TsdfConfig, TsdfError, VoxelIndex, parent_block};
+pub use tsdf::{
+    BLOCK_BYTES, BlockBytesError, BlockKey, Sample, Tsdf, TsdfConfig, TsdfError, VoxelIndex,
+    parent_block,
+};

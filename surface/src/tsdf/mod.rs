@@ -6,6 +6,9 @@ use std::collections::HashMap;
 
 use thiserror::Error;
 
+mod blocks;
+pub use blocks::{BLOCK_BYTES, BlockBytesError};
+
 /// A voxel's integer index: its centre is at `origin + (index + 0.5) * voxel_m` in
 /// the world.
 pub type VoxelIndex = [i64; 3];
@@ -260,45 +263,11 @@ impl Tsdf {
         direction: Direction,
         mut changed: Option<&mut std::collections::BTreeSet<BlockKey>>,
     ) -> usize {
-        let voxel_m = self.config.voxel_m;
-        let truncation_m = self.truncation_m();
+        let band = self.band();
         let mut touched: Vec<[i64; 3]> = Vec::new();
         let mut updates = 0usize;
         for sample in samples {
-            let Some(dir) = unit_ray(sample) else {
-                continue;
-            };
-            let weight = sample.weight.min(1.0);
-            if weight.is_nan() || weight <= 0.0 {
-                continue;
-            }
-            let cos = f64::from(weight).max(0.25);
-            // In front of the point the ray crossed free space: stretch the band
-            // there. Behind it nothing is known, and a ray grazing a curved surface
-            // leaves it again: keep the plain band.
-            let front_m = truncation_m / cos;
-            // Half-voxel steps along the ray reach every voxel the band crosses;
-            // consecutive repeats of one voxel are fused once.
-            let steps = ((front_m + truncation_m) / (0.5 * voxel_m)).ceil() as i64;
-            let mut last: Option<VoxelIndex> = None;
-            for step in 0..=steps {
-                let s = -front_m + step as f64 * 0.5 * voxel_m;
-                let x = [0, 1, 2].map(|k| sample.point_m[k] + s * dir[k]);
-                let index = self.index_of(x);
-                if last == Some(index) {
-                    continue;
-                }
-                last = Some(index);
-                let centre = self.centre_of(index);
-                // Distance of the voxel centre in front of the point, along the ray,
-                // then across the surface.
-                let along = (0..3)
-                    .map(|k| (sample.point_m[k] - centre[k]) * dir[k])
-                    .sum::<f64>();
-                let sdf = along * cos;
-                if sdf.abs() > truncation_m {
-                    continue;
-                }
+            band.walk(sample, |index, sdf, weight| {
                 let (key, slot) = split(index);
                 if let Some(changed) = changed.as_deref_mut()
                     && (direction == Direction::Add || self.blocks.contains_key(&key))
@@ -308,30 +277,20 @@ impl Tsdf {
                 match direction {
                     Direction::Add => {
                         let block = self.blocks.entry(key).or_insert_with(Block::new);
-                        fuse_into(
-                            &mut block.voxels[slot],
-                            sdf as f32,
-                            weight * weight,
-                            sample.colour,
-                        );
+                        fuse_into(&mut block.voxels[slot], sdf, weight, sample.colour);
                     }
                     Direction::Remove => {
                         let Some(block) = self.blocks.get_mut(&key) else {
-                            continue;
+                            return;
                         };
-                        unfuse(
-                            &mut block.voxels[slot],
-                            sdf as f32,
-                            weight * weight,
-                            sample.colour,
-                        );
+                        unfuse(&mut block.voxels[slot], sdf, weight, sample.colour);
                         if touched.last() != Some(&key) {
                             touched.push(key);
                         }
                     }
                 }
                 updates += 1;
-            }
+            });
         }
         touched.sort_unstable();
         touched.dedup();
@@ -345,6 +304,15 @@ impl Tsdf {
             }
         }
         updates
+    }
+
+    /// Where samples reach in this field: its voxel grid and truncation band.
+    fn band(&self) -> Band {
+        Band {
+            voxel_m: self.config.voxel_m,
+            truncation_m: self.truncation_m(),
+            origin_m: self.origin_m,
+        }
     }
 
     /// The field at twice the voxel size, from the same origin: each coarse voxel is
@@ -461,6 +429,61 @@ impl Tsdf {
                         v.weight > 0.0 && (0..2).all(|a| index[a] >= lo[a] && index[a] < hi[a])
                     })
             })
+    }
+}
+
+/// A field's voxel grid and truncation band: the voxels a sample updates, apart from
+/// the field's blocks (so the walk can run while they change).
+#[derive(Debug, Clone, Copy)]
+struct Band {
+    voxel_m: f64,
+    truncation_m: f64,
+    origin_m: [f64; 3],
+}
+
+impl Band {
+    /// Calls `visit(index, sdf_m, weight)` for each voxel `sample` updates: along its
+    /// viewing ray within the truncation band round its point (see
+    /// [`Tsdf::integrate`]), each voxel once per run of steps through it. Degenerate
+    /// samples visit nothing.
+    fn walk(&self, sample: &Sample, mut visit: impl FnMut(VoxelIndex, f32, f32)) {
+        let Some(dir) = unit_ray(sample) else {
+            return;
+        };
+        let weight = sample.weight.min(1.0);
+        if weight.is_nan() || weight <= 0.0 {
+            return;
+        }
+        let (voxel_m, truncation_m) = (self.voxel_m, self.truncation_m);
+        let cos = f64::from(weight).max(0.25);
+        // In front of the point the ray crossed free space: stretch the band
+        // there. Behind it nothing is known, and a ray grazing a curved surface
+        // leaves it again: keep the plain band.
+        let front_m = truncation_m / cos;
+        // Half-voxel steps along the ray reach every voxel the band crosses;
+        // consecutive repeats of one voxel are fused once.
+        let steps = ((front_m + truncation_m) / (0.5 * voxel_m)).ceil() as i64;
+        let mut last: Option<VoxelIndex> = None;
+        for step in 0..=steps {
+            let s = -front_m + step as f64 * 0.5 * voxel_m;
+            let x = [0, 1, 2].map(|k| sample.point_m[k] + s * dir[k]);
+            let index = [0, 1, 2].map(|a| ((x[a] - self.origin_m[a]) / voxel_m).floor() as i64);
+            if last == Some(index) {
+                continue;
+            }
+            last = Some(index);
+            let centre = [0, 1, 2].map(|a| self.origin_m[a] + (index[a] as f64 + 0.5) * voxel_m);
+            // Distance of the voxel centre in front of the point, along the ray,
+            // then across the surface.
+            let along = (0..3)
+                .map(|k| (sample.point_m[k] - centre[k]) * dir[k])
+                .sum::<f64>();
+            let sdf = along * cos;
+            if sdf.abs() > truncation_m {
+                continue;
+            }
+            visit(index, sdf as f32, weight * weight);
+        }
     }
 }
 
