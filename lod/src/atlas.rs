@@ -104,6 +104,28 @@ struct Flat {
 /// may hold, cannot fit `params.max_px` whatever the texel size, or would take its
 /// colour from no finer level than `params.lod` (a finest tile's never does).
 pub fn build_atlas(mesh: &SurfaceMesh, fields: &[Tsdf], params: &AtlasParams) -> Option<Atlas> {
+    let voxels_m: Vec<f64> = fields.iter().map(Tsdf::voxel_m).collect();
+    let plan = plan_atlas(mesh, &voxels_m, params)?;
+    Some(paint_atlas(plan, mesh, fields, params))
+}
+
+/// Where an atlas's charts go and which level colours it, decided from the mesh and
+/// the levels' voxel sizes alone: the owner of paged fields brings that level's
+/// blocks back before [`paint_atlas`] reads them.
+pub struct AtlasPlan {
+    plans: Vec<ChartPlan>,
+    flats: Vec<Flat>,
+    texel_m: f64,
+    charts: Vec<Chart>,
+    width: u32,
+    height: u32,
+    /// The field level the texels are coloured from.
+    pub level: usize,
+}
+
+/// [`build_atlas`]'s first half: `None` in the same cases. `voxels_m` holds each
+/// level's voxel size, finest first.
+pub fn plan_atlas(mesh: &SurfaceMesh, voxels_m: &[f64], params: &AtlasParams) -> Option<AtlasPlan> {
     let n = mesh.vertex_count();
     if mesh.is_empty()
         || mesh.triangles.iter().flatten().any(|&v| v as usize >= n)
@@ -117,13 +139,42 @@ pub fn build_atlas(mesh: &SurfaceMesh, fields: &[Tsdf], params: &AtlasParams) ->
     let (plans, flats) = plan_charts(mesh);
     let sizes_m: Vec<[f64; 2]> = plans.iter().map(|p| p.size_m).collect();
     let (texel_m, charts, width, height) = pack_at_fitting_texel(&sizes_m, params)?;
-    let level = colour_level(fields, params.lod, texel_m);
+    let level = colour_level(voxels_m, params.lod, texel_m);
     if level >= usize::from(params.lod) {
         // Colour no finer than the tile's own level: its vertices, about a voxel of
         // that level apart where it matters, already carry it, at a fraction of the
         // bytes (an atlas splits the vertices between charts).
         return None;
     }
+    Some(AtlasPlan {
+        plans,
+        flats,
+        texel_m,
+        charts,
+        width,
+        height,
+        level,
+    })
+}
+
+/// [`build_atlas`]'s second half: every texel of the planned charts coloured from
+/// the plan's level of `fields` (from the mesh's vertex colours where that level
+/// holds no colour near the texel).
+pub fn paint_atlas(
+    plan: AtlasPlan,
+    mesh: &SurfaceMesh,
+    fields: &[Tsdf],
+    params: &AtlasParams,
+) -> Atlas {
+    let AtlasPlan {
+        plans,
+        flats,
+        texel_m,
+        charts,
+        width,
+        height,
+        level,
+    } = plan;
     let field = fields.get(level);
     let search_m = if params.search_m.is_finite() {
         params.search_m.max(0.0)
@@ -211,7 +262,7 @@ pub fn build_atlas(mesh: &SurfaceMesh, fields: &[Tsdf], params: &AtlasParams) ->
             }
         }
     }
-    Some(Atlas {
+    Atlas {
         mesh: out,
         texture: TileTexture {
             width,
@@ -222,19 +273,19 @@ pub fn build_atlas(mesh: &SurfaceMesh, fields: &[Tsdf], params: &AtlasParams) ->
         },
         charts,
         triangle_charts,
-    })
+    }
 }
 
 /// The level to colour from: the coarsest whose voxel is no coarser than the texel,
 /// and no coarser than the tile's own level (the finest when even that one is).
-fn colour_level(fields: &[Tsdf], lod: u8, texel_m: f64) -> usize {
-    let last = usize::from(lod).min(fields.len().saturating_sub(1));
+fn colour_level(voxels_m: &[f64], lod: u8, texel_m: f64) -> usize {
+    let last = usize::from(lod).min(voxels_m.len().saturating_sub(1));
     (0..=last)
         .rev()
         .find(|&k| {
-            fields
+            voxels_m
                 .get(k)
-                .is_some_and(|f| f.voxel_m() <= texel_m * (1.0 + 1e-9))
+                .is_some_and(|v| *v <= texel_m * (1.0 + 1e-9))
         })
         .unwrap_or(0)
 }

@@ -7,7 +7,8 @@ use std::collections::BTreeMap;
 use texel_surface::{SurfaceMesh, Tsdf, TsdfConfig, TsdfError, VoxelRegion, extract, simplify};
 use thiserror::Error;
 
-use crate::atlas::{AtlasParams, MAX_ATLAS_PX, TileTexture, build_atlas};
+use crate::atlas::{AtlasParams, MAX_ATLAS_PX, TileTexture, paint_atlas, plan_atlas};
+use crate::fields::Fields;
 use crate::select::TileInfo;
 use crate::tree::{Grid, MAX_LOD, TileId};
 
@@ -291,14 +292,15 @@ pub fn build_from_field(field: Tsdf, config: &LodConfig) -> Result<Hierarchy, Lo
 /// Cuts tile `id` from its level's field (`fields`, one per level, finest first) and
 /// simplifies it to the budget, so every level costs the same per tile (Liu §4.2);
 /// then colours it from the finer levels into its atlas. `None` when the tile's level
-/// has no field.
+/// has no field. The tile's own columns (and one voxel round them) must be in memory;
+/// the level its atlas is coloured from is brought back here.
 pub(crate) fn build_tile(
-    fields: &[Tsdf],
+    fields: &mut Fields,
     grid: &Grid,
     id: TileId,
     config: &LodConfig,
 ) -> Option<LodNode> {
-    let field = fields.get(usize::from(id.lod))?;
+    let field = fields.level(usize::from(id.lod))?;
     let (lo, hi) = grid.columns(id);
     let (foot_lo, foot_hi) = grid.footprint(id);
     let centre = [
@@ -337,22 +339,32 @@ pub(crate) fn build_tile(
         ),
     };
     let geometric_error_m = 0.5 * voxel_m + simplified.error_m;
-    let atlas = (config.atlas_max_px > 0)
-        .then(|| {
-            build_atlas(
-                &mesh,
-                fields,
-                &AtlasParams {
-                    texel_m: config.leaf_voxel_m * config.atlas_texel_voxels,
-                    max_px: config.atlas_max_px,
-                    lod: id.lod,
-                    // The mesh lies within its error of the surface, and the colour
-                    // within the band round it.
-                    search_m: geometric_error_m + field.truncation_m(),
-                },
-            )
-        })
+    let params = AtlasParams {
+        texel_m: config.leaf_voxel_m * config.atlas_texel_voxels,
+        max_px: config.atlas_max_px,
+        lod: id.lod,
+        // The mesh lies within its error of the surface, and the colour within the
+        // band round it.
+        search_m: geometric_error_m + field.truncation_m(),
+    };
+    let voxels_m: Vec<f64> = fields.levels().iter().map(Tsdf::voxel_m).collect();
+    let plan = (config.atlas_max_px > 0)
+        .then(|| plan_atlas(&mesh, &voxels_m, &params))
         .flatten();
+    let atlas = plan.map(|plan| {
+        // The colour is searched for within `search_m` of the mesh, and read
+        // trilinearly a voxel round that.
+        let reach_m = params.search_m + 2.0 * voxels_m.get(plan.level).copied().unwrap_or(0.0);
+        let columns = fields.level(plan.level).map(|f| {
+            let lo = f.index_of([bounds_min_m[0] - reach_m, bounds_min_m[1] - reach_m, 0.0]);
+            let hi = f.index_of([bounds_max_m[0] + reach_m, bounds_max_m[1] + reach_m, 0.0]);
+            ([lo[0], lo[1]], [hi[0] + 1, hi[1] + 1])
+        });
+        if let Some((lo, hi)) = columns {
+            fields.page_in_columns(plan.level, lo, hi);
+        }
+        paint_atlas(plan, &mesh, fields.levels(), &params)
+    });
     let texture = match atlas {
         Some(atlas) => {
             mesh = atlas.mesh;

@@ -6,6 +6,7 @@
 pub mod atlas;
 pub mod build;
 pub mod codec;
+pub mod fields;
 pub mod merged;
 pub mod model;
 pub mod select;
@@ -15,6 +16,7 @@ pub mod tree;
 pub use atlas::TileTexture;
 pub use build::{Hierarchy, LodConfig, LodError, LodNode, build_from_field};
 pub use codec::{TileCodecError, atlas_png, decode_tile, encode_tile};
+pub use fields::PagingCounts;
 pub use merged::{merged_surface, whole_surface_config};
 pub use model::LodModel;
 pub use select::{Lens, SelectConfig, Selection, TileIndex, TileInfo, View, select};

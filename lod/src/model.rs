@@ -10,20 +10,22 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 
+use texel::paged::PageStore;
 use texel::{Pose, TexelScan};
 use texel_surface::{BlockKey, Sample, Tsdf, parent_block, scan_samples};
 
 use crate::build::{Hierarchy, LodConfig, LodError, LodNode, build_tile, nest};
+use crate::fields::{Fields, PagingCounts};
 use crate::select::TileInfo;
 use crate::tree::{Grid, TileId};
 
 /// The level-of-detail model of a growing scan model.
-#[derive(Debug, Clone)]
+#[derive(Debug)]
 pub struct LodModel {
     config: LodConfig,
     grid: Grid,
-    /// One field per level, finest first.
-    fields: Vec<Tsdf>,
+    /// One field per level, finest first (paged beyond a budget when given one).
+    fields: Fields,
     /// Blocks of the finest field changed since the levels above last followed.
     changed: BTreeSet<BlockKey>,
     /// Tiles waiting to be rebuilt.
@@ -47,7 +49,7 @@ impl LodModel {
         Ok(Self {
             grid: config.grid(),
             config,
-            fields,
+            fields: Fields::new(fields),
             changed: BTreeSet::new(),
             dirty: BTreeSet::new(),
             nodes: BTreeMap::new(),
@@ -69,7 +71,7 @@ impl LodModel {
         config.truncation_voxels = field.config().truncation_voxels;
         let mut model = Self::new(config)?;
         model.changed = field.block_keys().collect();
-        model.fields[0] = field;
+        model.fields.set_finest(field);
         Ok(model)
     }
 
@@ -100,12 +102,16 @@ impl LodModel {
 
     /// Fuses samples into the finest field.
     pub fn add_samples(&mut self, samples: &[Sample]) -> usize {
-        self.fields[0].integrate_marking(samples, &mut self.changed)
+        let updates = self.fields.integrate(samples, &mut self.changed);
+        self.fields.keep_within_budget();
+        updates
     }
 
     /// Takes samples out of the finest field.
     pub fn remove_samples(&mut self, samples: &[Sample]) -> usize {
-        self.fields[0].remove_marking(samples, &mut self.changed)
+        let updates = self.fields.remove(samples, &mut self.changed);
+        self.fields.keep_within_budget();
+        updates
     }
 
     pub fn scans(&self) -> usize {
@@ -135,9 +141,21 @@ impl LodModel {
         pending
     }
 
-    /// Bytes the fields hold.
+    /// Bytes the fields hold in memory.
     pub fn field_bytes(&self) -> usize {
-        self.fields.iter().map(Tsdf::heap_bytes).sum()
+        self.fields.resident_bytes()
+    }
+
+    /// From now on, keeps the fields within `max_field_bytes` of memory (beyond what
+    /// one operation needs at once), their other blocks in `store`, so the model's
+    /// memory no longer grows with the ground covered. The tiles built are the same.
+    pub fn page_fields_to(&mut self, store: Box<dyn PageStore>, max_field_bytes: usize) {
+        self.fields.page_to(store, max_field_bytes);
+    }
+
+    /// What paging the fields has done (all zero when they are not paged).
+    pub fn field_paging(&self) -> PagingCounts {
+        self.fields.paging()
     }
 
     /// Bytes the built tiles' meshes and atlases hold.
@@ -148,9 +166,9 @@ impl LodModel {
             .sum()
     }
 
-    /// The field of level `lod`.
+    /// The field of level `lod` (the blocks in memory, when the fields are paged).
     pub fn field(&self, lod: u8) -> Option<&Tsdf> {
-        self.fields.get(usize::from(lod))
+        self.fields.level(usize::from(lod))
     }
 
     /// Brings every level up to the finest field's changes (recomputing only the
@@ -184,15 +202,20 @@ impl LodModel {
         for &id in &chosen {
             self.dirty.remove(&id);
             let (lo, hi) = self.grid.columns(id);
+            // Surface nets reads a voxel beyond the tile's columns on each side.
+            let lod = usize::from(id.lod);
+            self.fields
+                .page_in_columns(lod, lo.map(|i| i - 1), hi.map(|i| i + 1));
             let occupied = self
                 .fields
-                .get(usize::from(id.lod))
+                .level(lod)
                 .is_some_and(|f| f.voxels_in_columns(lo, hi).next().is_some());
             // The finer levels colour the tile's atlas.
-            match occupied
-                .then(|| build_tile(&self.fields, &self.grid, id, &self.config))
-                .flatten()
-            {
+            let node = occupied
+                .then(|| build_tile(&mut self.fields, &self.grid, id, &self.config))
+                .flatten();
+            self.fields.keep_within_budget();
+            match node {
                 Some(node) => {
                     self.nodes.insert(id, node);
                 }
@@ -237,7 +260,7 @@ impl LodModel {
     pub fn top_lod(&self) -> u8 {
         for lod in 0..=self.config.max_lod {
             let mut tiles = BTreeSet::new();
-            for key in self.fields[0].block_keys() {
+            for key in self.fields.block_keys(0) {
                 let shift = 1i64 << lod.min(62);
                 let column = [key[0].div_euclid(shift) * 8, key[1].div_euclid(shift) * 8];
                 tiles.insert(self.grid.tile_of_column(lod, column));
@@ -267,12 +290,12 @@ impl LodModel {
                 break;
             }
             let parents: BTreeSet<BlockKey> = changed.iter().map(|k| parent_block(*k)).collect();
-            let (fine, coarse) = self.fields.split_at_mut(lod + 1);
             for key in &parents {
-                coarse[0].resample_block(&fine[lod], *key);
+                self.fields.resample(lod + 1, *key);
             }
             changed = parents;
         }
+        self.fields.keep_within_budget();
     }
 }
 
