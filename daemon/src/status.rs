@@ -430,9 +430,19 @@ pub fn status_line(s: &Status) -> String {
     }
     if let Some(l) = &s.lod {
         line.push_str(&format!(
-            "; lod {} tiles (top {}), {} scans and {} tiles pending, lag {:.1} s, {:.0} B/tile",
-            l.tiles, l.top_lod, l.pending_scans, l.pending_tiles, l.lag_s, l.mean_tile_bytes
+            "; lod {} tiles (top {}), {} scans and {} tiles pending, lag {:.1} s, {:.0} B/tile, fields {:.0} MiB in memory and {:.0} MiB paged",
+            l.tiles,
+            l.top_lod,
+            l.pending_scans,
+            l.pending_tiles,
+            l.lag_s,
+            l.mean_tile_bytes,
+            l.field_bytes as f64 / 1048576.0,
+            l.field_paged_bytes as f64 / 1048576.0
         ));
+        if l.field_page_errors > 0 {
+            line.push_str(&format!(" ({} field page errors)", l.field_page_errors));
+        }
     }
     line.push_str(&format!("; clients {}", s.clients));
     line

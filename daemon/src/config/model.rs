@@ -53,6 +53,10 @@ pub struct LodSection {
     pub held_scans: usize,
     /// Tile data held in memory; beyond it tiles are read back from the tile store.
     pub tile_memory_budget_mb: u64,
+    /// The fields the tiles are cut from, held in memory; beyond it their blocks
+    /// used longest ago wait in an unlinked file beside the store (0 holds only
+    /// what one fusion or rebuild needs at once).
+    pub field_memory_budget_mb: u64,
 }
 
 impl Default for LodSection {
@@ -66,6 +70,7 @@ impl Default for LodSection {
             coarse_rebuild_interval_s: 1.0,
             held_scans: 8,
             tile_memory_budget_mb: 256,
+            field_memory_budget_mb: 256,
         }
     }
 }
@@ -89,6 +94,12 @@ impl LodSection {
     /// The tile budget in bytes.
     pub fn tile_memory_budget_bytes(&self) -> u64 {
         self.tile_memory_budget_mb.saturating_mul(1024 * 1024)
+    }
+
+    /// The field budget in bytes.
+    pub fn field_memory_budget_bytes(&self) -> usize {
+        usize::try_from(self.field_memory_budget_mb.saturating_mul(1024 * 1024))
+            .unwrap_or(usize::MAX)
     }
 
     fn validate(&self) -> Result<(), (&'static str, String)> {
@@ -133,6 +144,15 @@ impl LodSection {
                 format!(
                     "must be in 1..={MAX_BUDGET_MB}, got {}",
                     self.tile_memory_budget_mb
+                ),
+            ));
+        }
+        if self.field_memory_budget_mb > MAX_BUDGET_MB {
+            return Err((
+                "model.lod.field_memory_budget_mb",
+                format!(
+                    "must be in 0..={MAX_BUDGET_MB}, got {}",
+                    self.field_memory_budget_mb
                 ),
             ));
         }

@@ -829,16 +829,6 @@ impl Hub {
         (inner.shelved, retirement)
     }
 
-    /// Every served scan's id and current pose.
-    pub fn served_poses(&self) -> Vec<(ScanId, Pose)> {
-        self.lock()
-            .entries
-            .iter()
-            .filter(|(_, e)| !e.retired)
-            .map(|(id, e)| (*id, e.world_from_scan))
-            .collect()
-    }
-
     /// The store tile data is written to, if any.
     pub fn tile_store(&self) -> Option<&Arc<Store>> {
         self.options.tile_store.as_ref()

@@ -22,6 +22,7 @@ use std::time::{Duration, Instant};
 use bytes::Bytes;
 use nalgebra::Point3;
 use texel::model::ScanId;
+use texel::paged::PageStore;
 use texel::tile::{TileId, TileListing};
 use texel::wire::{LodStatus, Message, WireTile};
 use texel::{Pose, TexelScan};
@@ -171,6 +172,9 @@ pub struct LodStage {
     /// Where tile data is written (keyed by revision) before the hub may drop it
     /// from memory.
     pub tiles: Option<Arc<Store>>,
+    /// Where the fields' blocks go beyond `config.field_memory_budget_mb` (without
+    /// one, the fields stay in memory).
+    pub field_pages: Option<Box<dyn PageStore>>,
     pub config: LodSection,
     pub status: Arc<Mutex<LodStatus>>,
     /// Set to stop at the next round (the session ends).
@@ -179,7 +183,7 @@ pub struct LodStage {
 
 impl LodStage {
     /// Runs until the inbox closes (or `stop`), publishing as it goes.
-    pub fn run(self) {
+    pub fn run(mut self) {
         let mut model = match LodModel::new(self.config.tree) {
             Ok(m) => m,
             Err(e) => {
@@ -187,6 +191,10 @@ impl LodStage {
                 return;
             }
         };
+        if let Some(pages) = self.field_pages.take() {
+            model.page_fields_to(pages, self.config.field_memory_budget_bytes());
+        }
+        let mut page_errors_logged = 0;
         let mut fused: BTreeMap<ScanId, Fused> = BTreeMap::new();
         let mut published: BTreeMap<TileId, TileListing> = BTreeMap::new();
         let mut next_revision = 1u64;
@@ -257,6 +265,18 @@ impl LodStage {
             counts.lag_s = lag_from.map_or(0.0, |t| now.duration_since(t).as_secs_f64());
             counts.top_lod = u64::from(model.top_lod());
             counts.field_bytes = model.field_bytes() as u64;
+            let paging = model.field_paging();
+            counts.field_paged_bytes = paging.bytes_out;
+            counts.field_page_errors = paging.errors;
+            if paging.errors > page_errors_logged {
+                // Once per new batch of failures, not per block.
+                tracing::error!(
+                    "level of detail: {} field page writes or reads failed so far \
+                     (unwritten blocks stay in memory; unreadable ones are observed anew)",
+                    paging.errors
+                );
+                page_errors_logged = paging.errors;
+            }
             if let Ok(mut s) = self.status.lock() {
                 let tiles = self.hub.tile_counts();
                 *s = LodStatus {

@@ -207,7 +207,7 @@ impl Session {
             Arc::clone(&metrics),
             shutdown,
             sources_done.clone(),
-            restored.timestamps,
+            restored,
         ));
         Ok(Self {
             hub,
@@ -294,6 +294,17 @@ fn word_pages(
         PAGE_RECORDS * u64::LEN,
     )
     .map_err(|e| SessionError::Store(format!("{name} pages: {e}")))?;
+    Ok(Box::new(pages))
+}
+
+/// The page file the level-of-detail fields' blocks go to beyond their budget.
+fn field_pages(config: &SessionConfig) -> Result<Box<dyn texel::paged::PageStore>, SessionError> {
+    let pages = FilePages::create_in(
+        &spill_dir(config, config.record.path.as_deref()),
+        "lod-fields",
+        texel_lod::fields::PAGE_BYTES,
+    )
+    .map_err(|e| SessionError::Store(format!("level-of-detail field pages: {e}")))?;
     Ok(Box::new(pages))
 }
 
@@ -477,7 +488,7 @@ async fn run(
     metrics: Arc<Metrics>,
     shutdown: CancellationToken,
     sources_done: CancellationToken,
-    restored_timestamps: Vec<u64>,
+    restored: Restored,
 ) -> Result<SessionSummary, SessionError> {
     let record_tx = recorder.as_ref().map(|r| r.tx.clone());
     if let Some(r) = &recorder {
@@ -532,7 +543,7 @@ async fn run(
         publish: publish_tx,
         metrics: Arc::clone(&metrics),
         fuse: config.pipeline.fuse,
-        timestamps: restored_timestamps,
+        timestamps: restored.timestamps,
         timestamp_pages: Some(word_pages(&config, "timestamps")?),
         hanging_pages: Some(word_pages(&config, "hanging")?),
     };
@@ -541,8 +552,9 @@ async fn run(
     let lod_stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
     let lod = if config.model.lod.enabled {
         let inbox = LodInbox::new(config.model.lod.held_scans);
-        // Scans a resumed session restored are fused first (read back from the store).
-        for (id, pose) in hub.served_poses() {
+        // Scans a resumed session restored are fused first (read back from the
+        // store), retired ones too: the live session's tree had fused them.
+        for (id, pose) in restored.poses {
             inbox.revision(id, pose);
         }
         let stage = LodStage {
@@ -550,6 +562,7 @@ async fn run(
             hub: Arc::clone(&hub),
             scans: hub.store().cloned(),
             tiles: hub.tile_store().cloned(),
+            field_pages: Some(field_pages(&config)?),
             config: config.model.lod,
             status: Arc::clone(&lod_status),
             stop: Arc::clone(&lod_stop),

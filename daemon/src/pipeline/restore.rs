@@ -5,6 +5,8 @@
 use std::path::PathBuf;
 use std::sync::Arc;
 
+use texel::Pose;
+use texel::model::ScanId;
 use tokio::sync::mpsc;
 
 use super::SessionError;
@@ -23,6 +25,9 @@ pub struct Restored {
     pub timestamps: Vec<u64>,
     /// The latest frame in the recording: simulators go on after it.
     pub last_timestamp_ns: Option<u64>,
+    /// Every restored scan's id and pose, retired ones too: the level-of-detail
+    /// tree fuses them all, as the live session's tree had.
+    pub poses: Vec<(ScanId, Pose)>,
 }
 
 /// Rebuilds the model from `segments` into `hub` and seeds `registration`; returns
@@ -51,6 +56,7 @@ pub async fn restore_session(
         .spawn(move || encoder.run())
         .map_err(|e| SessionError::Thread(e.to_string()))?;
     let work = tokio::task::spawn_blocking(move || {
+        let mut placed = Vec::new();
         // 1. Which scans the recording placed, under which ids, where now.
         let poses = resume::read_poses(&segments)?;
         tracing::info!(
@@ -70,6 +76,7 @@ pub async fn restore_session(
                 r.id,
                 r.world_from_scan,
             );
+            placed.push((r.id, r.world_from_scan));
             tx.blocking_send(Publish::Scan {
                 id: r.id,
                 scan: r.scan,
@@ -79,7 +86,7 @@ pub async fn restore_session(
             .is_ok()
         })?;
         drop(tx);
-        Ok::<_, SessionError>((registration, poses.timestamps().to_vec(), summary))
+        Ok::<_, SessionError>((registration, poses.timestamps().to_vec(), summary, placed))
     });
     let result = work
         .await
@@ -87,7 +94,7 @@ pub async fn restore_session(
     encode_thread
         .join()
         .map_err(|_| SessionError::Thread("the restore's encode thread panicked".into()))?;
-    let (registration, timestamps, summary) = result?;
+    let (registration, timestamps, summary, placed) = result?;
     for problem in &summary.problems {
         tracing::warn!("resume: {problem}");
     }
@@ -102,6 +109,7 @@ pub async fn restore_session(
         Restored {
             timestamps,
             last_timestamp_ns: summary.last_timestamp_ns,
+            poses: placed,
         },
     ))
 }

@@ -129,6 +129,11 @@ pub struct LodStatus {
     /// Tile data held in memory, and the fields the tree is merged from.
     pub tile_memory_bytes: u64,
     pub field_bytes: u64,
+    /// The fields' blocks beyond their memory budget, in the daemon's page file, and
+    /// page writes or reads that failed (a block that could not be written stays in
+    /// memory; one that could not be read back is observed anew by later scans).
+    pub field_paged_bytes: u64,
+    pub field_page_errors: u64,
     /// Tile data frames sent to viewers, and their bytes.
     pub tiles_sent: u64,
     pub tile_bytes_sent: u64,
