@@ -86,6 +86,11 @@ enum Command {
         /// truncation_voxels).
         #[arg(long)]
         lod_config: Option<PathBuf>,
+        /// With --format 3dtiles: compress each tile's geometry with
+        /// EXT_meshopt_compression (CesiumJS, loaders.gl and three.js read it; readers
+        /// without the extension cannot).
+        #[arg(long)]
+        meshopt: bool,
         /// Which poses place the scans of a whole-model export: texel (/texel/pose, or
         /// registered now) or truth (/truth/pose of a simulated capture).
         #[arg(long, value_enum, default_value = "texel")]
@@ -161,14 +166,15 @@ fn main() -> ExitCode {
             world,
             georef,
             lod_config,
+            meshopt,
             poses,
             out,
         } => {
-            if (georef.is_some() || lod_config.is_some())
+            if (georef.is_some() || lod_config.is_some() || meshopt)
                 && format != texel_daemon::export::ExportFormat::Tiles3d
             {
                 eprintln!(
-                    "texeld export: --georef and --lod-config shape a 3D Tiles tileset; use them with --format 3dtiles"
+                    "texeld export: --georef, --lod-config and --meshopt shape a 3D Tiles tileset; use them with --format 3dtiles"
                 );
                 return ExitCode::FAILURE;
             }
@@ -179,6 +185,11 @@ fn main() -> ExitCode {
                         &out,
                         georef.as_ref(),
                         lod_config.as_deref(),
+                        if meshopt {
+                            texel_lod::TileCompression::Meshopt
+                        } else {
+                            texel_lod::TileCompression::None
+                        },
                         poses,
                     );
                 }
@@ -230,6 +241,7 @@ fn export_tiles(
     out: &std::path::Path,
     georef: Option<&texel_lod::GeoReference>,
     lod_config: Option<&std::path::Path>,
+    compression: texel_lod::TileCompression,
     poses: texel_daemon::model_export::PoseChoice,
 ) -> ExitCode {
     let registration = texel_register::RegistrationConfig::default();
@@ -241,8 +253,12 @@ fn export_tiles(
             return ExitCode::FAILURE;
         }
     };
-    match texel_daemon::tiles_export::export_tiles(capture, out, &registration, &lod, georef, poses)
-    {
+    let tileset = texel_daemon::tiles_export::TilesetChoice {
+        lod,
+        geo: georef.copied(),
+        compression,
+    };
+    match texel_daemon::tiles_export::export_tiles(capture, out, &registration, &tileset, poses) {
         Ok(s) => {
             println!(
                 "exported the model as 3D Tiles: {} scans of {} frames, {} tiles in {} levels, {} triangles, {} bytes (field {} MiB; fused in {:.1} s, built in {:.1} s) -> {}",

@@ -6,7 +6,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use texel_lod::{GeoReference, LodConfig, LodModel, tileset_files};
+use texel_lod::{GeoReference, LodConfig, LodModel, TileCompression, tileset_files};
 use texel_register::RegistrationConfig;
 
 use crate::export::ExportCommandError;
@@ -60,6 +60,15 @@ pub fn load_lod_config(path: &Path) -> Result<LodConfig, String> {
     Ok(config)
 }
 
+/// What the tileset is built with: the tree's knobs, where it lies on the globe, how
+/// its tiles carry their geometry.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct TilesetChoice {
+    pub lod: LodConfig,
+    pub geo: Option<GeoReference>,
+    pub compression: TileCompression,
+}
+
 /// Builds the hierarchy of `capture`'s registered model and writes the tileset into
 /// `out_dir` (created if missing). `tileset.json` is written last, through a
 /// temporary name, so a failed export never leaves a tileset pointing at missing
@@ -68,12 +77,11 @@ pub fn export_tiles(
     capture: &Path,
     out_dir: &Path,
     registration: &RegistrationConfig,
-    lod: &LodConfig,
-    geo: Option<&GeoReference>,
+    tileset: &TilesetChoice,
     poses: PoseChoice,
 ) -> Result<TilesExportSummary, ExportCommandError> {
     let started = Instant::now();
-    let mut model = LodModel::new(*lod)?;
+    let mut model = LodModel::new(tileset.lod)?;
     let placement = for_each_placed_by(capture, registration, poses, &mut |scan, pose| {
         model.add_scan(scan, pose);
     })?;
@@ -82,7 +90,7 @@ pub fn export_tiles(
     model.rebuild(usize::MAX);
     let field_bytes = model.field_bytes();
     let hierarchy = model.hierarchy()?;
-    let files = tileset_files(&hierarchy, geo)?;
+    let files = tileset_files(&hierarchy, tileset.geo.as_ref(), tileset.compression)?;
     let build_s = built.elapsed().as_secs_f64();
     let io = |path: PathBuf| move |source| ExportCommandError::Io { path, source };
     std::fs::create_dir_all(out_dir).map_err(io(out_dir.to_path_buf()))?;

@@ -11,6 +11,7 @@ pub mod merged;
 pub mod model;
 pub mod select;
 pub mod tiles;
+mod tiles_meshopt;
 pub mod tree;
 
 pub use atlas::TileTexture;
@@ -20,5 +21,5 @@ pub use fields::PagingCounts;
 pub use merged::{merged_surface, whole_surface_config};
 pub use model::LodModel;
 pub use select::{Lens, SelectConfig, Selection, TileIndex, TileInfo, View, select};
-pub use tiles::{GeoReference, TileFile, TilesError, tileset_files};
+pub use tiles::{GeoReference, TileCompression, TileFile, TilesError, tileset_files};
 pub use tree::{Grid, MAX_LOD, TileId};

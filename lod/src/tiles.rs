@@ -17,6 +17,7 @@ use thiserror::Error;
 
 use crate::build::{Hierarchy, LodNode};
 use crate::codec::atlas_png;
+use crate::tiles_meshopt::{View, compress};
 use crate::tree::TileId;
 
 /// Where the model's world frame lies on the globe.
@@ -40,6 +41,19 @@ pub enum TilesError {
     },
     #[error("tile {tile} holds {vertices} vertices, more than a glTF index of 32 bits reaches")]
     TooLarge { tile: String, vertices: usize },
+    #[error("tile {tile}: its geometry could not be compressed: {what}")]
+    Compression { tile: String, what: String },
+}
+
+/// How a tile's glTF carries its geometry.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum TileCompression {
+    /// Plain accessors: every glTF reader opens it.
+    #[default]
+    None,
+    /// `EXT_meshopt_compression` (meshoptimizer's vertex and index codecs): smaller,
+    /// for readers that know the extension (CesiumJS, loaders.gl, three.js).
+    Meshopt,
 }
 
 impl GeoReference {
@@ -110,6 +124,7 @@ pub struct TileFile {
 pub fn tileset_files(
     hierarchy: &Hierarchy,
     geo: Option<&GeoReference>,
+    compression: TileCompression,
 ) -> Result<Vec<TileFile>, TilesError> {
     if let Some(g) = geo {
         g.validate()?;
@@ -121,7 +136,7 @@ pub fn tileset_files(
     for node in hierarchy.nodes.values().filter(|n| !n.mesh.is_empty()) {
         files.push(TileFile {
             path: content_path(node.id),
-            bytes: tile_glb(node)?,
+            bytes: tile_glb(node, compression)?,
         });
     }
     // The top level's tiles (at most four) under one root without content, whose
@@ -216,8 +231,10 @@ pub fn srgb_to_linear_u16(value: u8) -> u16 {
 /// node), u32 indices and one unlit material; coloured by its atlas (TEXCOORD_0 and
 /// an embedded PNG as the base colour texture, which glTF reads as sRGB, as the atlas
 /// holds) where it has one, else by linear RGBA16 vertex colours. Never both: glTF
-/// multiplies COLOR_0 into the base colour.
-pub fn tile_glb(node: &LodNode) -> Result<Vec<u8>, TilesError> {
+/// multiplies COLOR_0 into the base colour. With [`TileCompression::Meshopt`] the
+/// positions, colours or texture coordinates and indices are compressed
+/// (`tiles_meshopt.rs`).
+pub fn tile_glb(node: &LodNode, compression: TileCompression) -> Result<Vec<u8>, TilesError> {
     let mesh: &SurfaceMesh = &node.mesh;
     let n = mesh.vertex_count();
     if n >= u32::MAX as usize {
@@ -333,6 +350,31 @@ pub fn tile_glb(node: &LodNode) -> Result<Vec<u8>, TilesError> {
     json["materials"] = json!([material]);
     json["bufferViews"] = Value::Array(buffer_views);
     json["buffers"] = json!([{ "byteLength": bin.len() }]);
+    if compression == TileCompression::Meshopt {
+        let views = [
+            View {
+                index: 0,
+                stride: 12,
+                triangles: false,
+            },
+            // Texture coordinates (2 x f32) or colours (4 x u16): 8 bytes either way.
+            View {
+                index: 1,
+                stride: 8,
+                triangles: false,
+            },
+            View {
+                index: 2,
+                stride: 4,
+                triangles: true,
+            },
+        ];
+        let (json, bin) = compress(json, &bin, &views, &node.id.path())?;
+        return Ok(glb_container(
+            serde_json::to_vec(&json).unwrap_or_default(),
+            bin,
+        ));
+    }
     Ok(glb_container(
         serde_json::to_vec(&json).unwrap_or_default(),
         bin,

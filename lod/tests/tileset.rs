@@ -10,7 +10,7 @@ mod support;
 use std::collections::BTreeMap;
 
 use serde_json::Value;
-use texel_lod::{GeoReference, LodConfig, TileId, tileset_files};
+use texel_lod::{GeoReference, LodConfig, TileCompression, TileId, tileset_files};
 
 const FAR: [f64; 3] = [5.0e6, 4.2e6, 120.0];
 
@@ -46,7 +46,7 @@ fn f32_at(bin: &[u8], offset: usize) -> f32 {
 #[test]
 fn the_tileset_is_the_hierarchy_and_every_content_decodes_to_its_mesh() {
     let h = support::street(40.0, FAR, &config());
-    let files = tileset_files(&h, None).unwrap();
+    let files = tileset_files(&h, None, TileCompression::None).unwrap();
     assert_eq!(files[0].path, "tileset.json");
     let by_path: BTreeMap<&str, &[u8]> = files
         .iter()
@@ -143,7 +143,7 @@ fn a_geo_reference_places_the_world_origin_on_the_ellipsoid() {
         height_m: 10.0,
         world_point_m: [0.0; 3],
     };
-    let files = tileset_files(&h, Some(&geo)).unwrap();
+    let files = tileset_files(&h, Some(&geo), TileCompression::None).unwrap();
     let tileset: Value = serde_json::from_slice(files[0].bytes.as_slice()).unwrap();
     let m: Vec<f64> = tileset["root"]["transform"]
         .as_array()
@@ -194,7 +194,7 @@ fn a_geo_reference_places_the_world_origin_on_the_ellipsoid() {
         ..geo
     };
     assert!(
-        tileset_files(&h, Some(&bad))
+        tileset_files(&h, Some(&bad), TileCompression::None)
             .unwrap_err()
             .to_string()
             .contains("latitude")
