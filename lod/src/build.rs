@@ -358,7 +358,10 @@ pub(crate) fn build_tile(
         let columns = fields.level(plan.level).map(|f| {
             let lo = f.index_of([bounds_min_m[0] - reach_m, bounds_min_m[1] - reach_m, 0.0]);
             let hi = f.index_of([bounds_max_m[0] + reach_m, bounds_max_m[1] + reach_m, 0.0]);
-            ([lo[0], lo[1]], [hi[0] + 1, hi[1] + 1])
+            (
+                [lo[0], lo[1]],
+                [hi[0].saturating_add(1), hi[1].saturating_add(1)],
+            )
         });
         if let Some((lo, hi)) = columns {
             fields.page_in_columns(plan.level, lo, hi);

@@ -227,7 +227,7 @@ impl Fields {
             return;
         };
         let block_lo = lo.map(|i| i.div_euclid(8));
-        let block_hi = hi.map(|i| (i - 1).div_euclid(8));
+        let block_hi = hi.map(|i| i.saturating_sub(1).div_euclid(8));
         let Some(out) = p.out.get(lod) else {
             return;
         };

@@ -204,8 +204,11 @@ impl LodModel {
             let (lo, hi) = self.grid.columns(id);
             // Surface nets reads a voxel beyond the tile's columns on each side.
             let lod = usize::from(id.lod);
-            self.fields
-                .page_in_columns(lod, lo.map(|i| i - 1), hi.map(|i| i + 1));
+            self.fields.page_in_columns(
+                lod,
+                lo.map(|i| i.saturating_sub(1)),
+                hi.map(|i| i.saturating_add(1)),
+            );
             let occupied = self
                 .fields
                 .level(lod)
