@@ -5,8 +5,10 @@
 //! scan, rebuild time per tile, the tiles queued per second of a 30 Hz walk against
 //! what one rebuild thread clears, tiles and triangles per level, bytes per tile as
 //! 3D Tiles content, the fields' memory, and the distance of the finest and coarsest
-//! tiles' vertices from the simulator's true surface. Writes the "Level of detail"
-//! section of `docs/tradeoffs.md`.
+//! tiles' vertices from the simulator's true surface. The default setting runs again
+//! with its fields paged to a file beyond a small budget (as the daemon pages them):
+//! its cost against the unpaged run, and its tree compared with the unpaged one's.
+//! Writes the "Level of detail" section of `docs/tradeoffs.md`.
 
 use std::fmt::Write;
 use std::path::{Path, PathBuf};
@@ -82,7 +84,10 @@ struct Row {
     bytes_mean: f64,
     bytes_max: usize,
     wire_bytes_mean: f64,
+    /// The most the fields held in memory after any call.
     field_mib: f64,
+    /// With the fields paged: the budget, and what paging did.
+    paged: Option<(f64, texel_lod::PagingCounts)>,
     leaf_error: (f64, f64),
     top_error: (f64, f64),
 }
@@ -125,8 +130,14 @@ pub fn run(args: &LodArgs) -> Result<()> {
     let placed = truth_placed_scans(&capture)?;
     eprintln!("{} placed scans of {frames} frames", placed.len());
     let mut rows = Vec::new();
+    let mut default_tree = None;
+    let mut default_row = None;
     for (label, config) in settings(args.quick) {
-        let row = measure(&label, &config, &placed, &scene)?;
+        let (row, tree) = measure(&label, &config, &placed, &scene, None)?;
+        if config == LodConfig::default() {
+            default_tree = Some(tree);
+            default_row = Some(rows.len());
+        }
         println!(
             "{label}: fuse {:.2} ms/scan, rebuild {:.1} ms/tile, {:.1} tiles/s queued at 30 Hz, {} tiles in {} levels, leaf error median {:.3} p95 {:.3} m",
             row.fuse_ms_per_scan,
@@ -139,7 +150,38 @@ pub fn run(args: &LodArgs) -> Result<()> {
         );
         rows.push(row);
     }
-    let body = markdown(&rows, frames);
+    // The default again, its fields paged beyond a sixth of what they hold whole.
+    let config = LodConfig::default();
+    let whole_mib = default_row
+        .and_then(|i| rows.get(i))
+        .map_or(64.0, |r: &Row| r.field_mib);
+    let budget_mib = (whole_mib / 6.0).ceil().max(1.0);
+    let pages = texel_daemon::pages::FilePages::create_in(
+        &std::env::temp_dir(),
+        "bench-lod-fields",
+        texel_lod::fields::PAGE_BYTES,
+    )
+    .context("creating the field page file")?;
+    let label = format!("voxel 0.1 m, 16k, fields paged beyond {budget_mib:.0} MiB");
+    let (row, tree) = measure(
+        &label,
+        &config,
+        &placed,
+        &scene,
+        Some((Box::new(pages), budget_mib)),
+    )?;
+    let same = default_tree.as_ref().map(|t| *t == tree);
+    if let Some(whole) = default_row.and_then(|i| rows.get(i)) {
+        println!(
+            "paged against whole: fuse {:.2}x, rebuild {:.2}x, peak fields {:.1} against {:.1} MiB, same tree: {same:?}",
+            row.fuse_ms_per_scan / whole.fuse_ms_per_scan.max(1e-12),
+            row.rebuild_ms_per_tile / whole.rebuild_ms_per_tile.max(1e-12),
+            row.field_mib,
+            whole.field_mib
+        );
+    }
+    rows.push(row);
+    let body = markdown(&rows, frames, same);
     println!("{body}");
     if args.street.no_write || args.quick {
         return Ok(());
@@ -161,13 +203,22 @@ pub(crate) fn truth_placed_scans(capture: &Path) -> Result<Vec<(Arc<TexelScan>, 
     Ok(placed)
 }
 
+/// One setting's figures and its tree; with `pages`, the fields are paged to that
+/// store beyond that many MiB.
 fn measure(
     label: &str,
     config: &LodConfig,
     placed: &[(Arc<TexelScan>, Pose)],
     scene: &sims::Scene,
-) -> Result<Row> {
+    pages: Option<(Box<dyn texel::paged::PageStore>, f64)>,
+) -> Result<(Row, Hierarchy)> {
     let mut model = LodModel::new(*config)?;
+    let mib = f64::from(1u32 << 20);
+    let budget_mib = pages.as_ref().map(|(_, b)| *b);
+    if let Some((store, budget_mib)) = pages {
+        model.page_fields_to(store, (budget_mib * mib) as usize);
+    }
+    let mut peak_field_bytes = 0usize;
     // Fusion, and the tiles each second of a 30 Hz walk queues: the queue after
     // every 30 scans, rebuilt as it goes so each count is of new work.
     let mut fuse_s = 0.0;
@@ -178,18 +229,20 @@ fn measure(
         let t = Instant::now();
         model.add_scan(scan, pose);
         fuse_s += t.elapsed().as_secs_f64();
+        peak_field_bytes = peak_field_bytes.max(model.field_bytes());
         if (i + 1) % 30 == 0 || i + 1 == placed.len() {
             let pending = model.pending_tiles();
             let t = Instant::now();
             let done = model.rebuild(usize::MAX);
             rebuild_s += t.elapsed().as_secs_f64();
+            peak_field_bytes = peak_field_bytes.max(model.field_bytes());
             debug_assert_eq!(pending, done);
             queued += done;
             rebuilt += done;
         }
     }
     let hierarchy = model.hierarchy()?;
-    let files = tileset_files(&hierarchy, None)?;
+    let files = tileset_files(&hierarchy, None, texel_lod::TileCompression::None)?;
     let glbs: Vec<usize> = files.iter().skip(1).map(|f| f.bytes.len()).collect();
     let wire: Vec<usize> = hierarchy
         .nodes
@@ -207,7 +260,7 @@ fn measure(
             .sum()
     };
     eprintln!("{label}: measuring distances to the truth");
-    Ok(Row {
+    let row = Row {
         label: label.to_string(),
         scans: placed.len(),
         fuse_ms_per_scan: 1e3 * fuse_s / placed.len().max(1) as f64,
@@ -220,10 +273,12 @@ fn measure(
         bytes_mean: glbs.iter().sum::<usize>() as f64 / glbs.len().max(1) as f64,
         bytes_max: glbs.iter().copied().max().unwrap_or(0),
         wire_bytes_mean: wire.iter().sum::<usize>() as f64 / wire.len().max(1) as f64,
-        field_mib: model.field_bytes() as f64 / f64::from(1u32 << 20),
+        field_mib: peak_field_bytes as f64 / mib,
+        paged: budget_mib.map(|b| (b, model.field_paging())),
         leaf_error: distances(&hierarchy, 0, scene),
         top_error: distances(&hierarchy, hierarchy.top_lod, scene),
-    })
+    };
+    Ok((row, hierarchy))
 }
 
 /// Median and 95th percentile distance, metres, of a level's vertices from the true
@@ -271,12 +326,12 @@ pub(crate) fn distances(h: &Hierarchy, lod: u8, scene: &sims::Scene) -> (f64, f6
     (at(0.5), at(0.95))
 }
 
-fn markdown(rows: &[Row], frames: usize) -> String {
+fn markdown(rows: &[Row], frames: usize, paged_same_tree: Option<bool>) -> String {
     let mut s = String::new();
     let _ = writeln!(s, "## Level of detail\n");
     let _ = writeln!(
         s,
-        "`cargo run --release -p texel-bench -- tradeoffs lod` (street, the first {frames} frames of the walk at 30 Hz, placed by their true poses so that registration, measured in its own section, does not enter; {} scans). Each setting fuses every scan into a `texel_lod::LodModel` and rebuilds the tiles a 30 Hz walk queues each second. Error: distance of a level's vertices from the simulator's true surface along their normals (median / 95th percentile). Bytes: one tile as 3D Tiles content (binary glTF, uncompressed) and through `texel_lod::encode_tile` (16-bit positions, meshoptimizer's vertex and index codecs), the form a tile is to travel in. One core.\n",
+        "`cargo run --release -p texel-bench -- tradeoffs lod` (street, the first {frames} frames of the walk at 30 Hz, placed by their true poses so that registration, measured in its own section, does not enter; {} scans). Each setting fuses every scan into a `texel_lod::LodModel` and rebuilds the tiles a 30 Hz walk queues each second. Error: distance of a level's vertices from the simulator's true surface along their normals (median / 95th percentile). Bytes: one tile as 3D Tiles content (binary glTF, uncompressed) and through `texel_lod::encode_tile` (16-bit positions, meshoptimizer's vertex and index codecs), the form a tile is to travel in. Fields MiB: the most the fields held in memory after any scan or rebuild. One core.\n",
         rows.first().map_or(0, |r| r.scans)
     );
     let _ = writeln!(
@@ -310,6 +365,20 @@ fn markdown(rows: &[Row], frames: usize) -> String {
             r.leaf_error.1,
             r.top_error.0,
             r.top_error.1
+        );
+    }
+    if let Some((budget_mib, p)) = rows.iter().find_map(|r| r.paged) {
+        let same = match paged_same_tree {
+            Some(true) => "identical to the default's, tile for tile (compared in the run)",
+            Some(false) => "NOT identical to the default's",
+            None => "not compared (the default did not run)",
+        };
+        let _ = writeln!(
+            s,
+            "\nThe paged row holds the fields within {budget_mib:.0} MiB and pages the blocks used longest ago to an unlinked file (`model.lod.field_memory_budget_mb` in the daemon): {} MiB in the file at the end, {} block writes and {} reads of 12 KiB. Its tree is {same}.",
+            p.bytes_out >> 20,
+            p.writes,
+            p.reads
         );
     }
     s
