@@ -91,6 +91,11 @@ enum Command {
         /// without the extension cannot).
         #[arg(long)]
         meshopt: bool,
+        /// With --format 3dtiles: the memory the tree's fields may hold, MiB (0: only
+        /// what one scan or tile needs); the rest is paged to an unlinked file in the
+        /// system's temporary folder.
+        #[arg(long, default_value_t = 256)]
+        field_memory_mb: u64,
         /// Which poses place the scans of a whole-model export: texel (/texel/pose, or
         /// registered now) or truth (/truth/pose of a simulated capture).
         #[arg(long, value_enum, default_value = "texel")]
@@ -167,6 +172,7 @@ fn main() -> ExitCode {
             georef,
             lod_config,
             meshopt,
+            field_memory_mb,
             poses,
             out,
         } => {
@@ -190,6 +196,7 @@ fn main() -> ExitCode {
                         } else {
                             texel_lod::TileCompression::None
                         },
+                        field_memory_mb,
                         poses,
                     );
                 }
@@ -242,6 +249,7 @@ fn export_tiles(
     georef: Option<&texel_lod::GeoReference>,
     lod_config: Option<&std::path::Path>,
     compression: texel_lod::TileCompression,
+    field_memory_mb: u64,
     poses: texel_daemon::model_export::PoseChoice,
 ) -> ExitCode {
     let registration = texel_register::RegistrationConfig::default();
@@ -257,18 +265,22 @@ fn export_tiles(
         lod,
         geo: georef.copied(),
         compression,
+        field_memory_budget_bytes: Some(
+            usize::try_from(field_memory_mb.saturating_mul(1 << 20)).unwrap_or(usize::MAX),
+        ),
     };
     match texel_daemon::tiles_export::export_tiles(capture, out, &registration, &tileset, poses) {
         Ok(s) => {
             println!(
-                "exported the model as 3D Tiles: {} scans of {} frames, {} tiles in {} levels, {} triangles, {} bytes (field {} MiB; fused in {:.1} s, built in {:.1} s) -> {}",
+                "exported the model as 3D Tiles: {} scans of {} frames, {} tiles in {} levels, {} triangles, {} bytes (fields at most {} MiB in memory, {} MiB paged at the end; fused in {:.1} s, built in {:.1} s) -> {}",
                 s.placement.scans,
                 s.placement.frames,
                 s.tiles,
                 s.levels,
                 s.triangles,
                 s.bytes,
-                s.field_bytes / (1 << 20),
+                s.peak_field_bytes / (1 << 20),
+                s.field_paged_bytes / (1 << 20),
                 s.fuse_s,
                 s.build_s,
                 out.display()

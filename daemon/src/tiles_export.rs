@@ -11,6 +11,7 @@ use texel_register::RegistrationConfig;
 
 use crate::export::ExportCommandError;
 use crate::model_export::{Placement, PoseChoice, for_each_placed_by};
+use crate::pages::FilePages;
 
 /// What the export wrote and what it cost.
 #[derive(Debug)]
@@ -21,8 +22,12 @@ pub struct TilesExportSummary {
     pub levels: u8,
     pub triangles: usize,
     pub bytes: u64,
-    /// Bytes of the fields of every level.
+    /// Bytes of the fields of every level in memory at the end, and the most they
+    /// held after any scan or the build.
     pub field_bytes: usize,
+    pub peak_field_bytes: usize,
+    /// Bytes of the fields' blocks in the page file at the end.
+    pub field_paged_bytes: u64,
     pub fuse_s: f64,
     pub build_s: f64,
 }
@@ -67,6 +72,10 @@ pub struct TilesetChoice {
     pub lod: LodConfig,
     pub geo: Option<GeoReference>,
     pub compression: TileCompression,
+    /// The fields the tiles are cut from are held within this many bytes, the rest
+    /// paged to an unlinked file in the system's temporary folder; `None` holds them
+    /// all in memory.
+    pub field_memory_budget_bytes: Option<usize>,
 }
 
 /// Builds the hierarchy of `capture`'s registered model and writes the tileset into
@@ -82,13 +91,23 @@ pub fn export_tiles(
 ) -> Result<TilesExportSummary, ExportCommandError> {
     let started = Instant::now();
     let mut model = LodModel::new(tileset.lod)?;
+    if let Some(budget) = tileset.field_memory_budget_bytes {
+        let dir = std::env::temp_dir();
+        let pages = FilePages::create_in(&dir, "export-fields", texel_lod::fields::PAGE_BYTES)
+            .map_err(|source| ExportCommandError::Io { path: dir, source })?;
+        model.page_fields_to(Box::new(pages), budget);
+    }
+    let mut peak_field_bytes = 0;
     let placement = for_each_placed_by(capture, registration, poses, &mut |scan, pose| {
         model.add_scan(scan, pose);
+        peak_field_bytes = peak_field_bytes.max(model.field_bytes());
     })?;
     let fuse_s = started.elapsed().as_secs_f64();
     let built = Instant::now();
     model.rebuild(usize::MAX);
     let field_bytes = model.field_bytes();
+    let peak_field_bytes = peak_field_bytes.max(field_bytes);
+    let field_paged_bytes = model.field_paging().bytes_out;
     let hierarchy = model.hierarchy()?;
     let files = tileset_files(&hierarchy, tileset.geo.as_ref(), tileset.compression)?;
     let build_s = built.elapsed().as_secs_f64();
@@ -121,6 +140,8 @@ pub fn export_tiles(
         triangles: hierarchy.triangle_count(),
         bytes,
         field_bytes,
+        peak_field_bytes,
+        field_paged_bytes,
         fuse_s,
         build_s,
     })

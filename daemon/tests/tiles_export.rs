@@ -165,6 +165,34 @@ fn a_3d_tiles_export_passes_the_schema_the_gltf_validator_and_loaders_gl() {
     );
     assert_eq!(report["outsideBox"], 0, "{report}");
 
+    // The fields paged out after every scan and tile build the same tileset, byte for
+    // byte.
+    let paged = dir.path().join("tiles-paged");
+    let (ok, stdout_paged, stderr) = export_3dtiles(
+        &capture,
+        &paged,
+        &[
+            OsStr::new("--lod-config"),
+            lod.as_os_str(),
+            OsStr::new("--georef"),
+            OsStr::new("47.3769,8.5417,408"),
+            OsStr::new("--field-memory-mb"),
+            OsStr::new("0"),
+        ],
+    );
+    assert!(ok, "{stderr}");
+    eprintln!("{stdout_paged}");
+    assert!(
+        stdout_paged.contains("fields at most 0 MiB in memory"),
+        "{stdout_paged}"
+    );
+    for uri in uris.iter().map(String::as_str).chain(["tileset.json"]) {
+        assert!(
+            std::fs::read(paged.join(uri)).unwrap() == std::fs::read(tiles.join(uri)).unwrap(),
+            "{uri} differs when the fields are paged"
+        );
+    }
+
     // The same tileset with its geometry meshopt-compressed: the validator knows the
     // extension, and loaders.gl decodes it to the same vertices, inside their boxes.
     let compressed = dir.path().join("tiles-meshopt");
