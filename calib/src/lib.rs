@@ -45,4 +45,5 @@ pub mod lidar;
 pub mod lm;
 pub mod pipeline;
 pub mod report;
+pub mod response;
 pub mod zhang;
