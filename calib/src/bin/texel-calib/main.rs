@@ -1,5 +1,6 @@
-//! `texel-calib`: calibrates a texel camera from a capture of a checkerboard target.
-//! (Measuring calibration against the simulator's truth is `texel-bench calib`.)
+//! `texel-calib`: calibrates a texel camera from a capture of a checkerboard target,
+//! and recovers the EO camera's response curve from an exposure bracket. (Measuring
+//! calibration against the simulator's truth is `texel-bench calib`.)
 
 use std::path::{Path, PathBuf};
 
@@ -41,6 +42,35 @@ enum Command {
         #[arg(long)]
         name: Option<String>,
     },
+    /// Recover the EO camera's response curve (Debevec & Malik 1997) from a bracket
+    /// of images of a still scene, and write it as CSV: `z,g_r,g_g,g_b` per 8-bit
+    /// value, `g` the natural log of exposure (radiance times seconds), g(128) = 0.
+    Response {
+        /// One image of the bracket (PNG or any format the `image` crate reads), with
+        /// its exposure time: `FILE@SECONDS`. Repeat for each exposure.
+        #[arg(long = "image", required = true, value_parser = parse_exposure)]
+        images: Vec<(PathBuf, f64)>,
+        /// Pixels sampled (spread over the middle exposure's values).
+        #[arg(long, default_value_t = 100)]
+        samples: usize,
+        /// Smoothness (the paper's lambda).
+        #[arg(long, default_value_t = 50.0)]
+        lambda: f64,
+        /// The CSV file to write.
+        #[arg(long)]
+        out: PathBuf,
+    },
+}
+
+/// `FILE@SECONDS`.
+fn parse_exposure(text: &str) -> Result<(PathBuf, f64), String> {
+    let (file, seconds) = text
+        .rsplit_once('@')
+        .ok_or_else(|| format!("expected FILE@SECONDS, got {text:?}"))?;
+    let seconds: f64 = seconds
+        .parse()
+        .map_err(|e| format!("exposure time {seconds:?} in {text:?}: {e}"))?;
+    Ok((PathBuf::from(file), seconds))
 }
 
 fn main() -> anyhow::Result<()> {
@@ -53,7 +83,66 @@ fn main() -> anyhow::Result<()> {
             config,
             name,
         } => run(&capture, &out, report.as_deref(), config.as_deref(), name),
+        Command::Response {
+            images,
+            samples,
+            lambda,
+            out,
+        } => response(&images, samples, lambda, &out),
     }
+}
+
+fn response(
+    images: &[(PathBuf, f64)],
+    samples: usize,
+    lambda: f64,
+    out: &Path,
+) -> anyhow::Result<()> {
+    let mut pixels = Vec::with_capacity(images.len());
+    let mut size: Option<(u32, u32)> = None;
+    for (path, _) in images {
+        let img = image::open(path)
+            .with_context(|| format!("reading {}", path.display()))?
+            .to_rgb8();
+        let dims = img.dimensions();
+        if let Some(first) = size
+            && first != dims
+        {
+            anyhow::bail!(
+                "{} is {}x{}, the first image is {}x{}: a bracket's images must align",
+                path.display(),
+                dims.0,
+                dims.1,
+                first.0,
+                first.1
+            );
+        }
+        size = Some(dims);
+        pixels.push(img.into_raw());
+    }
+    let times: Vec<f64> = images.iter().map(|(_, t)| *t).collect();
+    let refs: Vec<&[u8]> = pixels.iter().map(Vec::as_slice).collect();
+    let curves = calib::response::recover_rgb_response(&refs, &times, samples, lambda)?;
+    let mut text = String::from("z,g_r,g_g,g_b\n");
+    for z in 0..calib::response::LEVELS {
+        text.push_str(&format!(
+            "{z},{:.6},{:.6},{:.6}\n",
+            curves[0].log_exposure[z], curves[1].log_exposure[z], curves[2].log_exposure[z]
+        ));
+    }
+    std::fs::write(out, text).with_context(|| format!("writing {}", out.display()))?;
+    println!(
+        "response from {} exposures: ln exposure at z = 16 / 240: r {:.3} / {:.3}, g {:.3} / {:.3}, b {:.3} / {:.3}; wrote {}",
+        images.len(),
+        curves[0].log_exposure[16],
+        curves[0].log_exposure[240],
+        curves[1].log_exposure[16],
+        curves[1].log_exposure[240],
+        curves[2].log_exposure[16],
+        curves[2].log_exposure[240],
+        out.display()
+    );
+    Ok(())
 }
 
 fn progress_bar() -> ProgressBar {
