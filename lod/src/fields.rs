@@ -257,11 +257,6 @@ impl Fields {
             return;
         }
         let target = p.max_resident_bytes / LOW_WATER_DEN * LOW_WATER_NUM;
-        let per_block = self
-            .levels
-            .iter()
-            .find(|f| f.block_count() > 0)
-            .map_or(BLOCK_BYTES, |f| f.heap_bytes() / f.block_count());
         let mut candidates: Vec<(u64, usize, BlockKey)> = self
             .levels
             .iter()
@@ -274,11 +269,13 @@ impl Fields {
             if resident <= target {
                 break;
             }
-            if !p.page_out(&mut self.levels[lod], lod, key) {
+            let field = &mut self.levels[lod];
+            let before = field.heap_bytes();
+            if !p.page_out(field, lod, key) {
                 // The store refuses writes: keep the rest in memory, try next time.
                 break;
             }
-            resident = resident.saturating_sub(per_block);
+            resident = resident.saturating_sub(before.saturating_sub(field.heap_bytes()));
         }
         let levels = &self.levels;
         p.last_used

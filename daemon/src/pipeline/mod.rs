@@ -283,29 +283,28 @@ fn spill_dir(config: &SessionConfig, recording: Option<&std::path::Path>) -> std
         .unwrap_or_else(std::env::temp_dir)
 }
 
-/// A page store for a worker's table of 8-byte words (`name` marks its file).
-fn word_pages(
+/// A page store in an unlinked file beside the store, for pages of `page_bytes`
+/// (`name` marks its file and its errors).
+fn file_pages(
     config: &SessionConfig,
     name: &str,
+    page_bytes: usize,
 ) -> Result<Box<dyn texel::paged::PageStore>, SessionError> {
     let pages = FilePages::create_in(
         &spill_dir(config, config.record.path.as_deref()),
         name,
-        PAGE_RECORDS * u64::LEN,
+        page_bytes,
     )
     .map_err(|e| SessionError::Store(format!("{name} pages: {e}")))?;
     Ok(Box::new(pages))
 }
 
-/// The page file the level-of-detail fields' blocks go to beyond their budget.
-fn field_pages(config: &SessionConfig) -> Result<Box<dyn texel::paged::PageStore>, SessionError> {
-    let pages = FilePages::create_in(
-        &spill_dir(config, config.record.path.as_deref()),
-        "lod-fields",
-        texel_lod::fields::PAGE_BYTES,
-    )
-    .map_err(|e| SessionError::Store(format!("level-of-detail field pages: {e}")))?;
-    Ok(Box::new(pages))
+/// A page store for a worker's table of 8-byte words.
+fn word_pages(
+    config: &SessionConfig,
+    name: &str,
+) -> Result<Box<dyn texel::paged::PageStore>, SessionError> {
+    file_pages(config, name, PAGE_RECORDS * u64::LEN)
 }
 
 /// The sources a session's config names.
@@ -562,7 +561,12 @@ async fn run(
             hub: Arc::clone(&hub),
             scans: hub.store().cloned(),
             tiles: hub.tile_store().cloned(),
-            field_pages: Some(field_pages(&config)?),
+            // The fields' blocks beyond their budget, one block a page.
+            field_pages: Some(file_pages(
+                &config,
+                "lod-fields",
+                texel_lod::fields::PAGE_BYTES,
+            )?),
             config: config.model.lod,
             status: Arc::clone(&lod_status),
             stop: Arc::clone(&lod_stop),
