@@ -28,6 +28,10 @@ const MIDDLE: usize = 128;
 /// rule (N (P - 1) > 255) needs about 50 for a bracket of a few exposures.
 pub const MAX_SAMPLES: usize = 1024;
 
+/// At most this many exposures: brackets have a handful, and the system's rows grow
+/// with samples times exposures.
+pub const MAX_EXPOSURES: usize = 32;
+
 /// Why a bracket gives no response curve.
 #[derive(Debug, Clone, PartialEq, Error)]
 pub enum ResponseError {
@@ -53,6 +57,8 @@ pub enum ResponseError {
         got: usize,
         expected: usize,
     },
+    #[error("{0} exposures, more than the {MAX_EXPOSURES} a recovery takes")]
+    TooManyExposures(usize),
     #[error("{0} samples, more than the {MAX_SAMPLES} a recovery takes")]
     TooManySamples(usize),
     #[error(
@@ -191,6 +197,9 @@ fn check_bracket(
 ) -> Result<Vec<f64>, ResponseError> {
     if !(lambda.is_finite() && lambda > 0.0) {
         return Err(ResponseError::BadSmoothness(lambda));
+    }
+    if exposure_times_s.len() > MAX_EXPOSURES {
+        return Err(ResponseError::TooManyExposures(exposure_times_s.len()));
     }
     for (index, &value) in exposure_times_s.iter().enumerate() {
         if !(value.is_finite() && value > 0.0) {

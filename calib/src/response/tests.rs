@@ -142,6 +142,11 @@ fn degenerate_brackets_are_refused_by_name() {
         recover_response(&black, &TIMES_S, 50.0).unwrap_err(),
         ResponseError::NoInformation
     );
+    let times: Vec<f64> = (0..=MAX_EXPOSURES).map(|k| 2f64.powi(k as i32)).collect();
+    assert_eq!(
+        recover_response(&[], &times, 50.0).unwrap_err(),
+        ResponseError::TooManyExposures(MAX_EXPOSURES + 1)
+    );
     let too_many = vec![vec![100u8, 120, 140, 160]; MAX_SAMPLES + 1];
     assert!(matches!(
         recover_response(&too_many, &TIMES_S, 50.0),
