@@ -158,6 +158,7 @@ fn synthetic_capture(dir: &Path, frames: u32) -> Result<PathBuf> {
             height: 480,
             rgb,
             timestamp_ns: t,
+            exposure: None,
         };
         w.write_range(&range, RangeEncoding::F32Metres)?;
         w.write_eo(&eo, EoEncoding::Rgb8)?;

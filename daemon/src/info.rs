@@ -152,7 +152,11 @@ pub fn summarize(path: &Path) -> Result<CaptureSummary, CaptureError> {
             Ok(CaptureEvent::Anchor(_)) => {
                 *summary.poses.entry(topics::TEXEL_ANCHOR).or_insert(0) += 1;
             }
-            Ok(CaptureEvent::Intensity { .. } | CaptureEvent::Other { .. }) => {}
+            Ok(
+                CaptureEvent::Intensity { .. }
+                | CaptureEvent::Exposure(_)
+                | CaptureEvent::Other { .. },
+            ) => {}
             Err(e) => {
                 summary.violation_count += 1;
                 if summary.violations.len() < MAX_LISTED_VIOLATIONS {

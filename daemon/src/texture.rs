@@ -54,6 +54,7 @@ mod tests {
             height: h,
             rgb,
             timestamp_ns: 42,
+            exposure: None,
         };
         let t = encode(&frame, TextureFormat::Jpeg, 90).unwrap();
         assert!(t.data.len() < frame.rgb.len() / 4);

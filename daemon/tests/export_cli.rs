@@ -49,6 +49,7 @@ fn frame(m: &SensorModel, t: u64) -> (RangeFrame, EoFrame) {
         height: 120,
         rgb: (0..160 * 120 * 3).map(|i| (i % 200) as u8).collect(),
         timestamp_ns: t,
+        exposure: None,
     };
     (r, eo)
 }

@@ -35,6 +35,11 @@ def main():
             if topic == "/texel/sensor":
                 out["sensor"] = json.loads(message.data)
                 continue
+            if topic == "/eo/exposure":
+                exposure = json.loads(message.data)
+                exposure["log_time"] = message.log_time
+                out.setdefault("exposures", []).append(exposure)
+                continue
             if topic == "/texel/anchor":
                 anchor = json.loads(message.data)
                 anchor["log_time"] = message.log_time

@@ -178,6 +178,20 @@ def main():
             write("/lidar/intensity", img, t)
 
             rgb = eo_rgb(i)
+            # Odd frames say how they were exposed (/eo/exposure, before the image);
+            # even ones do not, as captures made before the topic existed.
+            exposure = None
+            if i % 2 == 1:
+                exposure = {"exposure_time_s": 1.0 / (100.0 * (i + 1)), "gain": 1.5 * i}
+                if "exposure" not in channels:
+                    schema = writer.register_schema(name="texel.EoExposure",
+                                                    encoding="jsonschema",
+                                                    data=b'{"type":"object"}')
+                    channels["exposure"] = writer.register_channel(
+                        topic="/eo/exposure", message_encoding="json", schema_id=schema)
+                body = dict(exposure, timestamp={"sec": t // 10**9, "nsec": t % 10**9})
+                writer.add_message(channels["exposure"], log_time=t, publish_time=t,
+                                   data=json.dumps(body).encode())
             if eo_encoding in ("png", "jpeg"):
                 im = Image.new("RGB", (EO_W, EO_H))
                 im.putdata(rgb)
@@ -203,7 +217,7 @@ def main():
 
             expected["frames"].append({
                 "t_ns": t, "range_encoding": range_encoding, "ranges_m": decoded_r,
-                "intensity": intensity, "eo_encoding": eo_encoding,
+                "intensity": intensity, "eo_encoding": eo_encoding, "exposure": exposure,
                 "rgb": None if decoded_rgb is None else [c for p in decoded_rgb for c in p],
             })
 

@@ -172,6 +172,7 @@ pub mod captures {
             height: eh,
             rgb,
             timestamp_ns,
+            exposure: None,
         };
         (r, eo)
     }

@@ -112,6 +112,17 @@ fn python_written_captures_read_back_identically() {
             assert_eq!(pair.range.intensity.as_ref(), Some(&intensity));
             let encoding = f["eo_encoding"].as_str().unwrap();
             assert_eq!((pair.eo.width, pair.eo.height), (32, 24));
+            match f["exposure"].as_object() {
+                Some(want) => {
+                    let got = pair.eo.exposure.expect("the frame's /eo/exposure");
+                    assert_eq!(
+                        got.exposure_time_s,
+                        want["exposure_time_s"].as_f64().unwrap()
+                    );
+                    assert_eq!(got.gain, want["gain"].as_f64().unwrap());
+                }
+                None => assert_eq!(pair.eo.exposure, None, "{encoding}"),
+            }
             match f["rgb"].as_array() {
                 Some(rgb) => {
                     let want: Vec<u8> = rgb.iter().map(|v| v.as_u64().unwrap() as u8).collect();
@@ -204,6 +215,10 @@ fn captures_written_here_decode_in_python() {
             height: 6,
             rgb: (0..216).map(|k| (k * 5 + i) as u8).collect(),
             timestamp_ns: t,
+            exposure: Some(texel::EoExposure {
+                exposure_time_s: 0.001 * (i as f64 + 1.0),
+                gain: 2.0,
+            }),
         };
         w.write_eo(&e, *eo_encoding).unwrap();
         w.write_pose(
@@ -259,6 +274,21 @@ fn captures_written_here_decode_in_python() {
         );
     }
     assert_eq!(got["anchors"].as_array().unwrap().len(), 5);
+    assert_eq!(
+        got["schemas"]["/eo/exposure"],
+        serde_json::json!(["texel.EoExposure", "jsonschema", "json"])
+    );
+    let exposures = got["exposures"].as_array().unwrap();
+    assert_eq!(exposures.len(), rgbs.len());
+    for ((e, _), g) in rgbs.iter().zip(exposures) {
+        let ns =
+            |v: &Value| v["sec"].as_u64().unwrap() * 1_000_000_000 + v["nsec"].as_u64().unwrap();
+        let want = e.exposure.unwrap();
+        assert_eq!(ns(&g["timestamp"]), e.timestamp_ns);
+        assert_eq!(g["log_time"].as_u64().unwrap(), e.timestamp_ns);
+        assert_eq!(g["exposure_time_s"].as_f64().unwrap(), want.exposure_time_s);
+        assert_eq!(g["gain"].as_f64().unwrap(), want.gain);
+    }
     assert_eq!(got["schemas"]["/lidar/range"][0], "foxglove.RawImage");
     assert_eq!(
         got["schemas"]["/texel/sensor"],

@@ -466,6 +466,7 @@ fn a_texture_whose_image_header_claims_more_is_refused_before_decoding() {
         height: 2048,
         rgb: vec![90; 3 * 2048 * 2048],
         timestamp_ns: 0,
+        exposure: None,
     };
     let mut t = Texture::encode(&frame, TextureFormat::Png, 90).unwrap();
     (t.width, t.height) = (8, 4);
@@ -491,6 +492,7 @@ fn compressed_textures_decode_within_their_size_plus_a_fixed_working_set() {
                 height: h,
                 rgb,
                 timestamp_ns: 0,
+                exposure: None,
             };
             let whole = Texture::encode(&frame, format, 90).unwrap();
             let n = whole.data.len();

@@ -86,6 +86,7 @@ fn bench(c: &mut Criterion) {
         height: 960,
         rgb: vec![128; 1280 * 960 * 3],
         timestamp_ns: 1,
+        exposure: None,
     };
     let mut group = c.benchmark_group("fuse_one_core");
     group.bench_function("baseline_copy_eo_1280x960", |b| {
@@ -127,6 +128,7 @@ fn calibrated(_: &mut Criterion) {
         height: 960,
         rgb: vec![128; 1280 * 960 * 3],
         timestamp_ns: 1,
+        exposure: None,
     };
     for side in [128u32, 256] {
         let s = sensor(side);

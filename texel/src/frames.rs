@@ -77,6 +77,55 @@ pub struct EoFrame {
     /// `3 * width * height` bytes, R G B per pixel.
     pub rgb: Vec<u8>,
     pub timestamp_ns: u64,
+    /// How the frame was exposed, where the camera or the capture says (`None` for
+    /// cameras and captures that do not: their pixels are colours, not measurements of
+    /// radiance).
+    pub exposure: Option<EoExposure>,
+}
+
+/// How an EO frame was exposed: with the camera's response curve, what turns its
+/// pixel values back into relative radiance (Debevec & Malik 1997: a pixel value is
+/// `f(E * exposure_time_s * gain)`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct EoExposure {
+    /// Shutter (integration) time in seconds.
+    pub exposure_time_s: f64,
+    /// Sensor gain as a linear factor (1 at the camera's base sensitivity).
+    pub gain: f64,
+}
+
+/// Longest exposure time accepted (s): beyond any texel camera's, so a larger value is
+/// a unit mistake (microseconds written as seconds), not a measurement.
+pub const MAX_EXPOSURE_TIME_S: f64 = 3600.0;
+
+/// Largest sensor gain accepted (linear; 2^20 is 120 dB).
+pub const MAX_EXPOSURE_GAIN: f64 = 1048576.0;
+
+impl EoExposure {
+    /// The factor scene radiance is scaled by before the response curve:
+    /// `exposure_time_s * gain`.
+    pub fn scale(&self) -> f64 {
+        self.exposure_time_s * self.gain
+    }
+
+    /// Exposure time and gain finite, positive and within the accepted ranges, so
+    /// `scale` is a finite positive number whose log exists.
+    pub fn validate(&self) -> Result<(), String> {
+        let in_range = |v: f64, max: f64| v.is_finite() && v > 0.0 && v <= max;
+        if !in_range(self.exposure_time_s, MAX_EXPOSURE_TIME_S) {
+            return Err(format!(
+                "exposure_time_s {} is not in (0, {MAX_EXPOSURE_TIME_S}] s",
+                self.exposure_time_s
+            ));
+        }
+        if !in_range(self.gain, MAX_EXPOSURE_GAIN) {
+            return Err(format!(
+                "gain {} is not in (0, {MAX_EXPOSURE_GAIN}]",
+                self.gain
+            ));
+        }
+        Ok(())
+    }
 }
 
 impl EoFrame {

@@ -25,7 +25,7 @@ pub mod wire;
 
 pub use camera::{Distortion, PinholeCamera};
 pub use distortion::PlumbBob;
-pub use frames::{EoFrame, FramePair, RangeFrame};
+pub use frames::{EoExposure, EoFrame, FramePair, RangeFrame};
 pub use fuse::{FuseConfig, fuse};
 pub use pose::Pose;
 pub use scan::{TexelScan, TriangleFlags};

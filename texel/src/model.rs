@@ -326,6 +326,7 @@ mod tests {
                 height: 1,
                 rgb: vec![0; 3],
                 timestamp_ns: 0,
+                exposure: None,
             }),
             cop_m: [0.0; 3],
             scan_from_lidar: Pose::identity(),

@@ -184,6 +184,7 @@ mod tests {
             height: 1,
             rgb: vec![0; 3],
             timestamp_ns: t,
+            exposure: None,
         }
     }
 

@@ -9,8 +9,8 @@ use std::rc::Rc;
 use std::time::Duration;
 
 use texel::capture::{
-    CaptureError, CaptureEvent, CaptureReader, CaptureWriter, EoEncoding, PoseAnchor, PoseTopic,
-    RangeEncoding, TexelItem, WriterOptions, open_texel_frames,
+    CaptureError, CaptureEvent, CaptureReader, CaptureWriter, EoEncoding, ExposureRecord,
+    PoseAnchor, PoseTopic, RangeEncoding, TexelItem, WriterOptions, open_texel_frames,
 };
 use texel::pose::pose_from_parts;
 use texel::{Distortion, EoFrame, PinholeCamera, PlumbBob, RangeFrame, RangeNoise, SensorModel};
@@ -74,6 +74,7 @@ fn eo_frame(i: u32, t: u64) -> EoFrame {
             .map(|k| ((k as u32 * 7 + i * 11) % 256) as u8)
             .collect(),
         timestamp_ns: t,
+        exposure: None,
     }
 }
 
@@ -135,7 +136,25 @@ fn every_encoding_round_trips() {
             RangeEncoding::U16Millimetres
         };
         w.write_range(&r, range_enc).unwrap();
-        let e = eo_frame(i, r.timestamp_ns);
+        let mut e = eo_frame(i, r.timestamp_ns);
+        // Every other frame says how it was exposed; the others (as captures before
+        // `/eo/exposure` did) say nothing.
+        if i % 2 == 1 {
+            e.exposure = Some(texel::EoExposure {
+                exposure_time_s: 1.0 / (60.0 * f64::from(i)),
+                gain: 1.0 + f64::from(i),
+            });
+        } else if i == 2 {
+            // An exposure for a frame that never comes is not given to the next one.
+            w.write_exposure(&ExposureRecord {
+                timestamp_ns: r.timestamp_ns - 1,
+                exposure: texel::EoExposure {
+                    exposure_time_s: 0.5,
+                    gain: 1.0,
+                },
+            })
+            .unwrap();
+        }
         w.write_eo(&e, *eo_enc).unwrap();
         w.write_pose(
             PoseTopic::Truth,
@@ -158,7 +177,16 @@ fn every_encoding_round_trips() {
     // A compressed EO frame too.
     let r = range_frame(9);
     w.write_range(&r, RangeEncoding::F32Metres).unwrap();
-    let e = eo_frame(9, r.timestamp_ns);
+    let mut e = eo_frame(9, r.timestamp_ns);
+    e.exposure = Some(texel::EoExposure {
+        exposure_time_s: 0.004,
+        gain: 1.0,
+    });
+    w.write_exposure(&ExposureRecord {
+        timestamp_ns: r.timestamp_ns,
+        exposure: e.exposure.unwrap(),
+    })
+    .unwrap();
     let png = texel::capture::encode_compressed(&e.rgb, 16, 12, "png", 90).unwrap();
     w.write_eo_compressed(r.timestamp_ns, "png", png).unwrap();
     expected.push((r, RangeEncoding::F32Metres, e, EoEncoding::Rgb8));
@@ -200,6 +228,7 @@ fn every_encoding_round_trips() {
     for (pair, (r, range_enc, e, eo_enc)) in pairs.iter().zip(&expected) {
         assert_eq!(pair.range.timestamp_ns, r.timestamp_ns);
         assert_eq!(pair.eo.timestamp_ns, e.timestamp_ns);
+        assert_eq!(pair.eo.exposure, e.exposure, "frame at {}", e.timestamp_ns);
         assert_eq!(pair.range.intensity, r.intensity);
         for (a, b) in pair.range.ranges_m.iter().zip(&r.ranges_m) {
             match range_enc {

@@ -110,6 +110,7 @@ fn synthetic_scan(world_from_scan: &Pose, size: u32) -> TexelScan {
             height: 1,
             rgb: vec![0; 3],
             timestamp_ns: 0,
+            exposure: None,
         }),
         cop_m: [0.0; 3],
         scan_from_lidar: Pose::identity(),

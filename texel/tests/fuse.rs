@@ -59,6 +59,7 @@ fn eo_frame(s: &Sensor) -> EoFrame {
         height: h,
         rgb: (0..w * h * 3).map(|i| (i % 251) as u8).collect(),
         timestamp_ns: 5,
+        exposure: None,
     }
 }
 

@@ -241,6 +241,7 @@ fn scan_strategy() -> impl Strategy<Value = TexelScan> {
                                 height: th,
                                 rgb,
                                 timestamp_ns: t_eo,
+                                exposure: None,
                             }),
                             cop_m,
                             scan_from_lidar,
@@ -337,6 +338,7 @@ fn fused_scan() -> TexelScan {
         height: 120,
         rgb: (0..160 * 120 * 3).map(|i| (i * 7 % 253) as u8).collect(),
         timestamp_ns: 1_002,
+        exposure: None,
     };
     let scan = fuse(&range, eo, &Sensor::new(model), &FuseConfig::default()).unwrap();
     assert!(scan.vertex_count() > 1000 && scan.stretched_count() > 0);

@@ -97,6 +97,7 @@ fn image(rgb: [u8; 3]) -> EoFrame {
         height: 120,
         rgb: rgb.repeat(160 * 120),
         timestamp_ns: 0,
+        exposure: None,
     }
 }
 

@@ -193,6 +193,7 @@ pub fn frames(
         height: eo.height,
         rgb,
         timestamp_ns: range.timestamp_ns,
+        exposure: None,
     };
     (range, eo_frame)
 }
@@ -229,6 +230,7 @@ fn empty_scan(sensor: &Sensor) -> TexelScan {
             height: 1,
             rgb: vec![0; 3],
             timestamp_ns: 0,
+            exposure: None,
         }),
         cop_m: [0.0; 3],
         scan_from_lidar: Pose::identity(),

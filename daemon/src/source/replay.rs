@@ -272,8 +272,11 @@ impl ReplaySource {
                     timestamp_ns,
                     world_from_eo,
                 }),
-                // The session records its own registration.
-                CaptureEvent::Anchor(_) | CaptureEvent::Other { .. } => true,
+                // The session records its own registration; the reader has put each
+                // exposure on its EO frame.
+                CaptureEvent::Anchor(_)
+                | CaptureEvent::Exposure(_)
+                | CaptureEvent::Other { .. } => true,
             };
             if !keep_going {
                 break;

@@ -143,6 +143,7 @@ pub fn to_eo_frame(
         height,
         rgb,
         timestamp_ns,
+        exposure: None,
     })
 }
 

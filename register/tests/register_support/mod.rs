@@ -226,6 +226,7 @@ pub fn render(
         height: m.eo.height,
         rgb,
         timestamp_ns: seed,
+        exposure: None,
     };
     (range, eo)
 }

@@ -124,6 +124,7 @@ impl Development {
             height: self.height,
             rgb,
             timestamp_ns,
+            exposure: None,
         }
     }
 }

@@ -57,20 +57,20 @@ pub enum AnchorError {
 /// Foxglove's time convention (`sec`, `nsec`): exact in every JSON reader, where a
 /// nanosecond count past 2^53 is not.
 #[derive(Debug, Clone, Copy, Serialize, Deserialize)]
-struct Time {
+pub(super) struct Time {
     sec: u64,
     nsec: u64,
 }
 
 impl Time {
-    fn from_nanos(ns: u64) -> Self {
+    pub(super) fn from_nanos(ns: u64) -> Self {
         Self {
             sec: ns / 1_000_000_000,
             nsec: ns % 1_000_000_000,
         }
     }
 
-    fn to_nanos(self, field: &'static str) -> Result<u64, AnchorError> {
+    pub(super) fn to_nanos(self, field: &'static str) -> Result<u64, AnchorError> {
         if self.nsec >= 1_000_000_000 {
             return Err(AnchorError::Nanoseconds {
                 field,

@@ -196,7 +196,8 @@ impl<R: Read> TexelFrameReader<R> {
                 world_from_eo,
             })),
             CaptureEvent::Anchor(anchor) => self.ready.push_back(Ok(TexelItem::Anchor(anchor))),
-            CaptureEvent::Other { .. } => {}
+            // The reader has attached it to its EO frame already.
+            CaptureEvent::Exposure(_) | CaptureEvent::Other { .. } => {}
         }
     }
 }

@@ -4,6 +4,7 @@
 
 mod anchors;
 mod convert;
+mod exposure;
 mod frames;
 mod fused;
 mod images;
@@ -19,6 +20,7 @@ pub use convert::{
     calibration_from_camera, camera_from_calibration, nanos_from_timestamp, pose_from_transform,
     timestamp_from_nanos, transform_from_pose,
 };
+pub use exposure::{EXPOSURE_JSON_SCHEMA, EXPOSURE_SCHEMA_NAME, ExposureRecord};
 pub use frames::{DEFAULT_REPLAY_TOLERANCE_NS, TexelFrameReader, TexelItem};
 pub use fused::SensorCache;
 pub use images::{
@@ -49,6 +51,8 @@ pub mod topics {
     pub const EO_IMAGE: &str = "/eo/image";
     pub const EO_IMAGE_COMPRESSED: &str = "/eo/image/compressed";
     pub const EO_CALIBRATION: &str = "/eo/calibration";
+    /// The project's extension: each EO frame's exposure time and gain.
+    pub const EO_EXPOSURE: &str = "/eo/exposure";
     pub const TF_STATIC: &str = "/tf_static";
     pub const TEXEL_SENSOR: &str = "/texel/sensor";
     pub const TRUTH_POSE: &str = "/truth/pose";
@@ -57,13 +61,14 @@ pub mod topics {
     pub const TEXEL_ANCHOR: &str = "/texel/anchor";
 
     /// Every topic the format defines.
-    pub const ALL: [&str; 11] = [
+    pub const ALL: [&str; 12] = [
         LIDAR_RANGE,
         LIDAR_INTENSITY,
         LIDAR_CALIBRATION,
         EO_IMAGE,
         EO_IMAGE_COMPRESSED,
         EO_CALIBRATION,
+        EO_EXPOSURE,
         TF_STATIC,
         TEXEL_SENSOR,
         TRUTH_POSE,

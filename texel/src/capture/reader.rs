@@ -16,7 +16,7 @@ use super::convert::{camera_from_calibration, nanos_from_timestamp, pose_from_tr
 use super::images::{decode_compressed, decode_eo, decode_intensity, decode_range};
 use super::records::{RecordReader, Step};
 use super::summary::SummaryIndex;
-use super::{CaptureError, PoseAnchor, PoseTopic, frame_ids, topics};
+use super::{CaptureError, ExposureRecord, PoseAnchor, PoseTopic, frame_ids, topics};
 use crate::camera::PinholeCamera;
 use crate::frames::{EoFrame, RangeFrame};
 use crate::pose::Pose;
@@ -65,6 +65,9 @@ pub enum CaptureEvent {
     },
     /// `/texel/anchor`: a registered frame hangs from a keyframe.
     Anchor(PoseAnchor),
+    /// `/eo/exposure`: how the EO frame at its timestamp was exposed (the reader also
+    /// attaches it to that frame's [`EoFrame::exposure`]).
+    Exposure(ExposureRecord),
     /// A topic the format does not define; readers skip it.
     Other {
         topic: String,
@@ -90,6 +93,8 @@ pub struct CaptureReader<R: Read> {
     done: bool,
     lidar_calibration: Option<PinholeCamera>,
     eo_calibration: Option<PinholeCamera>,
+    /// The last `/eo/exposure` read, until the EO frame it names arrives.
+    pending_exposure: Option<ExposureRecord>,
 }
 
 impl CaptureReader<File> {
@@ -131,6 +136,7 @@ impl<R: Read> CaptureReader<R> {
             done: false,
             lidar_calibration: None,
             eo_calibration: None,
+            pending_exposure: None,
         }
     }
 
@@ -353,6 +359,15 @@ impl<R: Read> CaptureReader<R> {
                     .map_err(|e| self.spec_error(message, e.to_string()))?;
                 Ok(CaptureEvent::Anchor(anchor))
             }
+            topics::EO_EXPOSURE => {
+                if message.channel.message_encoding != "json" {
+                    return Err(self.spec_error(message, "message encoding must be json"));
+                }
+                let record = ExposureRecord::from_json(&message.data)
+                    .map_err(|e| self.spec_error(message, e))?;
+                self.pending_exposure = Some(record);
+                Ok(CaptureEvent::Exposure(record))
+            }
             topics::LIDAR_RANGE => {
                 let msg: RawImage = self.decode_protobuf(message, "foxglove.RawImage")?;
                 self.check_size(
@@ -400,11 +415,13 @@ impl<R: Read> CaptureReader<R> {
                 }
                 let rgb = decode_eo(&msg.encoding, msg.width, msg.height, msg.step, &msg.data)
                     .map_err(|e| self.spec_error(message, e.to_string()))?;
+                let timestamp_ns = timestamp(msg.timestamp.as_ref());
                 Ok(CaptureEvent::Eo(EoFrame {
                     width: msg.width,
                     height: msg.height,
                     rgb,
-                    timestamp_ns: timestamp(msg.timestamp.as_ref()),
+                    timestamp_ns,
+                    exposure: self.take_exposure(timestamp_ns),
                 }))
             }
             topics::EO_IMAGE_COMPRESSED => {
@@ -423,11 +440,13 @@ impl<R: Read> CaptureReader<R> {
                         ),
                     ));
                 }
+                let timestamp_ns = timestamp(msg.timestamp.as_ref());
                 Ok(CaptureEvent::Eo(EoFrame {
                     width,
                     height,
                     rgb,
-                    timestamp_ns: timestamp(msg.timestamp.as_ref()),
+                    timestamp_ns,
+                    exposure: self.take_exposure(timestamp_ns),
                 }))
             }
             topic @ (topics::TRUTH_POSE | topics::TEXEL_POSE) => {
@@ -459,6 +478,14 @@ impl<R: Read> CaptureReader<R> {
                 log_time_ns,
             }),
         }
+    }
+
+    /// The exposure the last `/eo/exposure` gave the EO frame at `timestamp_ns`, if it
+    /// names this frame (a frame without one has no exposure; an exposure without its
+    /// frame is dropped when the next frame arrives).
+    fn take_exposure(&mut self, timestamp_ns: u64) -> Option<crate::frames::EoExposure> {
+        let record = self.pending_exposure.take()?;
+        (record.timestamp_ns == timestamp_ns).then_some(record.exposure)
     }
 
     fn size_error(

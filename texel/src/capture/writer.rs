@@ -14,8 +14,9 @@ use foxglove::messages::{CompressedImage, RawImage};
 use super::convert::{calibration_from_camera, timestamp_from_nanos, transform_from_pose};
 use super::images::{EoEncoding, RangeEncoding, encode_eo, encode_intensity, encode_range};
 use super::{
-    ANCHOR_JSON_SCHEMA, ANCHOR_SCHEMA_NAME, CameraRole, CaptureError, PoseAnchor, PoseTopic,
-    SENSOR_JSON_SCHEMA, SENSOR_SCHEMA_NAME, frame_ids, topics,
+    ANCHOR_JSON_SCHEMA, ANCHOR_SCHEMA_NAME, CameraRole, CaptureError, EXPOSURE_JSON_SCHEMA,
+    EXPOSURE_SCHEMA_NAME, ExposureRecord, PoseAnchor, PoseTopic, SENSOR_JSON_SCHEMA,
+    SENSOR_SCHEMA_NAME, frame_ids, topics,
 };
 use crate::camera::PinholeCamera;
 use crate::frames::{EoFrame, RangeFrame};
@@ -311,6 +312,12 @@ impl<W: Write + Seek> CaptureWriter<W> {
         }
         let (step, data) = encode_eo(&frame.rgb, frame.width, frame.height, encoding)
             .map_err(|e| self.write_error(e))?;
+        if let Some(exposure) = frame.exposure {
+            self.write_exposure(&ExposureRecord {
+                timestamp_ns: frame.timestamp_ns,
+                exposure,
+            })?;
+        }
         let msg = RawImage {
             timestamp: Some(timestamp_from_nanos(frame.timestamp_ns)),
             frame_id: frame_ids::EO.to_string(),
@@ -321,6 +328,24 @@ impl<W: Write + Seek> CaptureWriter<W> {
             data: data.into(),
         };
         self.write_foxglove(topics::EO_IMAGE, frame.timestamp_ns, &msg)
+    }
+
+    /// `/eo/exposure`: how the EO frame at `record.timestamp_ns` was exposed. Written
+    /// before the frame (as [`Self::write_eo`] does), logged at the frame's time.
+    pub fn write_exposure(&mut self, record: &ExposureRecord) -> Result<(), CaptureError> {
+        let json = record.to_json().map_err(|e| {
+            self.write_error(format!("EO frame at {} ns: {e}", record.timestamp_ns))
+        })?;
+        let id = self.channel(
+            topics::EO_EXPOSURE,
+            Some((
+                EXPOSURE_SCHEMA_NAME,
+                "jsonschema",
+                EXPOSURE_JSON_SCHEMA.as_bytes(),
+            )),
+            "json",
+        )?;
+        self.write_on(id, record.timestamp_ns, &json)
     }
 
     /// `/eo/image/compressed`, already compressed as `format` (`jpeg` or `png`).

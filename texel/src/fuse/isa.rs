@@ -168,6 +168,7 @@ mod tests {
                 height: 72,
                 rgb: vec![7; 96 * 72 * 3],
                 timestamp_ns: 9,
+                exposure: None,
             };
             let config = FuseConfig::default();
             let baseline = fuse_with(Isa::Baseline, &frame, Arc::new(eo.clone()), &s, &config).unwrap();

@@ -84,6 +84,7 @@ fn build_sample() -> Result<Vec<u8>, CaptureError> {
             height: 12,
             rgb: (0..16 * 12 * 3).map(|k: u32| (k * 7 + i) as u8).collect(),
             timestamp_ns: t,
+            exposure: None,
         };
         w.write_range(&range, RangeEncoding::F32Metres)?;
         w.write_eo(&eo, EoEncoding::Rgb8)?;

@@ -169,6 +169,7 @@ impl Texture {
             height: h,
             rgb,
             timestamp_ns: self.timestamp_ns,
+            exposure: None,
         })
     }
 
@@ -586,6 +587,7 @@ impl WireScan {
             height: 0,
             rgb: Vec::new(),
             timestamp_ns: self.timestamp_ns,
+            exposure: None,
         };
         self.assemble(texture)
     }

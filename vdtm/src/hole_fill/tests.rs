@@ -389,6 +389,7 @@ fn frame(split: u32, left: [u8; 3], right: [u8; 3]) -> EoFrame {
         height: H,
         rgb,
         timestamp_ns: 0,
+        exposure: None,
     }
 }
 
