@@ -49,7 +49,9 @@ enum Command {
         #[arg(long)]
         effects: Option<String>,
     },
-    /// Render one clean ground-truth EO image from any pose.
+    /// Render one clean ground-truth EO image from any pose: an 8-bit picture (PNG),
+    /// or, when OUT ends in `.exr`, the linear radiance in 32-bit floats (OpenEXR), the
+    /// truth high-dynamic-range results are scored against.
     View {
         #[arg(long)]
         scene: PathBuf,
@@ -248,6 +250,14 @@ fn view(
     let default_fov = 2.0 * (0.5 * f64::from(eo.height) / eo.fy).atan().to_degrees();
     let camera = PinholeCamera::from_vertical_fov(width, height, fov_deg.unwrap_or(default_fov))
         .context("--fov-deg")?;
+    if out
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("exr"))
+    {
+        let radiance = scene.radiance_view(&world_from_eo, &camera);
+        sims::radiance_exr::write_radiance_exr(out, width, height, &radiance)?;
+        return Ok(());
+    }
     let frame = scene.render_view(&world_from_eo, &camera);
     image::save_buffer(
         out,

@@ -9,6 +9,7 @@ use thiserror::Error;
 
 use crate::effects::lens_distortion::effective_model;
 use crate::effects::{Effect, EffectSet};
+use crate::material::Rgb;
 use crate::render::eo::Development;
 use crate::render::lidar::{LidarRays, NoiseKey, echoes, render_range};
 use crate::render::mitsuba::{MitsubaBackend, MitsubaRenderer};
@@ -409,6 +410,20 @@ impl Simulator {
             &clean,
             NoiseKey { seed: 0, frame: 0 },
             timestamp_ns,
+        )
+    }
+
+    /// The linear radiance every pixel of the simulation's EO camera receives at any
+    /// pose, before vignetting, exposure, noise and the response curve (1.0 is white
+    /// at 0 EV): the truth a high-dynamic-range result is scored against. A frame
+    /// developed with the `exposure` effect's linear response holds
+    /// `min(1, radiance × exposure_time / exposure_time_s)` per channel, in 8 bits.
+    pub fn clean_radiance_at(&self, world_from_eo: &Pose) -> Vec<Rgb> {
+        eo::radiance(
+            self.clean_backend.as_ref(),
+            &self.eo_rays,
+            &EffectSet::default(),
+            std::slice::from_ref(world_from_eo),
         )
     }
 

@@ -75,6 +75,68 @@ fn view_writes_the_image_asked_for() {
 }
 
 #[test]
+fn view_to_exr_writes_the_radiance_truth_that_develops_into_the_png() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene_path = configs().join("scenes/interior-window.toml");
+    let pose = "0 -1.8 1.5 -0.77 0 0 0.64";
+    let args = |out: &str| {
+        vec![
+            "view".to_string(),
+            "--scene".into(),
+            scene_path.to_str().unwrap().into(),
+            "--pose".into(),
+            pose.into(),
+            "--out".into(),
+            out.into(),
+            "--width".into(),
+            "64".into(),
+            "--height".into(),
+            "48".into(),
+        ]
+    };
+    let exr = dir.path().join("v.exr");
+    let png = dir.path().join("v.png");
+    for out in [&exr, &png] {
+        let a = args(out.to_str().unwrap());
+        let o = texel_sims(&a.iter().map(String::as_str).collect::<Vec<_>>());
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    }
+    let (w, h, radiance) = sims::radiance_exr::read_radiance_exr(&exr).unwrap();
+    assert_eq!((w, h), (64, 48));
+    // Exactly the library's radiance for that view.
+    let scene = sims::Scene::load(&scene_path).unwrap();
+    let eo = &scene.sensor().eo;
+    let fov = 2.0 * (0.5 * f64::from(eo.height) / eo.fy).atan().to_degrees();
+    let camera = texel::PinholeCamera::from_vertical_fov(64, 48, fov).unwrap();
+    let world_from_eo = texel::pose::parse_pose(pose).unwrap();
+    assert_eq!(radiance, scene.radiance_view(&world_from_eo, &camera));
+    // The clean PNG is that radiance clipped at 1 and sRGB-encoded; the window's view
+    // is beyond 1 (what an 8-bit image loses), finite and non-negative everywhere.
+    let img = image::open(&png).unwrap().to_rgb8();
+    let mut beyond_white = 0;
+    for (l, p) in radiance.iter().zip(img.pixels()) {
+        for c in 0..3 {
+            assert!(l[c].is_finite() && l[c] >= 0.0);
+            beyond_white += usize::from(l[c] > 1.0);
+            let x = l[c].clamp(0.0, 1.0);
+            let srgb = if x <= 0.0031308 {
+                12.92 * x
+            } else {
+                1.055 * x.powf(1.0 / 2.4) - 0.055
+            };
+            assert!(
+                (f32::from(p[c]) - 255.0 * srgb).abs() <= 1.0,
+                "{l:?} vs {p:?}"
+            );
+        }
+    }
+    assert!(
+        beyond_white > 100,
+        "{beyond_white} channel values beyond white"
+    );
+}
+
+#[test]
 fn bad_input_is_named() {
     let scene = configs().join("scenes/plane.toml");
     let o = texel_sims(&[

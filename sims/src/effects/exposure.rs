@@ -6,6 +6,12 @@
 //! `gamma`, then a smoothstep contrast curve blended in by `contrast`, as consumer
 //! cameras' tone curves do). Without this effect a frame is exposed at 0 EV and
 //! encoded with the sRGB curve (the clean render).
+//!
+//! Exposure brackets: with `bracket_ev = [-2, 0, 2]` frame `i` is exposed at
+//! `ev + bracket_ev[i % 3]`, as a camera that cycles its shutter time frame by frame
+//! does. A frame exposed at `ev` had a shutter time of `exposure_time_s × 2^ev` at
+//! unit gain; the frame carries it (and a capture records it on `/eo/exposure`), so
+//! the images can be turned back into radiance.
 
 use serde::{Deserialize, Serialize};
 
@@ -28,7 +34,14 @@ pub struct Exposure {
     pub response: Response,
     pub gamma: f64,
     pub contrast: f64,
+    /// Per-frame offsets (stops) cycled frame by frame; empty: every frame at `ev`.
+    pub bracket_ev: Vec<f64>,
+    /// Shutter time (s) of a frame exposed at 0 EV.
+    pub exposure_time_s: f64,
 }
+
+/// Most exposures in one bracket (cameras' auto-bracketing offers 3 to 9).
+pub const MAX_BRACKET: usize = 16;
 
 impl Default for Exposure {
     fn default() -> Self {
@@ -37,16 +50,23 @@ impl Default for Exposure {
             response: Response::SCurve,
             gamma: 2.2,
             contrast: 0.3,
+            bracket_ev: Vec::new(),
+            exposure_time_s: DEFAULT_EXPOSURE_TIME_S,
         }
     }
 }
+
+/// Shutter time of a frame at 0 EV: 1/100 s, a daylight handheld exposure.
+pub const DEFAULT_EXPOSURE_TIME_S: f64 = 0.01;
 
 impl EffectParams for Exposure {
     const NAME: &'static str = "exposure";
     const TARGET: Target = Target::Eo;
     const MODEL: &'static str = "Linear value × 2^ev, clipped at 1 (saturation), encoded \
         by the response curve: srgb, gamma (x^(1/gamma)), linear, or s_curve (gamma then \
-        a smoothstep contrast blend). Without it: 0 EV and sRGB.";
+        a smoothstep contrast blend). Brackets: frame i at ev + bracket_ev[i mod n], \
+        shutter exposure_time_s × 2^ev, recorded with the frame. Without it: 0 EV and \
+        sRGB, no exposure recorded.";
     const PARAMS: &'static [ParamDoc] = &[
         ParamDoc {
             name: "ev",
@@ -68,12 +88,38 @@ impl EffectParams for Exposure {
             unit: "1",
             what: "s_curve: blend of the smoothstep contrast curve, 0..1",
         },
+        ParamDoc {
+            name: "bracket_ev",
+            unit: "stops",
+            what: "exposure offsets cycled frame by frame (e.g. [-2, 0, 2]); empty: none",
+        },
+        ParamDoc {
+            name: "exposure_time_s",
+            unit: "s",
+            what: "shutter time of a frame at 0 EV",
+        },
     ];
 
     fn validate(&self) -> Result<(), String> {
         check_range("ev", self.ev, -20.0..=20.0)?;
         check_range("gamma", self.gamma, 0.1..=10.0)?;
-        check_range("contrast", self.contrast, 0.0..=1.0)
+        check_range("contrast", self.contrast, 0.0..=1.0)?;
+        check_range("exposure_time_s", self.exposure_time_s, 1.0e-6..=1.0)?;
+        if self.bracket_ev.len() > MAX_BRACKET {
+            return Err(format!(
+                "bracket_ev has {} exposures, at most {MAX_BRACKET} are allowed",
+                self.bracket_ev.len()
+            ));
+        }
+        for (i, offset) in self.bracket_ev.iter().enumerate() {
+            check_range(&format!("bracket_ev[{i}]"), *offset, -10.0..=10.0)?;
+            check_range(
+                &format!("ev + bracket_ev[{i}]"),
+                self.ev + offset,
+                -20.0..=20.0,
+            )?;
+        }
+        Ok(())
     }
 }
 
@@ -83,13 +129,43 @@ pub const CLEAN: Exposure = Exposure {
     response: Response::Srgb,
     gamma: 2.2,
     contrast: 0.0,
+    bracket_ev: Vec::new(),
+    exposure_time_s: DEFAULT_EXPOSURE_TIME_S,
 };
 
 impl Exposure {
-    /// Scale applied to linear values before saturation.
+    /// Scale applied to linear values before saturation (at the base `ev`).
     #[inline]
     pub fn gain(&self) -> f32 {
         2f64.powf(self.ev) as f32
+    }
+
+    /// The exposure of frame `frame` (stops): `ev` plus its place in the bracket.
+    pub fn frame_ev(&self, frame: u64) -> f64 {
+        let n = self.bracket_ev.len() as u64;
+        let offset = match n {
+            0 => 0.0,
+            n => self
+                .bracket_ev
+                .get((frame % n) as usize)
+                .copied()
+                .unwrap_or(0.0),
+        };
+        self.ev + offset
+    }
+
+    /// Scale applied to frame `frame`'s linear values before saturation.
+    pub fn frame_gain(&self, frame: u64) -> f32 {
+        2f64.powf(self.frame_ev(frame)) as f32
+    }
+
+    /// How frame `frame` was exposed: shutter `exposure_time_s × 2^ev` at unit gain,
+    /// so a pixel value is `response(radiance × exposure_time / exposure_time_s)`.
+    pub fn frame_exposure(&self, frame: u64) -> texel::EoExposure {
+        texel::EoExposure {
+            exposure_time_s: self.exposure_time_s * 2f64.powf(self.frame_ev(frame)),
+            gain: 1.0,
+        }
     }
 
     /// Encodes a linear value already scaled and clipped to [0, 1] into [0, 1].

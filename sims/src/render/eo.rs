@@ -9,7 +9,7 @@ use texel::{EoFrame, Pose};
 use super::lidar::NoiseKey;
 use super::{CameraRays, RenderBackend};
 use crate::effects::EffectSet;
-use crate::effects::exposure::{CLEAN, lut_lookup};
+use crate::effects::exposure::{CLEAN, Exposure, lut_lookup};
 use crate::effects::sensor_noise::SensorNoise;
 use crate::material::Rgb;
 use crate::rng::normal_table::normal_table;
@@ -57,7 +57,9 @@ pub struct Development {
     width: u32,
     height: u32,
     lut: Vec<u8>,
-    gain: f32,
+    /// The `exposure` effect when the scene lists it: each frame's gain and the
+    /// exposure it records (`None`: 0 EV, nothing recorded).
+    exposure: Option<Exposure>,
     /// Per pixel, the vignetting factor of its ray (`None` without `vignetting`).
     vignette: Option<Vec<f32>>,
     sensor_noise: Option<SensorNoise>,
@@ -80,7 +82,7 @@ impl Development {
             width: rays.camera.width,
             height: rays.camera.height,
             lut: exposure.lut(),
-            gain: exposure.gain(),
+            exposure: effects.exposure.clone(),
             vignette,
             sensor_noise: effects.sensor_noise.clone(),
         }
@@ -88,8 +90,12 @@ impl Development {
 
     /// Turns linear radiance (one value per pixel) into an 8-bit RGB frame through the
     /// EO effects: vignetting, exposure gain and saturation, sensor noise, response
-    /// curve.
+    /// curve. Frame `key.frame` takes its place in the exposure bracket.
     pub fn develop(&self, linear: &[Rgb], key: NoiseKey, timestamp_ns: u64) -> EoFrame {
+        let gain = self
+            .exposure
+            .as_ref()
+            .map_or(1.0, |e| e.frame_gain(key.frame));
         let mut rgb = vec![0u8; 3 * linear.len()];
         let noise_rng = FrameRng::new(key.seed, key.frame, Stream::SensorNoise);
         let normals = normal_table();
@@ -109,7 +115,7 @@ impl Development {
                         }
                     }
                     for c in v.iter_mut() {
-                        *c = (*c * self.gain).clamp(0.0, 1.0);
+                        *c = (*c * gain).clamp(0.0, 1.0);
                     }
                     if let Some(noise) = &self.sensor_noise {
                         v = noise.apply(v, noise_rng.pixel(pixel as u64).normals3(normals));
@@ -124,7 +130,7 @@ impl Development {
             height: self.height,
             rgb,
             timestamp_ns,
-            exposure: None,
+            exposure: self.exposure.as_ref().map(|e| e.frame_exposure(key.frame)),
         }
     }
 }

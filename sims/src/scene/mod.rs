@@ -15,6 +15,7 @@ use texel::{EoFrame, PinholeCamera, Pose, SensorModel};
 
 use crate::effects::{Effect, EffectSet};
 use crate::geometry::Ray;
+use crate::material::Rgb;
 use crate::render::lidar::NoiseKey;
 use crate::render::{BuiltinBackend, CameraRays, eo};
 use crate::trajectory::Trajectory;
@@ -150,15 +151,28 @@ impl Scene {
 
     /// [`Self::render_view`] with the camera's rays computed once by the caller.
     pub fn render_view_with(&self, world_from_eo: &Pose, rays: &CameraRays) -> EoFrame {
-        let backend = BuiltinBackend::new(self.world.clone());
+        let linear = self.radiance_view_with(world_from_eo, rays);
         let effects = EffectSet::default();
-        let linear = eo::radiance(
+        eo::develop(&linear, rays, &effects, NoiseKey { seed: 0, frame: 0 }, 0)
+    }
+
+    /// The linear radiance (row-major, in the units where 1.0 is white at 0 EV) the
+    /// scene sends into each pixel of a camera at any pose: the truth a
+    /// high-dynamic-range result is scored against, before any exposure, saturation or
+    /// response curve.
+    pub fn radiance_view(&self, world_from_eo: &Pose, camera: &PinholeCamera) -> Vec<Rgb> {
+        self.radiance_view_with(world_from_eo, &CameraRays::new(camera))
+    }
+
+    /// [`Self::radiance_view`] with the camera's rays computed once by the caller.
+    pub fn radiance_view_with(&self, world_from_eo: &Pose, rays: &CameraRays) -> Vec<Rgb> {
+        let backend = BuiltinBackend::new(self.world.clone());
+        eo::radiance(
             &backend,
             rays,
-            &effects,
+            &EffectSet::default(),
             std::slice::from_ref(world_from_eo),
-        );
-        eo::develop(&linear, rays, &effects, NoiseKey { seed: 0, frame: 0 }, 0)
+        )
     }
 
     /// Number of primitives in the scene's acceleration structure.
