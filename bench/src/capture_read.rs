@@ -131,6 +131,7 @@ fn synthetic_capture(dir: &Path, frames: u32) -> Result<PathBuf> {
         range_bias_m: 0.0,
         min_range_m: 0.3,
         max_range_m: 30.0,
+        eo_response: None,
     };
     let partial = path.with_extension("partial.mcap");
     let mut w = CaptureWriter::create(&partial, WriterOptions::default())?;

@@ -78,10 +78,14 @@ pub struct ResponseCurve {
     pub log_exposure: Vec<f64>,
 }
 
-/// The hat weighting of the paper's eq. 4: 0 at black and at saturation, largest in
-/// the middle of the range, where the response is best known.
-pub fn hat_weight(z: u8) -> f64 {
-    f64::from(z.min(255 - z))
+pub use texel::radiance::hat_weight;
+
+/// The three channels' curves as the sensor model carries them (the sensor file's
+/// `[eo_response]`), checked as every curve a sensor file holds is.
+pub fn to_eo_response(
+    curves: &[ResponseCurve; 3],
+) -> Result<texel::radiance::EoResponse, texel::radiance::ResponseError> {
+    texel::radiance::EoResponse::new(curves.clone().map(|c| c.log_exposure))
 }
 
 /// Recovers `g` for one channel from `samples` (each the values of one pixel at every
@@ -96,14 +100,32 @@ pub fn recover_response(
     let log_times = check_bracket(samples, exposure_times_s, lambda)?;
     // 2. The linear system, eq. 3 of the paper.
     let (a, b) = linear_system(samples, &log_times, lambda);
-    // 3. Least squares by SVD.
-    let svd = a.svd(true, true);
-    let x = svd.solve(&b, 1e-10).map_err(ResponseError::Solve)?;
+    // 3. Least squares.
+    let x = least_squares(a, &b)?;
     let log_exposure: Vec<f64> = (0..LEVELS).map(|z| x[z]).collect();
     if log_exposure.iter().any(|g| !g.is_finite()) {
         return Err(ResponseError::Solve("a non-finite curve"));
     }
     Ok(ResponseCurve { log_exposure })
+}
+
+/// The least-squares solution of `a x = b`: by Householder QR (`R x = Qᵀ b`), which
+/// keeps the accuracy of the system's own conditioning; by SVD only where R is
+/// singular (a sample that no weighted value reaches leaves its radiance free).
+/// (nalgebra's SVD alone was measured to miss the optimum on a 1255 x 456 system of a
+/// simulated bracket: a residual of 85.8 where QR and the normal equations reach
+/// 80.3, with the whole curve shifted 30 log units off its `g(128) = 0`.)
+fn least_squares(a: DMatrix<f64>, b: &DVector<f64>) -> Result<DVector<f64>, ResponseError> {
+    let qr = a.clone().qr();
+    let qtb = qr.q().transpose() * b;
+    let r = qr.r();
+    let regular = r.diagonal().iter().all(|d| d.abs() > 1e-9);
+    if regular && let Some(x) = r.solve_upper_triangular(&qtb) {
+        return Ok(x);
+    }
+    a.svd(true, true)
+        .solve(b, 1e-10)
+        .map_err(ResponseError::Solve)
 }
 
 /// The three channels' curves from a bracket of aligned RGB images (interleaved

@@ -68,12 +68,26 @@ fn the_response_command_writes_the_true_curve() {
     let dir = tempfile::tempdir().unwrap();
     let images = write_bracket(dir.path(), 96, 64);
     let csv = dir.path().join("response.csv");
+    let sensor_out = dir.path().join("sensor.toml");
+    let sensor_in =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/sensors/texel-default.toml");
     let mut args = vec!["response".to_string()];
     args.extend(image_args(&images));
     args.extend(["--out".into(), csv.display().to_string()]);
+    args.extend(["--sensor-in".into(), sensor_in.display().to_string()]);
+    args.extend(["--sensor-out".into(), sensor_out.display().to_string()]);
     let (ok, stdout, stderr) = texel_calib(&args);
     assert!(ok, "{stderr}");
     println!("{stdout}");
+    // The sensor file carries the curve, and is otherwise the one it was made from.
+    let sensor = texel::SensorModel::load(&sensor_out).unwrap();
+    let curve = sensor
+        .eo_response
+        .clone()
+        .expect("the sensor file's [eo_response]");
+    let mut plain = sensor.clone();
+    plain.eo_response = None;
+    assert_eq!(plain, texel::SensorModel::load(&sensor_in).unwrap());
     let text = std::fs::read_to_string(&csv).unwrap();
     let rows: Vec<Vec<f64>> = text
         .lines()
@@ -81,6 +95,16 @@ fn the_response_command_writes_the_true_curve() {
         .map(|l| l.split(',').map(|v| v.parse().unwrap()).collect())
         .collect();
     assert_eq!(rows.len(), 256);
+    for (z, row) in rows.iter().enumerate() {
+        for c in 0..3 {
+            let g = curve.log_exposure(c, z as u8);
+            assert!(
+                (g - row[c + 1]).abs() < 1e-6,
+                "{z} {c}: {g} vs {}",
+                row[c + 1]
+            );
+        }
+    }
     let truth = |z: usize| srgb_decode(z as f64 / 255.0).ln() - srgb_decode(128.0 / 255.0).ln();
     let mut worst: f64 = 0.0;
     for (z, row) in rows.iter().enumerate().take(241).skip(16) {
@@ -123,5 +147,12 @@ fn misaligned_or_malformed_brackets_are_refused_by_name() {
         csv.display().to_string(),
     ]);
     assert!(!ok && stderr.contains("FILE@SECONDS"), "{stderr}");
+    // A sensor file to carry the curve needs a place to be written.
+    let mut args = vec!["response".to_string()];
+    args.extend(image_args(&write_bracket(dir.path(), 32, 16)));
+    args.extend(["--out".into(), csv.display().to_string()]);
+    args.extend(["--sensor-in".into(), "in.toml".into()]);
+    let (ok, _, stderr) = texel_calib(&args);
+    assert!(!ok && stderr.contains("--sensor-out"), "{stderr}");
     assert!(!csv.exists());
 }

@@ -28,6 +28,7 @@ fn model() -> SensorModel {
         range_bias_m: 0.0,
         min_range_m: 0.3,
         max_range_m: 30.0,
+        eo_response: None,
     }
 }
 

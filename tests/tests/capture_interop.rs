@@ -188,6 +188,7 @@ fn captures_written_here_decode_in_python() {
         range_bias_m: 0.0,
         min_range_m: 0.2,
         max_range_m: 50.0,
+        eo_response: None,
     };
     let t0 = 1_750_000_000_123_456_789u64;
     let mut w = CaptureWriter::create(&capture, WriterOptions::default()).unwrap();

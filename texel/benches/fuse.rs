@@ -44,6 +44,7 @@ fn sensor(side: u32) -> Sensor {
         range_bias_m: 0.0,
         min_range_m: 0.3,
         max_range_m: 30.0,
+        eo_response: None,
     })
 }
 

@@ -14,6 +14,7 @@ pub mod fuzzing;
 pub mod model;
 pub mod paged;
 pub mod pose;
+pub mod radiance;
 pub mod rays;
 pub mod scan;
 pub mod sensor;

@@ -12,6 +12,7 @@ use thiserror::Error;
 use crate::camera::{CameraError, PinholeCamera};
 use crate::fusion_tables::{FusionTables, LidarPitch};
 use crate::pose::{Pose, PoseError, pose_from_parts, pose_to_parts};
+use crate::radiance::EoResponse;
 use crate::rays::RayTable;
 
 /// Range noise standard deviation `sigma(r) = sigma_m + sigma_per_m * r` (capture
@@ -55,6 +56,10 @@ pub struct SensorInfo {
     pub min_range_m: f64,
     pub max_range_m: f64,
     pub name: String,
+    /// The EO camera's response curve, where it was calibrated (`texel-calib
+    /// response`): Texel's extension, absent from the original message.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub eo_response: Option<EoResponse>,
 }
 
 impl Default for SensorInfo {
@@ -67,6 +72,7 @@ impl Default for SensorInfo {
             min_range_m: 0.3,
             max_range_m: 30.0,
             name: String::new(),
+            eo_response: None,
         }
     }
 }
@@ -122,6 +128,9 @@ pub struct SensorModel {
     pub range_bias_m: f64,
     pub min_range_m: f64,
     pub max_range_m: f64,
+    /// The EO camera's response curve (Debevec & Malik's `g` per channel), where it
+    /// was calibrated: what turns its exposed frames into radiance.
+    pub eo_response: Option<EoResponse>,
 }
 
 #[derive(Debug, Error)]
@@ -155,6 +164,9 @@ struct SensorFile {
     eo_from_lidar: ExtrinsicFile,
     #[serde(default)]
     range: RangeFile,
+    /// `[eo_response]`: `r`, `g`, `b`, 256 values of ln(exposure) each.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    eo_response: Option<EoResponse>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -233,6 +245,7 @@ impl SensorModel {
             range_bias_m: file.range.bias_m,
             min_range_m: file.range.min_range_m,
             max_range_m: file.range.max_range_m,
+            eo_response: file.eo_response,
         };
         model.info().validate().map_err(|e| SensorError::Parse {
             path: origin.to_string(),
@@ -259,6 +272,7 @@ impl SensorModel {
                 min_range_m: self.min_range_m,
                 max_range_m: self.max_range_m,
             },
+            eo_response: self.eo_response.clone(),
         };
         // Serialising plain numbers, strings and arrays cannot fail.
         toml::to_string_pretty(&file).unwrap_or_default()
@@ -274,6 +288,7 @@ impl SensorModel {
             min_range_m: self.min_range_m,
             max_range_m: self.max_range_m,
             name: self.name.clone(),
+            eo_response: self.eo_response.clone(),
         }
     }
 
@@ -293,6 +308,7 @@ impl SensorModel {
             range_bias_m: info.range_bias_m,
             min_range_m: info.min_range_m,
             max_range_m: info.max_range_m,
+            eo_response: info.eo_response.clone(),
         }
     }
 }
@@ -429,5 +445,33 @@ noise_sigma_m = 0.005
             ..SensorInfo::default()
         };
         assert!(info.validate().is_err());
+    }
+
+    #[test]
+    fn the_eo_response_rides_in_the_sensor_file_and_the_sensor_json() {
+        let plain = SensorModel::from_toml_str(FILE, "plain.toml").unwrap();
+        assert_eq!(plain.eo_response, None);
+        assert!(!plain.to_toml_string().contains("eo_response"));
+        assert!(
+            !serde_json::to_string(&plain.info())
+                .unwrap()
+                .contains("eo_response")
+        );
+        let mut m = plain.clone();
+        m.eo_response = Some(EoResponse::srgb());
+        let back = SensorModel::from_toml_str(&m.to_toml_string(), "again").unwrap();
+        assert_eq!(back, m);
+        let json = serde_json::to_string(&m.info()).unwrap();
+        let info: SensorInfo = serde_json::from_str(&json).unwrap();
+        assert_eq!(info.eo_response, m.eo_response);
+        // A curve of the wrong length is named, with its file.
+        let short = format!("{FILE}\n[eo_response]\nr = [0.0, 1.0]\ng = [0.0]\nb = [0.0]\n");
+        let e = SensorModel::from_toml_str(&short, "short.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("short.toml") && e.contains("eo_response.r has 2 values"),
+            "{e}"
+        );
     }
 }

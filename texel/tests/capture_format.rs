@@ -52,6 +52,8 @@ fn sensor() -> SensorModel {
         range_bias_m: 0.0,
         min_range_m: 0.3,
         max_range_m: 25.0,
+        // The response curve travels in `/texel/sensor`.
+        eo_response: Some(texel::radiance::EoResponse::srgb()),
     }
 }
 

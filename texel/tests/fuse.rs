@@ -49,6 +49,7 @@ fn sensor(lidar: PinholeCamera, eo_from_lidar: Pose, sigma_m: f64) -> Sensor {
         range_bias_m: 0.0,
         min_range_m: 0.1,
         max_range_m: 100.0,
+        eo_response: None,
     })
 }
 
@@ -437,6 +438,7 @@ proptest! {
             range_bias_m: 0.0,
             min_range_m: 0.1,
             max_range_m: 100.0,
+            eo_response: None,
         });
         let mut frame = RangeFrame::empty(12, 9, 0, 0);
         frame.ranges_m = ranges;

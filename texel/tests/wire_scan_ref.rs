@@ -322,6 +322,7 @@ fn fused_scan() -> TexelScan {
         range_bias_m: 0.0,
         min_range_m: 0.1,
         max_range_m: 50.0,
+        eo_response: None,
     };
     let mut range = RangeFrame::empty(48, 36, 1_000, 7);
     for v in 0..36u32 {

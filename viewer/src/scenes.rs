@@ -126,6 +126,7 @@ pub fn sensor(lidar_w: u32, lidar_h: u32, eo_w: u32, eo_h: u32) -> Sensor {
         range_bias_m: 0.0,
         min_range_m: 0.1,
         max_range_m: 100.0,
+        eo_response: None,
     })
 }
 

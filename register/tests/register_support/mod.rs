@@ -160,6 +160,7 @@ pub fn sensor(w: u32, h: u32, sigma_m: f64) -> Sensor {
         range_bias_m: 0.0,
         min_range_m: 0.1,
         max_range_m: 30.0,
+        eo_response: None,
     })
 }
 

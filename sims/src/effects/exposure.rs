@@ -188,6 +188,41 @@ impl Exposure {
         }
     }
 
+    /// The camera's true response as Debevec & Malik's inverse log response
+    /// (`texel::radiance::EoResponse`), the same for every channel: for each 8-bit
+    /// value, the log of the exposure (radiance × shutter time) at the middle of the
+    /// linear interval the curve maps to it (value 255: the interval's start, the
+    /// least exposure that saturates), so radiance comes out in the simulator's units
+    /// (1.0 is white at 0 EV). Values the curve skips take the log-linear
+    /// interpolation of their neighbours. What a recovered curve is compared with.
+    pub fn true_response(
+        &self,
+    ) -> Result<texel::radiance::EoResponse, texel::radiance::ResponseError> {
+        let lut = self.lut();
+        let mut low = [f64::INFINITY; 256];
+        let mut high = [f64::NEG_INFINITY; 256];
+        for (i, &z) in lut.iter().enumerate() {
+            let x = i as f64 / (LUT_SIZE - 1) as f64;
+            let z = usize::from(z);
+            low[z] = low[z].min(x);
+            high[z] = high[z].max(x);
+        }
+        let log_time = self.exposure_time_s.ln();
+        let mut known: Vec<Option<f64>> = (0..256)
+            .map(|z| {
+                let x = if z == 255 {
+                    low[z]
+                } else {
+                    0.5 * (low[z] + high[z])
+                };
+                (x.is_finite() && x > 0.0).then(|| x.ln() + log_time)
+            })
+            .collect();
+        fill_gaps(&mut known);
+        let curve: Vec<f64> = known.into_iter().map(|g| g.unwrap_or(log_time)).collect();
+        texel::radiance::EoResponse::new([curve.clone(), curve.clone(), curve])
+    }
+
     /// A [`LUT_SIZE`]-entry table from clipped linear values to 8-bit codes.
     pub fn lut(&self) -> Vec<u8> {
         (0..LUT_SIZE)
@@ -196,6 +231,31 @@ impl Exposure {
                 (self.encode(x) * 255.0 + 0.5).clamp(0.0, 255.0) as u8
             })
             .collect()
+    }
+}
+
+/// Values without a log take the linear interpolation of the nearest known ones on
+/// either side (the nearest one alone at the ends).
+fn fill_gaps(values: &mut [Option<f64>]) {
+    let known: Vec<(usize, f64)> = values
+        .iter()
+        .enumerate()
+        .filter_map(|(i, v)| v.map(|v| (i, v)))
+        .collect();
+    for (i, v) in values.iter_mut().enumerate() {
+        if v.is_some() {
+            continue;
+        }
+        let before = known.iter().rev().find(|(k, _)| *k < i);
+        let after = known.iter().find(|(k, _)| *k > i);
+        *v = match (before, after) {
+            (Some(&(a, va)), Some(&(b, vb))) => {
+                Some(va + (vb - va) * (i - a) as f64 / (b - a) as f64)
+            }
+            (Some(&(_, va)), None) => Some(va),
+            (None, Some(&(_, vb))) => Some(vb),
+            (None, None) => None,
+        };
     }
 }
 

@@ -96,7 +96,16 @@ pub const SENSOR_JSON_SCHEMA: &str = r#"{
     "range_bias_m": {"type": "number"},
     "min_range_m": {"type": "number"},
     "max_range_m": {"type": "number"},
-    "name": {"type": "string"}
+    "name": {"type": "string"},
+    "eo_response": {
+      "description": "The EO camera's inverse log response g(z) = ln(exposure) per 8-bit value and channel (Debevec & Malik 1997)",
+      "type": "object",
+      "properties": {
+        "r": {"type": "array", "items": {"type": "number"}, "minItems": 256, "maxItems": 256},
+        "g": {"type": "array", "items": {"type": "number"}, "minItems": 256, "maxItems": 256},
+        "b": {"type": "array", "items": {"type": "number"}, "minItems": 256, "maxItems": 256}
+      }
+    }
   }
 }"#;
 

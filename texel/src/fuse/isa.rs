@@ -117,6 +117,7 @@ mod tests {
             range_bias_m: 0.003,
             min_range_m: 0.1,
             max_range_m: 100.0,
+            eo_response: None,
         })
     }
 

@@ -66,6 +66,7 @@ fn build_sample() -> Result<Vec<u8>, CaptureError> {
         range_bias_m: 0.0,
         min_range_m: 0.3,
         max_range_m: 30.0,
+        eo_response: None,
     };
     let options = WriterOptions {
         chunk_size_bytes: 4096,

@@ -59,6 +59,13 @@ enum Command {
         /// The CSV file to write.
         #[arg(long)]
         out: PathBuf,
+        /// A sensor file to carry the curve: it is read, given the curve as its
+        /// `[eo_response]`, and written to `--sensor-out`.
+        #[arg(long, requires = "sensor_out")]
+        sensor_in: Option<PathBuf>,
+        /// Where the sensor file with the curve is written.
+        #[arg(long, requires = "sensor_in")]
+        sensor_out: Option<PathBuf>,
     },
 }
 
@@ -88,7 +95,15 @@ fn main() -> anyhow::Result<()> {
             samples,
             lambda,
             out,
-        } => response(&images, samples, lambda, &out),
+            sensor_in,
+            sensor_out,
+        } => {
+            let curves = response(&images, samples, lambda, &out)?;
+            if let (Some(sensor_in), Some(sensor_out)) = (sensor_in, sensor_out) {
+                sensor_with_response(&curves, &sensor_in, &sensor_out)?;
+            }
+            Ok(())
+        }
     }
 }
 
@@ -97,7 +112,7 @@ fn response(
     samples: usize,
     lambda: f64,
     out: &Path,
-) -> anyhow::Result<()> {
+) -> anyhow::Result<[calib::response::ResponseCurve; 3]> {
     let mut pixels = Vec::with_capacity(images.len());
     let mut size: Option<(u32, u32)> = None;
     for (path, _) in images {
@@ -141,6 +156,31 @@ fn response(
         curves[2].log_exposure[16],
         curves[2].log_exposure[240],
         out.display()
+    );
+    Ok(curves)
+}
+
+/// Writes `sensor_in` with the recovered curve as its `[eo_response]` to `sensor_out`.
+fn sensor_with_response(
+    curves: &[calib::response::ResponseCurve; 3],
+    sensor_in: &Path,
+    sensor_out: &Path,
+) -> anyhow::Result<()> {
+    let mut sensor = texel::SensorModel::load(sensor_in)?;
+    sensor.eo_response = Some(
+        calib::response::to_eo_response(curves)
+            .context("the recovered curve cannot go into a sensor file")?,
+    );
+    let text = format!(
+        "# {} with the EO response curve recovered by texel-calib response\n{}",
+        sensor_in.display(),
+        sensor.to_toml_string()
+    );
+    std::fs::write(sensor_out, text)
+        .with_context(|| format!("writing {}", sensor_out.display()))?;
+    println!(
+        "wrote {} with the curve as [eo_response]",
+        sensor_out.display()
     );
     Ok(())
 }
