@@ -72,7 +72,6 @@ pub mod geometry;
 pub mod light;
 pub mod material;
 pub mod noise;
-pub mod radiance_exr;
 pub mod render;
 pub mod rng;
 pub mod scene;

@@ -255,7 +255,7 @@ fn view(
         .is_some_and(|e| e.eq_ignore_ascii_case("exr"))
     {
         let radiance = scene.radiance_view(&world_from_eo, &camera);
-        sims::radiance_exr::write_radiance_exr(out, width, height, &radiance)?;
+        texel::radiance::exr::write_radiance_exr(out, width, height, &radiance)?;
         return Ok(());
     }
     let frame = scene.render_view(&world_from_eo, &camera);

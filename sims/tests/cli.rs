@@ -101,7 +101,7 @@ fn view_to_exr_writes_the_radiance_truth_that_develops_into_the_png() {
         let o = texel_sims(&a.iter().map(String::as_str).collect::<Vec<_>>());
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     }
-    let (w, h, radiance) = sims::radiance_exr::read_radiance_exr(&exr).unwrap();
+    let (w, h, radiance) = texel::radiance::exr::read_radiance_exr(&exr).unwrap();
     assert_eq!((w, h), (64, 48));
     // Exactly the library's radiance for that view.
     let scene = sims::Scene::load(&scene_path).unwrap();

@@ -6,6 +6,7 @@
 //! degenerate case, so radiance is finite and non-negative for any input.
 
 mod curve;
+pub mod exr;
 #[cfg(test)]
 mod tests;
 

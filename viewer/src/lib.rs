@@ -14,4 +14,5 @@ pub mod reliability;
 pub mod residency;
 pub mod scenes;
 pub mod tiles;
+pub mod tonemap;
 pub mod vdtm;

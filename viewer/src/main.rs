@@ -1,7 +1,10 @@
 //! `texel-viewer`: renders the texel model live from a daemon (`--connect`: a window,
 //! or snapshots to a folder without a display), headless (`render`; `render --lod`
 //! draws the level-of-detail tiles built from the scans instead), in a window on
-//! a replayed capture (`open`), and measures the renderer (`bench`, `tradeoffs`).
+//! a replayed capture (`open`), tone-maps radiance images (`tonemap`), and measures
+//! the renderer (`bench`, `tradeoffs`).
+
+mod tonemap_cli;
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -96,6 +99,8 @@ enum Command {
     Render(RenderArgs),
     /// Open a window on a capture's model.
     Open(OpenArgs),
+    /// Tone-map a radiance image (OpenEXR) into a PNG.
+    Tonemap(tonemap_cli::ToneMapArgs),
 }
 
 /// Where the model comes from: exactly one source.
@@ -757,6 +762,7 @@ fn main() -> anyhow::Result<()> {
     match cli.command {
         Some(Command::Render(a)) => render(a),
         Some(Command::Open(a)) => open(a),
+        Some(Command::Tonemap(a)) => tonemap_cli::tonemap(a),
         None => match cli.live.connect.clone() {
             Some(addr) => connect(cli.live, addr),
             None => bail!("give --connect HOST:PORT or a command (see --help)"),

@@ -10,6 +10,7 @@ mod renderer;
 mod scan_data;
 pub mod shaders;
 mod targets;
+pub mod tonemap;
 
 pub(crate) use pipelines::surface_pipeline;
 pub use readback::{LayerReadback, read_depth_texture, read_rgba_texture};
@@ -18,6 +19,7 @@ pub use renderer::{FrameStats, RenderSettings, RenderTarget, Renderer, Strategy}
 pub(crate) use scan_data::rgba_of_rgb;
 pub use scan_data::scan_gpu_bytes;
 pub use targets::TargetMemory;
+pub use tonemap::{RADIANCE_FORMAT, ToneMapPass, tone_map_headless, upload_radiance};
 
 /// Formats of the per-scan layers and the pre-pass target. Integer formats hold
 /// floats bit-exactly and are colour-renderable on every backend (32-bit float

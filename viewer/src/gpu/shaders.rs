@@ -8,9 +8,10 @@ pub const COMPOSITE_KBUFFER: &str = include_str!("../shaders/composite_kbuffer.w
 pub const COMPOSITE_NAIVE: &str = include_str!("../shaders/composite_naive.wgsl");
 pub const TILE: &str = include_str!("../shaders/tile.wgsl");
 pub const VDTM: &str = include_str!("../shaders/vdtm.wgsl");
+pub const TONEMAP: &str = include_str!("../shaders/tonemap.wgsl");
 
 /// Every shader module as (name, full source).
-pub fn modules() -> [(&'static str, String); 6] {
+pub fn modules() -> [(&'static str, String); 7] {
     [
         ("scan", source(SCAN)),
         ("merge", source(MERGE)),
@@ -18,6 +19,7 @@ pub fn modules() -> [(&'static str, String); 6] {
         ("composite_naive", source(COMPOSITE_NAIVE)),
         ("tile", source(TILE)),
         ("vdtm", source(VDTM)),
+        ("tonemap", source(TONEMAP)),
     ]
 }
 

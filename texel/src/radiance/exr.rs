@@ -1,10 +1,12 @@
-//! The simulator's radiance truth as OpenEXR: linear RGB in 32-bit floats, lossless,
-//! so high-dynamic-range results are scored against the radiance the scene sends to
-//! the camera, not against an 8-bit picture of it.
+//! Radiance images as OpenEXR: linear RGB in 32-bit floats, lossless. The simulator
+//! writes its radiance truth so (high-dynamic-range results are scored against the
+//! radiance the scene sends to the camera, not against an 8-bit picture of it), and
+//! the viewer tone-maps such files.
 
 use std::path::Path;
 
-use crate::material::Rgb;
+/// Linear RGB.
+pub type Rgb = [f32; 3];
 
 /// Largest radiance image read back (pixels): beyond any texel camera's EO image, so
 /// a hostile header cannot make the reader allocate without bound.
