@@ -94,6 +94,9 @@ enum TradeoffsCommand {
     LodLive(tradeoffs::lod_live::LodLiveArgs),
     /// Level of detail in the viewer: frame time, GPU bytes, quality and popping.
     LodView(tradeoffs::lod_view::LodViewArgs),
+    /// What exposure brackets buy on the high-dynamic-range scenes: saturated and
+    /// black shares and log-radiance error on held-out views, LDR against HDR.
+    Hdr(tradeoffs::hdr::HdrArgs),
     /// The merged surface on lab and courtyard: time, memory and distance from the
     /// truth per voxel size.
     Surface(tradeoffs::surface::SurfaceArgs),
@@ -159,6 +162,9 @@ fn main() -> ExitCode {
         }
         Command::Tradeoffs(TradeoffsCommand::LodView(args)) => {
             ("tradeoffs lod-view", tradeoffs::lod_view::run(&args))
+        }
+        Command::Tradeoffs(TradeoffsCommand::Hdr(args)) => {
+            ("tradeoffs hdr", tradeoffs::hdr::run(&args))
         }
         Command::Tradeoffs(TradeoffsCommand::Surface(args)) => {
             ("tradeoffs surface", tradeoffs::surface::run(&args))

@@ -117,6 +117,34 @@ pub fn merge_exposures(
     let pixels = width as usize * height as usize;
     let mut rgb = vec![[0.0f32; 3]; pixels];
     let mut weight = vec![[0.0f32; 3]; pixels];
+    if let [frame] = frames {
+        // One exposure: each channel value's radiance is one of 256, computed once by
+        // the same rule (the scan's texture made radiance at table-lookup cost).
+        let table: Vec<[(f32, f64); LEVELS]> = (0..3)
+            .map(|c| {
+                std::array::from_fn(|z| {
+                    merge_value(std::iter::once(z as u8), &log_scales, response, c)
+                })
+            })
+            .collect();
+        for ((out, out_w), px) in rgb
+            .iter_mut()
+            .zip(weight.iter_mut())
+            .zip(frame.rgb.chunks_exact(3))
+        {
+            for (c, t) in table.iter().enumerate() {
+                let (value, w) = t[usize::from(px[c])];
+                out[c] = value;
+                out_w[c] = w as f32;
+            }
+        }
+        return Ok(RadianceImage {
+            width,
+            height,
+            rgb,
+            weight,
+        });
+    }
     for (p, (out, out_w)) in rgb.iter_mut().zip(weight.iter_mut()).enumerate() {
         for c in 0..3 {
             let values = frames

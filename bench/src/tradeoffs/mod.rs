@@ -5,6 +5,7 @@
 //! markers.
 
 pub mod calibration;
+pub mod hdr;
 pub mod lod;
 pub mod lod_live;
 pub mod lod_view;

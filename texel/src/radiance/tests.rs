@@ -207,3 +207,28 @@ proptest! {
         }
     }
 }
+
+proptest! {
+    /// The one-exposure table gives exactly what the general rule gives.
+    #[test]
+    fn the_single_exposure_table_is_the_general_rule(
+        values in prop::collection::vec(any::<u8>(), 3..30),
+        log2_scale in -20.0f64..10.0,
+    ) {
+        let r = EoResponse::srgb();
+        let n = values.len() / 3;
+        let pixels: Vec<[u8; 3]> = values.chunks_exact(3).map(|p| [p[0], p[1], p[2]]).collect();
+        let f = frame(&pixels, 2f64.powf(log2_scale), 1.0);
+        let fast = merge_exposures(&[&f], &r).unwrap();
+        // The general path: the same frame twice at the same exposure merges to the
+        // same radiance with twice the weight.
+        let slow = merge_exposures(&[&f, &f], &r).unwrap();
+        for p in 0..n {
+            for c in 0..3 {
+                let (a, b) = (fast.rgb[p][c], slow.rgb[p][c]);
+                prop_assert!((a - b).abs() <= 1e-6 * a.abs().max(1e-30), "{a} vs {b}");
+                prop_assert_eq!(2.0 * fast.weight[p][c], slow.weight[p][c]);
+            }
+        }
+    }
+}

@@ -1,0 +1,372 @@
+//! `texel-bench tradeoffs hdr`: what exposure brackets buy on the high-dynamic-range
+//! scenes. Each scene's trajectory is rendered with its exposure bracket (cycled frame
+//! by frame); at held-out poses every pixel's surface point (the simulator's true
+//! geometry and poses, so only the texture side is measured) is looked up in every
+//! acquisition frame that sees it. The **LDR** texture is the one frame a best-scan
+//! renderer would show (the most similar viewing direction), turned into radiance by
+//! its exposure alone; the **HDR** texture merges every frame that sees the point
+//! (`texel::radiance::merge_exposures`' rule, per view: the seed's second strategy).
+//! Both are scored against the simulator's radiance truth: the share of values no
+//! exposure measured (black or saturated) and the error in log radiance. Writes the
+//! hdr section of `docs/tradeoffs.md`.
+
+use std::fmt::Write;
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use nalgebra::{Point3, Vector2, Vector3};
+use sims::{Effect, Scene, SimOptions, Simulator};
+use texel::radiance::{EoResponse, merge_exposures};
+use texel::{EoFrame, PinholeCamera, Pose};
+
+use crate::tradeoffs::rendering::held_out_poses;
+use crate::tradeoffs::rendering::report::write_tradeoffs_section;
+
+#[derive(Debug, Clone, clap::Args)]
+pub struct HdrArgs {
+    /// Fewer frames and held-out poses, for a quick look (docs/ is left alone).
+    #[arg(long)]
+    pub quick: bool,
+    /// The repository root (scenes are read and the docs written under it).
+    #[arg(long, default_value = ".")]
+    pub repo: PathBuf,
+    /// Simulator seed.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Measure and print, but leave docs/tradeoffs.md alone.
+    #[arg(long)]
+    pub no_write: bool,
+}
+
+/// The scenes measured and their frames.
+const SCENES: [(&str, usize); 2] = [("courtyard-hdr", 60), ("interior-window", 36)];
+
+/// Held-out views: poses and their size (a quarter of the EO camera's per side).
+const POSES: usize = 8;
+const QUICK_POSES: usize = 3;
+const VIEW_SCALE: u32 = 4;
+
+/// A point seen from another camera is visible there when the ray from that camera
+/// first hits within this of it (metres, plus 1 % of the distance).
+const VISIBILITY_TOLERANCE_M: f64 = 0.01;
+
+/// Radiance below this counts as this in log errors (1 is white at 0 EV): black
+/// estimates and truths have no log.
+const LOG_FLOOR: f64 = 1.0e-4;
+
+/// The effects measured: the scene's, without vignetting (Texel has no flat-field
+/// correction yet, so vignetting would bias every radiance estimate near the edges
+/// the same way in both textures).
+fn effects(scene: &Scene) -> Vec<Effect> {
+    scene
+        .effects
+        .iter()
+        .filter(|e| e.name() != "vignetting")
+        .cloned()
+        .collect()
+}
+
+/// One texture's scores over every held-out pixel of a scene.
+#[derive(Debug, Default, Clone)]
+struct Scores {
+    values: usize,
+    unmeasured: usize,
+    log_errors: Vec<f64>,
+}
+
+impl Scores {
+    fn add(&mut self, estimate: f32, measured: bool, truth: f32) {
+        self.values += 1;
+        self.unmeasured += usize::from(!measured);
+        let e = f64::from(estimate).max(LOG_FLOOR);
+        let t = f64::from(truth).max(LOG_FLOOR);
+        self.log_errors.push((e / t).ln().abs());
+    }
+
+    fn unmeasured_pct(&self) -> f64 {
+        100.0 * self.unmeasured as f64 / self.values.max(1) as f64
+    }
+
+    fn percentile(&self, p: f64) -> f64 {
+        let mut v = self.log_errors.clone();
+        v.sort_by(f64::total_cmp);
+        v.get(((v.len().saturating_sub(1)) as f64 * p).round() as usize)
+            .copied()
+            .unwrap_or(f64::NAN)
+    }
+}
+
+struct SceneResult {
+    name: &'static str,
+    frames: usize,
+    views: usize,
+    pixels: usize,
+    ldr: Scores,
+    hdr: Scores,
+    merge_ms_per_scan: f64,
+    rgba_ms_per_scan: f64,
+    ldr_bytes_per_scan: u64,
+    hdr_bytes_per_scan: u64,
+}
+
+/// An acquisition frame: where it was taken, its camera and its image.
+struct Acquisition {
+    world_from_eo: Pose,
+    frame: EoFrame,
+}
+
+/// The frames that see `point` and the pixel each sees it at.
+fn observations<'a>(
+    scene: &Scene,
+    camera: &PinholeCamera,
+    frames: &'a [Acquisition],
+    point: &Point3<f64>,
+) -> Vec<(&'a Acquisition, u32, u32)> {
+    let mut seen = Vec::new();
+    for a in frames {
+        let eye = Point3::from(a.world_from_eo.translation.vector);
+        let to_point = point - eye;
+        let distance = to_point.norm();
+        let Some(hit) = scene.cast_ray(eye, to_point) else {
+            continue;
+        };
+        if (hit.distance_m - distance).abs() > VISIBILITY_TOLERANCE_M + 0.01 * distance {
+            continue;
+        }
+        let in_camera = a.world_from_eo.inverse_transform_point(point).coords;
+        let Ok(px) = camera.project(&in_camera) else {
+            continue;
+        };
+        let (u, v) = (px.x.round(), px.y.round());
+        if u < 0.0 || v < 0.0 || u >= f64::from(camera.width) || v >= f64::from(camera.height) {
+            continue;
+        }
+        seen.push((a, u as u32, v as u32));
+    }
+    seen
+}
+
+fn measure_scene(
+    args: &HdrArgs,
+    name: &'static str,
+    frames: usize,
+    poses: usize,
+) -> Result<SceneResult> {
+    let path = args
+        .repo
+        .join("configs/scenes")
+        .join(format!("{name}.toml"));
+    let scene = Scene::load(&path).with_context(|| format!("loading {}", path.display()))?;
+    let sim = Simulator::with_options(
+        scene.clone(),
+        &SimOptions {
+            seed: args.seed,
+            frames: Some(frames),
+            effects: Some(effects(&scene)),
+            ..SimOptions::default()
+        },
+    )?;
+    let response: EoResponse = sim
+        .effects()
+        .exposure
+        .as_ref()
+        .context("the scene lists no exposure effect")?
+        .true_response()?;
+    let camera = sim.sensor_model().eo.clone();
+    // 1. The acquisitions, and what turning each into radiance costs.
+    let mut acquisitions = Vec::with_capacity(frames);
+    let (mut merge_s, mut rgba_s) = (0.0, 0.0);
+    for i in 0..frames {
+        let f = sim.frame(i)?;
+        // The baseline, in the same run: the RGB8 → RGBA8 copy an LDR texture needs.
+        let start = Instant::now();
+        let rgba: Vec<u8> = f
+            .pair
+            .eo
+            .rgb
+            .chunks_exact(3)
+            .flat_map(|p| [p[0], p[1], p[2], 255])
+            .collect();
+        rgba_s += start.elapsed().as_secs_f64();
+        std::hint::black_box(rgba);
+        let start = Instant::now();
+        let radiance = merge_exposures(&[&f.pair.eo], &response)?;
+        merge_s += start.elapsed().as_secs_f64();
+        std::hint::black_box(radiance);
+        acquisitions.push(Acquisition {
+            world_from_eo: f.world_from_eo,
+            frame: f.pair.eo,
+        });
+    }
+    // 2. Held-out views.
+    let view_camera = sims::simulator::rescale_camera(
+        &camera,
+        (camera.width / VIEW_SCALE).max(1),
+        (camera.height / VIEW_SCALE).max(1),
+    );
+    let held_out = held_out_poses(&sim, poses);
+    let (mut ldr, mut hdr) = (Scores::default(), Scores::default());
+    let mut pixels = 0;
+    for pose in &held_out {
+        let world_from_eo = &pose.world_from_eo;
+        let truth = scene.radiance_view(world_from_eo, &view_camera);
+        let eye = Point3::from(world_from_eo.translation.vector);
+        for v in 0..view_camera.height {
+            for u in 0..view_camera.width {
+                let Some(t) = truth.get((v * view_camera.width + u) as usize) else {
+                    continue;
+                };
+                let Ok(ray) = view_camera.unproject_ray(Vector2::new(f64::from(u), f64::from(v)))
+                else {
+                    continue;
+                };
+                let dir: Vector3<f64> = world_from_eo.rotation * ray;
+                let Some(hit) = scene.cast_ray(eye, dir) else {
+                    continue;
+                };
+                let seen = observations(&scene, &camera, &acquisitions, &hit.point);
+                if seen.is_empty() {
+                    continue;
+                }
+                pixels += 1;
+                // The LDR texture: the frame seeing the point from the most similar
+                // direction.
+                let view_dir = (hit.point - eye).normalize();
+                let best = seen
+                    .iter()
+                    .max_by(|a, b| {
+                        let cos = |s: &(&Acquisition, u32, u32)| {
+                            let e = Point3::from(s.0.world_from_eo.translation.vector);
+                            (hit.point - e).normalize().dot(&view_dir)
+                        };
+                        cos(a).total_cmp(&cos(b))
+                    })
+                    .copied();
+                let Some(best) = best else { continue };
+                let single = pixel_frame(best);
+                let ldr_merge = merge_exposures(&[&single], &response)?;
+                let all: Vec<EoFrame> = seen.iter().copied().map(pixel_frame).collect();
+                let refs: Vec<&EoFrame> = all.iter().collect();
+                let hdr_merge = merge_exposures(&refs, &response)?;
+                for (c, truth) in t.iter().enumerate() {
+                    ldr.add(ldr_merge.rgb[0][c], ldr_merge.weight[0][c] > 0.0, *truth);
+                    hdr.add(hdr_merge.rgb[0][c], hdr_merge.weight[0][c] > 0.0, *truth);
+                }
+            }
+        }
+    }
+    let pixels_per_frame = u64::from(camera.width) * u64::from(camera.height);
+    Ok(SceneResult {
+        name,
+        frames,
+        views: held_out.len(),
+        pixels,
+        ldr,
+        hdr,
+        merge_ms_per_scan: 1e3 * merge_s / frames.max(1) as f64,
+        rgba_ms_per_scan: 1e3 * rgba_s / frames.max(1) as f64,
+        // The scan's texture as the renderer holds it: RGBA8 against RGBA16F.
+        ldr_bytes_per_scan: 4 * pixels_per_frame,
+        hdr_bytes_per_scan: 8 * pixels_per_frame,
+    })
+}
+
+/// One pixel of an acquisition as a 1 x 1 frame with the acquisition's exposure.
+fn pixel_frame((a, u, v): (&Acquisition, u32, u32)) -> EoFrame {
+    EoFrame {
+        width: 1,
+        height: 1,
+        rgb: a.frame.pixel(u, v).unwrap_or([0; 3]).to_vec(),
+        timestamp_ns: a.frame.timestamp_ns,
+        exposure: a.frame.exposure,
+    }
+}
+
+pub fn run(args: &HdrArgs) -> Result<()> {
+    let (poses, frame_div) = if args.quick {
+        (QUICK_POSES, 3)
+    } else {
+        (POSES, 1)
+    };
+    let mut results = Vec::new();
+    for (name, frames) in SCENES {
+        let start = Instant::now();
+        let r = measure_scene(args, name, (frames / frame_div).max(6), poses)?;
+        println!(
+            "{name}: {} frames, {} views, {} pixels; unmeasured LDR {:.2} % HDR {:.2} %; \
+             ln error median LDR {:.4} HDR {:.4}, p95 LDR {:.4} HDR {:.4} ({:.1} s)",
+            r.frames,
+            r.views,
+            r.pixels,
+            r.ldr.unmeasured_pct(),
+            r.hdr.unmeasured_pct(),
+            r.ldr.percentile(0.5),
+            r.hdr.percentile(0.5),
+            r.ldr.percentile(0.95),
+            r.hdr.percentile(0.95),
+            start.elapsed().as_secs_f64()
+        );
+        results.push(r);
+    }
+    let body = markdown(&results, args);
+    if args.quick || args.no_write {
+        print!("{body}");
+        return Ok(());
+    }
+    write_tradeoffs_section(&args.repo, "hdr", &body)
+}
+
+fn markdown(results: &[SceneResult], args: &HdrArgs) -> String {
+    let mut s = String::new();
+    let _ = writeln!(s, "## High dynamic range: what exposure brackets buy\n");
+    let _ = writeln!(
+        s,
+        "`cargo run --release -p texel-bench -- tradeoffs hdr` (seed {}), on the scenes \
+         with a real dynamic range, each EO frame exposed at its place in the scene's \
+         bracket (docs/hdr.md). At held-out poses (views a quarter of \
+         the EO camera's size per side) every pixel's surface point is looked up in \
+         every frame that sees it, with the simulator's true geometry and poses, so only \
+         the texture is measured. **LDR**: the one frame a best-scan renderer shows (the \
+         most similar viewing direction), made radiance by its own exposure; **HDR**: \
+         every frame that sees the point, merged per view (Debevec & Malik's eq. 6 with \
+         the camera's true response). Unmeasured: channel values black or saturated in \
+         every frame used. Log errors against the simulator's radiance truth (values \
+         below 10^-4 count as 10^-4). The scenes' effects without vignetting, which \
+         Texel does not correct yet.\n",
+        args.seed
+    );
+    let _ = writeln!(
+        s,
+        "| scene | frames | held-out pixels | unmeasured LDR | unmeasured HDR | ln error median LDR / HDR | ln error p95 LDR / HDR | radiance per scan (× RGBA8 copy) | texture per scan LDR / HDR |"
+    );
+    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|");
+    for r in results {
+        let _ = writeln!(
+            s,
+            "| `{}` | {} | {} ({} views) | {:.2} % | {:.2} % | {:.4} / {:.4} | {:.4} / {:.4} | {:.1} ms ({:.0}×) | {:.2} / {:.2} MB |",
+            r.name,
+            r.frames,
+            r.pixels,
+            r.views,
+            r.ldr.unmeasured_pct(),
+            r.hdr.unmeasured_pct(),
+            r.ldr.percentile(0.5),
+            r.hdr.percentile(0.5),
+            r.ldr.percentile(0.95),
+            r.hdr.percentile(0.95),
+            r.merge_ms_per_scan,
+            r.merge_ms_per_scan / r.rgba_ms_per_scan.max(1e-9),
+            r.ldr_bytes_per_scan as f64 / 1e6,
+            r.hdr_bytes_per_scan as f64 / 1e6,
+        );
+    }
+    let _ = writeln!(
+        s,
+        "\n\"Radiance per scan\" is the time to turn one full EO frame into radiance \
+         with its weights (`merge_exposures` of one exposure, one thread, this \
+         machine); \"texture per scan\" is the GPU texture the renderer holds, RGBA8 \
+         today against RGBA16F for radiance."
+    );
+    s
+}
