@@ -10,6 +10,7 @@ pub mod display_mode;
 pub mod gpu;
 pub mod headless;
 pub mod live;
+pub mod points;
 pub mod reliability;
 pub mod residency;
 pub mod scenes;
