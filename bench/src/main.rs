@@ -97,6 +97,9 @@ enum TradeoffsCommand {
     /// What exposure brackets buy on the high-dynamic-range scenes: saturated and
     /// black shares and log-radiance error on held-out views, LDR against HDR.
     Hdr(tradeoffs::hdr::HdrArgs),
+    /// The point proxy's per-view depth maps (splatting, classification, pull-push)
+    /// against the true depth on held-out views.
+    Points(tradeoffs::points::PointsArgs),
     /// The merged surface on lab and courtyard: time, memory and distance from the
     /// truth per voxel size.
     Surface(tradeoffs::surface::SurfaceArgs),
@@ -165,6 +168,9 @@ fn main() -> ExitCode {
         }
         Command::Tradeoffs(TradeoffsCommand::Hdr(args)) => {
             ("tradeoffs hdr", tradeoffs::hdr::run(&args))
+        }
+        Command::Tradeoffs(TradeoffsCommand::Points(args)) => {
+            ("tradeoffs points", tradeoffs::points::run(&args))
         }
         Command::Tradeoffs(TradeoffsCommand::Surface(args)) => {
             ("tradeoffs surface", tradeoffs::surface::run(&args))

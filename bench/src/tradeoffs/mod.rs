@@ -10,6 +10,7 @@ pub mod lod;
 pub mod lod_live;
 pub mod lod_view;
 pub mod plot;
+pub mod points;
 pub mod registration;
 pub mod rendering;
 pub mod retirement;

@@ -145,8 +145,25 @@ pub fn classify(points: &[SplatPoint], cam: &SplatCamera, pass1: &SplatImage) ->
 /// Passes 1 to 5: the view's depth map (z per pixel, `None` where no splat drew) and
 /// how many points were front and back.
 pub fn depth_map(points: &[SplatPoint], cam: &SplatCamera) -> (Vec<Option<f32>>, usize, usize) {
+    depth_map_with(points, cam, true)
+}
+
+/// [`depth_map`], or without pass 2 (`classify` false: every point is pulled and pushed
+/// together, as Marroquim et al.'s original, which the seed improves on).
+pub fn depth_map_with(
+    points: &[SplatPoint],
+    cam: &SplatCamera,
+    classify_points: bool,
+) -> (Vec<Option<f32>>, usize, usize) {
     let pass1 = splat(points, cam);
-    let classes = classify(points, cam, &pass1);
+    let classes: Vec<Option<bool>> = if classify_points {
+        classify(points, cam, &pass1)
+    } else {
+        points
+            .iter()
+            .map(|p| project(p, cam).map(|_| true))
+            .collect()
+    };
     let (w, h) = (pass1.width, pass1.height);
     let mut front = Sparse::empty(w, h);
     let mut back = Sparse::empty(w, h);
