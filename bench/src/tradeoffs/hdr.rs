@@ -12,41 +12,26 @@
 //! hdr section of `docs/tradeoffs.md`.
 
 use std::fmt::Write;
-use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, Result};
 use nalgebra::{Point3, Vector2, Vector3};
-use sims::{Effect, Scene, SimOptions, Simulator};
+use sims::{Effect, Scene};
 use texel::radiance::{EoResponse, merge_exposures};
 use texel::{EoFrame, PinholeCamera, Pose};
 
 use crate::tradeoffs::rendering::held_out_poses;
 use crate::tradeoffs::rendering::report::write_tradeoffs_section;
 
-#[derive(Debug, Clone, clap::Args)]
-pub struct HdrArgs {
-    /// Fewer frames and held-out poses, for a quick look (docs/ is left alone).
-    #[arg(long)]
-    pub quick: bool,
-    /// The repository root (scenes are read and the docs written under it).
-    #[arg(long, default_value = ".")]
-    pub repo: PathBuf,
-    /// Simulator seed.
-    #[arg(long, default_value_t = 1)]
-    pub seed: u64,
-    /// Measure and print, but leave docs/tradeoffs.md alone.
-    #[arg(long)]
-    pub no_write: bool,
-}
+/// The section's options.
+pub type HdrArgs = crate::tradeoffs::SimSectionArgs;
 
 /// The scenes measured and their frames.
 const SCENES: [(&str, usize); 2] = [("courtyard-hdr", 60), ("interior-window", 36)];
 
-/// Held-out views: poses and their size (a quarter of the EO camera's per side).
+/// Held-out poses per scene.
 const POSES: usize = 8;
 const QUICK_POSES: usize = 3;
-const VIEW_SCALE: u32 = 4;
 
 /// A point seen from another camera is visible there when the ray from that camera
 /// first hits within this of it (metres, plus 1 % of the distance).
@@ -90,11 +75,7 @@ impl Scores {
     }
 
     fn percentile(&self, p: f64) -> f64 {
-        let mut v = self.log_errors.clone();
-        v.sort_by(f64::total_cmp);
-        v.get(((v.len().saturating_sub(1)) as f64 * p).round() as usize)
-            .copied()
-            .unwrap_or(f64::NAN)
+        crate::tradeoffs::percentile(&self.log_errors, p)
     }
 }
 
@@ -154,20 +135,8 @@ fn measure_scene(
     frames: usize,
     poses: usize,
 ) -> Result<SceneResult> {
-    let path = args
-        .repo
-        .join("configs/scenes")
-        .join(format!("{name}.toml"));
-    let scene = Scene::load(&path).with_context(|| format!("loading {}", path.display()))?;
-    let sim = Simulator::with_options(
-        scene.clone(),
-        &SimOptions {
-            seed: args.seed,
-            frames: Some(frames),
-            effects: Some(effects(&scene)),
-            ..SimOptions::default()
-        },
-    )?;
+    let (scene, sim) = args.simulate(name, frames, |scene| Some(effects(scene)))?;
+
     let response: EoResponse = sim
         .effects()
         .exposure
@@ -201,11 +170,7 @@ fn measure_scene(
         });
     }
     // 2. Held-out views.
-    let view_camera = sims::simulator::rescale_camera(
-        &camera,
-        (camera.width / VIEW_SCALE).max(1),
-        (camera.height / VIEW_SCALE).max(1),
-    );
+    let view_camera = crate::tradeoffs::sim_view_camera(&camera);
     let held_out = held_out_poses(&sim, poses);
     let (mut ldr, mut hdr) = (Scores::default(), Scores::default());
     let mut pixels = 0;

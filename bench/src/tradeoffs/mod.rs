@@ -64,6 +64,74 @@ impl Paths {
     }
 }
 
+/// The options of the sections measured on the simulator alone (`hdr`, `points`).
+#[derive(Debug, Clone, clap::Args)]
+pub struct SimSectionArgs {
+    /// Fewer frames and held-out poses, for a quick look (docs/ is left alone).
+    #[arg(long)]
+    pub quick: bool,
+    /// The repository root (scenes are read and the docs written under it).
+    #[arg(long, default_value = ".")]
+    pub repo: PathBuf,
+    /// Simulator seed.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Measure and print, but leave docs/tradeoffs.md alone.
+    #[arg(long)]
+    pub no_write: bool,
+}
+
+/// Held-out views of the simulator-only sections are the EO camera scaled down by
+/// this per side.
+pub const SIM_VIEW_SCALE: u32 = 4;
+
+impl SimSectionArgs {
+    /// The shipped scene `name`, and a simulation of `frames` of it with the effects
+    /// `effects_of` gives for it (`None`: the scene's own) and the seed asked for.
+    pub fn simulate(
+        &self,
+        name: &str,
+        frames: usize,
+        effects_of: impl FnOnce(&sims::Scene) -> Option<Vec<sims::Effect>>,
+    ) -> Result<(sims::Scene, sims::Simulator)> {
+        let path = self
+            .repo
+            .join("configs/scenes")
+            .join(format!("{name}.toml"));
+        let scene =
+            sims::Scene::load(&path).with_context(|| format!("loading {}", path.display()))?;
+        let effects = effects_of(&scene);
+        let sim = sims::Simulator::with_options(
+            scene.clone(),
+            &sims::SimOptions {
+                seed: self.seed,
+                frames: Some(frames),
+                effects,
+                ..sims::SimOptions::default()
+            },
+        )?;
+        Ok((scene, sim))
+    }
+}
+
+/// The camera of a held-out view: `eo` scaled down by [`SIM_VIEW_SCALE`] per side.
+pub fn sim_view_camera(eo: &texel::PinholeCamera) -> texel::PinholeCamera {
+    sims::simulator::rescale_camera(
+        eo,
+        (eo.width / SIM_VIEW_SCALE).max(1),
+        (eo.height / SIM_VIEW_SCALE).max(1),
+    )
+}
+
+/// The `p` quantile (0..=1, nearest rank) of `values`; NaN for none.
+pub fn percentile(values: &[f64], p: f64) -> f64 {
+    let mut v = values.to_vec();
+    v.sort_by(f64::total_cmp);
+    v.get(((v.len().saturating_sub(1)) as f64 * p.clamp(0.0, 1.0)).round() as usize)
+        .copied()
+        .unwrap_or(f64::NAN)
+}
+
 /// Options every section understands.
 #[derive(Debug, Clone)]
 pub struct RunOptions {

@@ -8,39 +8,23 @@
 //! points section of `docs/tradeoffs.md`.
 
 use std::fmt::Write;
-use std::path::PathBuf;
 use std::time::Instant;
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 use nalgebra::{Point3, Vector3};
-use sims::{Scene, SimOptions, Simulator};
+use sims::Simulator;
 use texel::{FuseConfig, Sensor, fuse};
 use texel_viewer::points::splat::{SplatCamera, SplatPoint, depth_map_with};
 
 use crate::tradeoffs::rendering::held_out_poses;
 use crate::tradeoffs::rendering::report::write_tradeoffs_section;
 
-#[derive(Debug, Clone, clap::Args)]
-pub struct PointsArgs {
-    /// Fewer frames and held-out poses, for a quick look (docs/ is left alone).
-    #[arg(long)]
-    pub quick: bool,
-    /// The repository root (scenes are read and the docs written under it).
-    #[arg(long, default_value = ".")]
-    pub repo: PathBuf,
-    /// Simulator seed.
-    #[arg(long, default_value_t = 1)]
-    pub seed: u64,
-    /// Measure and print, but leave docs/tradeoffs.md alone.
-    #[arg(long)]
-    pub no_write: bool,
-}
+/// The section's options.
+pub type PointsArgs = crate::tradeoffs::SimSectionArgs;
 
 const SCENES: [(&str, usize); 2] = [("lab", 36), ("courtyard", 40)];
 const POSES: usize = 6;
 const QUICK_POSES: usize = 2;
-/// Held-out views are the EO camera scaled down by this per side.
-const VIEW_SCALE: u32 = 4;
 
 #[derive(Debug, Default, Clone)]
 struct DepthScores {
@@ -57,11 +41,7 @@ struct DepthScores {
 
 impl DepthScores {
     fn percentile(&self, p: f64) -> f64 {
-        let mut v = self.errors_m.clone();
-        v.sort_by(f64::total_cmp);
-        v.get(((v.len().saturating_sub(1)) as f64 * p).round() as usize)
-            .copied()
-            .unwrap_or(f64::NAN)
+        crate::tradeoffs::percentile(&self.errors_m, p)
     }
 
     fn coverage_pct(&self) -> f64 {
@@ -146,26 +126,11 @@ fn measure_scene(
     frames: usize,
     poses: usize,
 ) -> Result<SceneResult> {
-    let path = args
-        .repo
-        .join("configs/scenes")
-        .join(format!("{name}.toml"));
-    let scene = Scene::load(&path).with_context(|| format!("loading {}", path.display()))?;
-    let sim = Simulator::with_options(
-        scene.clone(),
-        &SimOptions {
-            seed: args.seed,
-            frames: Some(frames),
-            ..SimOptions::default()
-        },
-    )?;
+    let (scene, sim) = args.simulate(name, frames, |_| None)?;
+
     let world_points = proxy(&sim, frames)?;
     let eo = &sim.sensor_model().eo;
-    let view = sims::simulator::rescale_camera(
-        eo,
-        (eo.width / VIEW_SCALE).max(1),
-        (eo.height / VIEW_SCALE).max(1),
-    );
+    let view = crate::tradeoffs::sim_view_camera(eo);
     // The splats use the view's pinhole (no distortion): the truth's rays are cast
     // through the same pinhole.
     let cam = SplatCamera {

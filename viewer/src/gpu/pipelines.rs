@@ -284,6 +284,7 @@ impl OutputPipelines {
                 &pipelines.kbuffer_pipeline_layout,
                 &pipelines.kbuffer_module,
                 "composite k-buffer",
+                "fs_composite",
                 format,
             ),
             composite_naive: fullscreen_pipeline(
@@ -291,6 +292,7 @@ impl OutputPipelines {
                 &pipelines.naive_pipeline_layout,
                 &pipelines.naive_module,
                 "composite naive",
+                "fs_composite",
                 format,
             ),
         }
@@ -332,11 +334,14 @@ fn scan_render_pipeline(
     })
 }
 
-fn fullscreen_pipeline(
+/// A pipeline drawing `vs_fullscreen`'s one triangle with `fragment_entry` into a
+/// `format` target, replacing what is there (the composites, tone mapping).
+pub(crate) fn fullscreen_pipeline(
     device: &wgpu::Device,
     layout: &wgpu::PipelineLayout,
     module: &wgpu::ShaderModule,
     label: &str,
+    fragment_entry: &str,
     format: wgpu::TextureFormat,
 ) -> wgpu::RenderPipeline {
     device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
@@ -353,7 +358,7 @@ fn fullscreen_pipeline(
         multisample: wgpu::MultisampleState::default(),
         fragment: Some(wgpu::FragmentState {
             module,
-            entry_point: Some("fs_composite"),
+            entry_point: Some(fragment_entry),
             compilation_options: Default::default(),
             targets: &[replace(format)],
         }),

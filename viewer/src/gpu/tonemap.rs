@@ -9,6 +9,8 @@ use std::collections::HashMap;
 use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, UVec4, Vec4};
 
+use super::pipelines::fullscreen_pipeline;
+use super::renderer::FrameUniform;
 use super::{GpuContext, GpuError, shaders};
 use crate::tonemap::{LOG_AVERAGE_EPSILON, ToneMapSettings};
 
@@ -20,16 +22,6 @@ pub const RADIANCE_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Floa
 pub const RADIANCE_MAX: f32 = 65504.0;
 
 const TILE: u32 = 16;
-
-/// `Frame` in `common.wgsl`: only `params.z` (1 for an sRGB target) is read here.
-#[repr(C)]
-#[derive(Debug, Clone, Copy, Pod, Zeroable)]
-struct FrameUniform {
-    clip_from_view: Mat4,
-    background: Vec4,
-    params: Vec4,
-    counts: UVec4,
-}
 
 /// `ToneMap` in `tonemap.wgsl`.
 #[repr(C)]
@@ -182,27 +174,7 @@ impl ToneMapPass {
     fn draw_pipeline(&mut self, format: wgpu::TextureFormat) -> &wgpu::RenderPipeline {
         let (device, module, layout) = (&self.device, &self.module, &self.draw_pipeline_layout);
         self.draw_pipelines.entry(format).or_insert_with(|| {
-            device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
-                label: Some("tonemap"),
-                layout: Some(layout),
-                vertex: wgpu::VertexState {
-                    module,
-                    entry_point: Some("vs_fullscreen"),
-                    compilation_options: Default::default(),
-                    buffers: &[],
-                },
-                primitive: wgpu::PrimitiveState::default(),
-                depth_stencil: None,
-                multisample: wgpu::MultisampleState::default(),
-                fragment: Some(wgpu::FragmentState {
-                    module,
-                    entry_point: Some("fs_tonemap"),
-                    compilation_options: Default::default(),
-                    targets: &[Some(format.into())],
-                }),
-                multiview_mask: None,
-                cache: None,
-            })
+            fullscreen_pipeline(device, layout, module, "tonemap", "fs_tonemap", format)
         })
     }
 
@@ -236,6 +208,7 @@ impl ToneMapPass {
             });
             self.partial_tiles = tiles;
         }
+        // Of `Frame`, only `params.z` (1 for an sRGB target) is read here.
         let frame = FrameUniform {
             clip_from_view: Mat4::IDENTITY,
             background: Vec4::ZERO,

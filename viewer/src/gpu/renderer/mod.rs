@@ -117,14 +117,14 @@ pub struct RenderTarget<'a> {
 /// The frame uniform (`Frame` in `common.wgsl`).
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
-struct FrameUniform {
-    clip_from_view: Mat4,
+pub(crate) struct FrameUniform {
+    pub(crate) clip_from_view: Mat4,
     /// rgb: background colour (display values); a: 1.
-    background: Vec4,
+    pub(crate) background: Vec4,
     /// x: blend threshold, y: range-confidence exponent, z: 1 if the target is sRGB.
-    params: Vec4,
+    pub(crate) params: Vec4,
     /// x: mode, y: k, z: visible scans (the naive composite's layers), w: target width.
-    counts: UVec4,
+    pub(crate) counts: UVec4,
 }
 
 /// An uploaded scan and where the model currently places it.
