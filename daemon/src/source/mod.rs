@@ -10,6 +10,7 @@ pub mod sim;
 pub mod sim_serial;
 pub mod v4l;
 pub mod v4l_convert;
+pub mod v4l_exposure;
 
 use std::collections::BTreeMap;
 use std::future::Future;

@@ -1,8 +1,9 @@
 //! The EO camera through V4L2 (`v4l` crate): opens the device, checks it is a
 //! streaming capture device, negotiates pixel format, size and frame rate, and
 //! streams memory-mapped buffers, converting each to RGB with the buffer's own
-//! timestamp. Every failure names the device and what was wrong; the capture loop is
-//! thin, the conversions live in [`super::v4l_convert`].
+//! timestamp, and with the exposure the camera reports in manual exposure mode
+//! ([`super::v4l_exposure`]). Every failure names the device and what was wrong; the
+//! capture loop is thin, the conversions live in [`super::v4l_convert`].
 
 use std::io;
 use std::path::{Path, PathBuf};
@@ -18,6 +19,7 @@ use v4l::video::Capture;
 use v4l::{Device, FourCC};
 
 use super::v4l_convert::{PixelFormat, to_eo_frame};
+use super::v4l_exposure::read_exposure;
 use super::{FrameSink, Source, SourceError, SourceEvent, SourceFuture, SourceState};
 
 /// The camera source's settings.
@@ -205,7 +207,10 @@ impl V4lSource {
                 &buffer[..used],
                 timestamp_ns,
             ) {
-                Ok(frame) => {
+                Ok(mut frame) => {
+                    // Read after the buffer: the controls as they stand for this frame
+                    // (a camera applies a changed exposure a frame or two late).
+                    frame.exposure = read_exposure(&camera.device);
                     if sink
                         .blocking_send(SourceEvent::Eo(Arc::new(frame)))
                         .is_err()
