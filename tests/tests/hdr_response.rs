@@ -103,3 +103,104 @@ fn the_recovered_curve_matches_the_true_one_and_merges_to_the_radiance_truth() {
     assert!(true_median < 0.03 && true_p95 < 0.12);
     assert!(rec_median < 0.05 && rec_p95 < 0.15);
 }
+
+#[test]
+fn texel_calib_recovers_the_curve_from_a_recorded_bracket() {
+    // A still camera recording a five-exposure bracket: the frames carry their
+    // exposure on /eo/exposure.
+    let scene =
+        Scene::load(&texel_e2e::repo_root().join("configs/scenes/courtyard-hdr.toml")).unwrap();
+    let sim = Simulator::with_options(
+        scene,
+        &SimOptions {
+            seed: 12,
+            frames: Some(2),
+            effects: Some(vec![
+                effect(
+                    "exposure",
+                    "ev = -0.5\nbracket_ev = [-4.0, -2.0, 0.0, 2.0, 4.0]",
+                ),
+                effect("sensor_noise", ""),
+            ]),
+            lidar_size: Some([16, 16]),
+            eo_size: Some([160, 120]),
+            ..SimOptions::default()
+        },
+    )
+    .unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let capture = dir.path().join("bracket.mcap");
+    let mut w = texel::capture::CaptureWriter::create(&capture, Default::default()).unwrap();
+    w.write_sensor(sim.sensor_model(), 1).unwrap();
+    let pose = sim.true_pose(1);
+    // Two passes over the bracket: the second repeats exposures and is not used.
+    for k in 0..10u64 {
+        let pair = sim.render_at(&pose, k, 1_000_000_000 + k * 100_000_000);
+        w.write_range(&pair.range, texel::capture::RangeEncoding::F32Metres)
+            .unwrap();
+        w.write_eo(&pair.eo, texel::capture::EoEncoding::Rgb8)
+            .unwrap();
+    }
+    w.finish().unwrap();
+    let csv = dir.path().join("response.csv");
+    let out = std::process::Command::new(texel_e2e::workspace_binary("texel-calib"))
+        .args(["response", "--capture"])
+        .arg(&capture)
+        .args(["--samples", "200", "--out"])
+        .arg(&csv)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(stdout.contains("a bracket of 5 exposures"), "{stdout}");
+    let truth = sim
+        .effects()
+        .exposure
+        .as_ref()
+        .unwrap()
+        .true_response()
+        .unwrap();
+    let rows: Vec<Vec<f64>> = std::fs::read_to_string(&csv)
+        .unwrap()
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').map(|v| v.parse().unwrap()).collect())
+        .collect();
+    let mut worst: f64 = 0.0;
+    for c in 0..3 {
+        let offset = truth.log_exposure(c, 128) - rows[128][c + 1];
+        for (z, row) in rows.iter().enumerate().take(241).skip(16) {
+            worst = worst.max((row[c + 1] + offset - truth.log_exposure(c, z as u8)).abs());
+        }
+    }
+    eprintln!("texel-calib response --capture: worst ln-exposure error over 16..=240: {worst:.4}");
+    assert!(worst < 0.12, "{worst}");
+
+    // A capture without /eo/exposure is refused by name.
+    let plain = dir.path().join("plain.mcap");
+    let mut w = texel::capture::CaptureWriter::create(&plain, Default::default()).unwrap();
+    w.write_sensor(sim.sensor_model(), 1).unwrap();
+    let mut pair = sim.render_at(&pose, 0, 1_000_000_000);
+    pair.eo.exposure = None;
+    w.write_range(&pair.range, texel::capture::RangeEncoding::F32Metres)
+        .unwrap();
+    w.write_eo(&pair.eo, texel::capture::EoEncoding::Rgb8)
+        .unwrap();
+    w.finish().unwrap();
+    let out = std::process::Command::new(texel_e2e::workspace_binary("texel-calib"))
+        .args(["response", "--capture"])
+        .arg(&plain)
+        .args(["--out"])
+        .arg(&csv)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && stderr.contains("/eo/exposure"),
+        "{stderr}"
+    );
+}

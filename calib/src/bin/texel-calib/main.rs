@@ -48,8 +48,13 @@ enum Command {
     Response {
         /// One image of the bracket (PNG or any format the `image` crate reads), with
         /// its exposure time: `FILE@SECONDS`. Repeat for each exposure.
-        #[arg(long = "image", required = true, value_parser = parse_exposure)]
+        #[arg(long = "image", required_unless_present = "capture", conflicts_with = "capture", value_parser = parse_exposure)]
         images: Vec<(PathBuf, f64)>,
+        /// A capture of a still scene whose EO frames record their exposure
+        /// (`/eo/exposure`): the first frame of each distinct exposure (time × gain)
+        /// makes the bracket.
+        #[arg(long, value_name = "BRACKET.mcap")]
+        capture: Option<PathBuf>,
         /// Pixels sampled (spread over the middle exposure's values).
         #[arg(long, default_value_t = 100)]
         samples: usize,
@@ -92,13 +97,18 @@ fn main() -> anyhow::Result<()> {
         } => run(&capture, &out, report.as_deref(), config.as_deref(), name),
         Command::Response {
             images,
+            capture,
             samples,
             lambda,
             out,
             sensor_in,
             sensor_out,
         } => {
-            let curves = response(&images, samples, lambda, &out)?;
+            let bracket = match &capture {
+                Some(path) => bracket_of_capture(path)?,
+                None => bracket_of_images(&images)?,
+            };
+            let curves = response(&bracket, samples, lambda, &out)?;
             if let (Some(sensor_in), Some(sensor_out)) = (sensor_in, sensor_out) {
                 sensor_with_response(&curves, &sensor_in, &sensor_out)?;
             }
@@ -107,12 +117,14 @@ fn main() -> anyhow::Result<()> {
     }
 }
 
-fn response(
-    images: &[(PathBuf, f64)],
-    samples: usize,
-    lambda: f64,
-    out: &Path,
-) -> anyhow::Result<[calib::response::ResponseCurve; 3]> {
+/// A bracket: each exposure's interleaved RGB8 pixels and exposure (seconds, times
+/// the gain), all of one size.
+struct Bracket {
+    images: Vec<Vec<u8>>,
+    exposures: Vec<f64>,
+}
+
+fn bracket_of_images(images: &[(PathBuf, f64)]) -> anyhow::Result<Bracket> {
     let mut pixels = Vec::with_capacity(images.len());
     let mut size: Option<(u32, u32)> = None;
     for (path, _) in images {
@@ -135,9 +147,81 @@ fn response(
         size = Some(dims);
         pixels.push(img.into_raw());
     }
-    let times: Vec<f64> = images.iter().map(|(_, t)| *t).collect();
-    let refs: Vec<&[u8]> = pixels.iter().map(Vec::as_slice).collect();
-    let curves = calib::response::recover_rgb_response(&refs, &times, samples, lambda)?;
+    Ok(Bracket {
+        images: pixels,
+        exposures: images.iter().map(|(_, t)| *t).collect(),
+    })
+}
+
+/// The first EO frame of each distinct exposure in a capture of a still scene.
+fn bracket_of_capture(path: &Path) -> anyhow::Result<Bracket> {
+    use texel::capture::{CaptureEvent, CaptureReader, topics};
+    let mut reader = CaptureReader::open(path)?;
+    let mut bracket = Bracket {
+        images: Vec::new(),
+        exposures: Vec::new(),
+    };
+    let mut size = None;
+    let mut without_exposure = 0usize;
+    reader.for_each_event(
+        &[
+            topics::EO_IMAGE,
+            topics::EO_IMAGE_COMPRESSED,
+            topics::EO_EXPOSURE,
+        ],
+        |event| {
+            let CaptureEvent::Eo(frame) = event else {
+                return;
+            };
+            let Some(exposure) = frame.exposure else {
+                without_exposure += 1;
+                return;
+            };
+            let scale = exposure.scale();
+            if bracket.exposures.len() >= calib::response::MAX_EXPOSURES
+                || bracket
+                    .exposures
+                    .iter()
+                    .any(|e| (e / scale - 1.0).abs() < 1e-9)
+                || size.is_some_and(|s| s != (frame.width, frame.height))
+            {
+                return;
+            }
+            size = Some((frame.width, frame.height));
+            bracket.exposures.push(scale);
+            bracket.images.push(frame.rgb);
+        },
+    );
+    if bracket.exposures.len() < 2 {
+        anyhow::bail!(
+            "{}: {} distinct exposures recorded ({without_exposure} EO frames say nothing of \
+             theirs): a bracket needs at least two (/eo/exposure)",
+            path.display(),
+            bracket.exposures.len()
+        );
+    }
+    println!(
+        "{}: a bracket of {} exposures from {:.6} to {:.6} s",
+        path.display(),
+        bracket.exposures.len(),
+        bracket
+            .exposures
+            .iter()
+            .copied()
+            .fold(f64::INFINITY, f64::min),
+        bracket.exposures.iter().copied().fold(0.0, f64::max)
+    );
+    Ok(bracket)
+}
+
+fn response(
+    bracket: &Bracket,
+    samples: usize,
+    lambda: f64,
+    out: &Path,
+) -> anyhow::Result<[calib::response::ResponseCurve; 3]> {
+    let refs: Vec<&[u8]> = bracket.images.iter().map(Vec::as_slice).collect();
+    let curves = calib::response::recover_rgb_response(&refs, &bracket.exposures, samples, lambda)?;
     let mut text = String::from("z,g_r,g_g,g_b\n");
     for z in 0..calib::response::LEVELS {
         text.push_str(&format!(
@@ -148,7 +232,7 @@ fn response(
     std::fs::write(out, text).with_context(|| format!("writing {}", out.display()))?;
     println!(
         "response from {} exposures: ln exposure at z = 16 / 240: r {:.3} / {:.3}, g {:.3} / {:.3}, b {:.3} / {:.3}; wrote {}",
-        images.len(),
+        bracket.exposures.len(),
         curves[0].log_exposure[16],
         curves[0].log_exposure[240],
         curves[1].log_exposure[16],
