@@ -18,16 +18,15 @@ fn percentile(values: &mut [f64], p: f64) -> f64 {
     values[i]
 }
 
-#[test]
-fn the_recovered_curve_matches_the_true_one_and_merges_to_the_radiance_truth() {
+/// `courtyard-hdr` with five exposures two stops apart (the S-curve) and sensor
+/// noise, small images.
+fn bracket_sim(seed: u64) -> Simulator {
     let scene =
         Scene::load(&texel_e2e::repo_root().join("configs/scenes/courtyard-hdr.toml")).unwrap();
-    // Five exposures two stops apart at one pose, the camera's default S-curve and
-    // its sensor noise.
-    let sim = Simulator::with_options(
+    Simulator::with_options(
         scene,
         &SimOptions {
-            seed: 11,
+            seed,
             frames: Some(2),
             effects: Some(vec![
                 effect(
@@ -41,7 +40,13 @@ fn the_recovered_curve_matches_the_true_one_and_merges_to_the_radiance_truth() {
             ..SimOptions::default()
         },
     )
-    .unwrap();
+    .unwrap()
+}
+
+#[test]
+fn the_recovered_curve_matches_the_true_one_and_merges_to_the_radiance_truth() {
+    // The bracket at one pose.
+    let sim = bracket_sim(11);
     let pose = sim.true_pose(1);
     let frames: Vec<EoFrame> = (0..5).map(|k| sim.render_at(&pose, k, 0).eo).collect();
     let times: Vec<f64> = frames
@@ -108,26 +113,7 @@ fn the_recovered_curve_matches_the_true_one_and_merges_to_the_radiance_truth() {
 fn texel_calib_recovers_the_curve_from_a_recorded_bracket() {
     // A still camera recording a five-exposure bracket: the frames carry their
     // exposure on /eo/exposure.
-    let scene =
-        Scene::load(&texel_e2e::repo_root().join("configs/scenes/courtyard-hdr.toml")).unwrap();
-    let sim = Simulator::with_options(
-        scene,
-        &SimOptions {
-            seed: 12,
-            frames: Some(2),
-            effects: Some(vec![
-                effect(
-                    "exposure",
-                    "ev = -0.5\nbracket_ev = [-4.0, -2.0, 0.0, 2.0, 4.0]",
-                ),
-                effect("sensor_noise", ""),
-            ]),
-            lidar_size: Some([16, 16]),
-            eo_size: Some([160, 120]),
-            ..SimOptions::default()
-        },
-    )
-    .unwrap();
+    let sim = bracket_sim(12);
     let dir = tempfile::tempdir().unwrap();
     let capture = dir.path().join("bracket.mcap");
     let mut w = texel::capture::CaptureWriter::create(&capture, Default::default()).unwrap();
