@@ -1,6 +1,7 @@
 //! What the viewer draws: the scans composited per pixel (Killpack & Budge 2016, one
 //! of the compositing modes) or the merged surface textured view-dependently
-//! (Debevec 1998, `vdtm`).
+//! (Debevec 1998, `vdtm`), or the scans as a point proxy with per-view depth maps
+//! (Lechelek et al. 2019, `points`).
 
 use crate::composite::Mode;
 
@@ -8,6 +9,7 @@ use crate::composite::Mode;
 pub enum DisplayMode {
     Scans(Mode),
     Vdtm,
+    Points,
 }
 
 impl DisplayMode {
@@ -15,7 +17,7 @@ impl DisplayMode {
     pub fn scans_mode(self) -> Mode {
         match self {
             DisplayMode::Scans(m) => m,
-            DisplayMode::Vdtm => Mode::default(),
+            DisplayMode::Vdtm | DisplayMode::Points => Mode::default(),
         }
     }
 
@@ -23,6 +25,7 @@ impl DisplayMode {
         match self {
             DisplayMode::Scans(m) => m.name(),
             DisplayMode::Vdtm => "vdtm",
+            DisplayMode::Points => "points",
         }
     }
 }
@@ -31,12 +34,14 @@ impl std::str::FromStr for DisplayMode {
     type Err = String;
 
     fn from_str(s: &str) -> Result<Self, Self::Err> {
-        if s == "vdtm" {
-            return Ok(DisplayMode::Vdtm);
+        match s {
+            "vdtm" => return Ok(DisplayMode::Vdtm),
+            "points" => return Ok(DisplayMode::Points),
+            _ => {}
         }
         s.parse::<Mode>()
             .map(DisplayMode::Scans)
-            .map_err(|e| format!("{e}, vdtm"))
+            .map_err(|e| format!("{e}, vdtm, points"))
     }
 }
 
@@ -57,7 +62,11 @@ mod tests {
             assert_eq!(d.name().parse::<DisplayMode>(), Ok(d));
         }
         assert_eq!("vdtm".parse::<DisplayMode>(), Ok(DisplayMode::Vdtm));
+        assert_eq!("points".parse::<DisplayMode>(), Ok(DisplayMode::Points));
         let err = "vdtmx".parse::<DisplayMode>().unwrap_err();
-        assert!(err.contains("vdtm") && err.contains("blended"), "{err}");
+        assert!(
+            err.contains("vdtm") && err.contains("points") && err.contains("blended"),
+            "{err}"
+        );
     }
 }

@@ -174,7 +174,9 @@ impl SourceArgs {
 #[derive(Args, Clone)]
 struct DisplayArgs {
     /// painter, best, blended, scan-colour or reliability (the scans composited per
-    /// pixel), or vdtm (the merged surface textured view-dependently, Debevec 1998).
+    /// pixel), vdtm (the merged surface textured view-dependently, Debevec 1998), or
+    /// points (the scans as splatted points with per-view depth maps, coloured from the
+    /// acquisition views that see each pixel; Lechelek et al. 2019).
     #[arg(long, default_value = "blended")]
     mode: DisplayMode,
     /// vdtm: lower the weight of views that saw the surface coarser than the frame
@@ -234,6 +236,7 @@ impl DisplayArgs {
         s.composite.k = self.k;
         s.range_gamma = self.range_gamma;
         s.keep_stretched = self.keep_stretched;
+        s.points = self.mode == DisplayMode::Points;
         if self.naive {
             s.strategy = Strategy::NaiveLayers;
         }
@@ -425,6 +428,9 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
     for (out, pose, fov) in views {
         let camera = VirtualCamera::new(pose, fov, args.width, args.height)?;
         let resident = residency.step(&mut model, &mut renderer, &camera);
+        if settings.points {
+            renderer.prepare_points(&model);
+        }
         let (image, stats) = renderer.render_to_image(&camera, &settings)?;
         image
             .save(&out)

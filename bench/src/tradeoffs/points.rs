@@ -14,6 +14,7 @@ use anyhow::Result;
 use nalgebra::{Point3, Vector3};
 use sims::Simulator;
 use texel::{FuseConfig, Sensor, fuse};
+use texel_viewer::points::cloud::scan_points;
 use texel_viewer::points::splat::{SplatCamera, SplatPoint, depth_map_with};
 
 use crate::tradeoffs::rendering::held_out_poses;
@@ -80,40 +81,15 @@ fn proxy(sim: &Simulator, frames: usize) -> Result<Vec<WorldPoint>> {
             sensor,
             &FuseConfig::default(),
         )?;
-        // Area-weighted vertex normals from the scan's triangles (turned towards the
-        // camera by their winding).
-        let mut normals = vec![Vector3::<f64>::zeros(); scan.vertices.len()];
-        let vertex = |k: u32| {
-            scan.vertices
-                .get(k as usize)
-                .map(|v| Vector3::new(f64::from(v[0]), f64::from(v[1]), f64::from(v[2])))
-        };
-        for t in &scan.triangles {
-            let (Some(a), Some(b), Some(c)) = (vertex(t[0]), vertex(t[1]), vertex(t[2])) else {
-                continue;
-            };
-            let n = (b - a).cross(&(c - a));
-            for &k in t {
-                if let Some(acc) = normals.get_mut(k as usize) {
-                    *acc += n;
-                }
-            }
-        }
+        // The same points the `points` mode draws, with the sensor's own pitch.
         let world_from_scan = frame.world_from_eo;
-        let cop = Vector3::from(scan.cop_m);
-        for (v, n) in scan.vertices.iter().zip(&normals) {
-            let Some(n) = n.try_normalize(1e-12) else {
-                continue;
-            };
-            let p = Vector3::new(f64::from(v[0]), f64::from(v[1]), f64::from(v[2]));
-            if !p.iter().all(|c| c.is_finite()) {
-                continue;
-            }
-            let range = (p - cop).norm();
+        for p in scan_points(&scan, pitch_rad) {
+            let [x, y, z] = p.position.map(f64::from);
+            let [nx, ny, nz] = p.normal.map(f64::from);
             points.push(WorldPoint {
-                position: world_from_scan * Point3::from(p),
-                normal: world_from_scan.rotation * n,
-                radius_m: range * pitch_rad,
+                position: world_from_scan * Point3::new(x, y, z),
+                normal: world_from_scan.rotation * Vector3::new(nx, ny, nz),
+                radius_m: f64::from(p.radius_m),
             });
         }
     }

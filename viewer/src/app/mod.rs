@@ -337,6 +337,9 @@ impl App {
                         self.viewer.tile_stats.get_or_insert_default();
                     }
                     self.viewer.update_residency(&mut w.renderer, &camera);
+                    if self.viewer.settings.points {
+                        w.renderer.prepare_points(&self.viewer.model);
+                    }
                     self.viewer.stats =
                         w.renderer.render(&camera, &self.viewer.settings, &target)?;
                 }

@@ -74,6 +74,10 @@ pub(super) fn panel(ctx: &egui::Context, v: &mut ViewerState, roomy: bool) {
                         ui.selectable_value(&mut v.settings.composite.mode, m, m.name());
                     }
                 });
+            ui.checkbox(
+                &mut v.settings.points,
+                "points: the scans as a point proxy (Lechelek et al. 2019)",
+            );
             ui.add(
                 egui::Slider::new(&mut v.settings.composite.blend_threshold, 0.0..=1.0)
                     .text("blend threshold"),

@@ -4,6 +4,7 @@
 //! strategy (window and headless share all of it).
 
 mod pipelines;
+pub mod points;
 mod readback;
 mod relative;
 mod renderer;

@@ -30,7 +30,7 @@ pub(crate) struct Pipelines {
     pub merge: wgpu::RenderPipeline,
 }
 
-fn uniform_entry(
+pub(crate) fn uniform_entry(
     binding: u32,
     visibility: wgpu::ShaderStages,
     dynamic: bool,
@@ -47,7 +47,7 @@ fn uniform_entry(
     }
 }
 
-fn texture_entry(
+pub(crate) fn texture_entry(
     binding: u32,
     visibility: wgpu::ShaderStages,
     sample_type: wgpu::TextureSampleType,
@@ -65,7 +65,7 @@ fn texture_entry(
     }
 }
 
-fn storage_entry(
+pub(crate) fn storage_entry(
     binding: u32,
     visibility: wgpu::ShaderStages,
     read_only: bool,
@@ -82,9 +82,10 @@ fn storage_entry(
     }
 }
 
-const UNFILTERED: wgpu::TextureSampleType = wgpu::TextureSampleType::Float { filterable: false };
+pub(crate) const UNFILTERED: wgpu::TextureSampleType =
+    wgpu::TextureSampleType::Float { filterable: false };
 const UINT: wgpu::TextureSampleType = wgpu::TextureSampleType::Uint;
-const D2: wgpu::TextureViewDimension = wgpu::TextureViewDimension::D2;
+pub(crate) const D2: wgpu::TextureViewDimension = wgpu::TextureViewDimension::D2;
 const D2_ARRAY: wgpu::TextureViewDimension = wgpu::TextureViewDimension::D2Array;
 
 fn primitive() -> wgpu::PrimitiveState {
@@ -99,7 +100,7 @@ fn primitive() -> wgpu::PrimitiveState {
 }
 
 /// Reverse z: nearer is greater; on equal depth the first drawn (lower scan id) stays.
-fn depth_state() -> Option<wgpu::DepthStencilState> {
+pub(crate) fn depth_state() -> Option<wgpu::DepthStencilState> {
     Some(wgpu::DepthStencilState {
         format: DEPTH_FORMAT,
         depth_write_enabled: Some(true),
@@ -109,7 +110,7 @@ fn depth_state() -> Option<wgpu::DepthStencilState> {
     })
 }
 
-fn replace(format: wgpu::TextureFormat) -> Option<wgpu::ColorTargetState> {
+pub(crate) fn replace(format: wgpu::TextureFormat) -> Option<wgpu::ColorTargetState> {
     Some(wgpu::ColorTargetState {
         format,
         blend: None,
@@ -117,7 +118,7 @@ fn replace(format: wgpu::TextureFormat) -> Option<wgpu::ColorTargetState> {
     })
 }
 
-fn module(device: &wgpu::Device, name: &str, own: &str) -> wgpu::ShaderModule {
+pub(crate) fn module(device: &wgpu::Device, name: &str, own: &str) -> wgpu::ShaderModule {
     device.create_shader_module(wgpu::ShaderModuleDescriptor {
         label: Some(name),
         source: wgpu::ShaderSource::Wgsl(shaders::source(own).into()),

@@ -161,7 +161,12 @@ pub fn read_depth_texture(
     queue: &wgpu::Queue,
     texture: &wgpu::Texture,
 ) -> Result<Vec<f32>, GpuError> {
-    if texture.format() != wgpu::TextureFormat::Depth32Float {
+    // One f32 per pixel: the depth buffer, or a depth map (`POINT_DEPTH_FORMAT`).
+    let one_float = [
+        wgpu::TextureFormat::Depth32Float,
+        crate::gpu::points::POINT_DEPTH_FORMAT,
+    ];
+    if !one_float.contains(&texture.format()) {
         return Err(GpuError::Readback(format!(
             "depth read-back of a {:?} texture",
             texture.format()

@@ -53,6 +53,8 @@ pub(crate) struct GpuScan {
     pub noise: RangeNoise,
     /// GPU bytes held by this scan.
     pub bytes: u64,
+    /// The EO texture, for the modes that bind it their own way (`points`).
+    pub eo_view: wgpu::TextureView,
 }
 
 impl GpuScan {
@@ -166,6 +168,7 @@ impl GpuScan {
             cop_scan: DVec3::from_array(scan.cop_m),
             noise: scan.range_noise,
             bytes,
+            eo_view: view,
         })
     }
 

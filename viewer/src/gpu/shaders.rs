@@ -1,5 +1,6 @@
 //! The WGSL sources (files under `src/shaders/`) and how they are combined: every
-//! module is `common.wgsl` followed by its own file.
+//! module is `common.wgsl` followed by its own file (the modes that texture from the
+//! acquisition images put `eo_camera.wgsl` before theirs).
 
 pub const COMMON: &str = include_str!("../shaders/common.wgsl");
 pub const SCAN: &str = include_str!("../shaders/scan.wgsl");
@@ -7,11 +8,19 @@ pub const MERGE: &str = include_str!("../shaders/merge.wgsl");
 pub const COMPOSITE_KBUFFER: &str = include_str!("../shaders/composite_kbuffer.wgsl");
 pub const COMPOSITE_NAIVE: &str = include_str!("../shaders/composite_naive.wgsl");
 pub const TILE: &str = include_str!("../shaders/tile.wgsl");
-pub const VDTM: &str = include_str!("../shaders/vdtm.wgsl");
+pub const VDTM: &str = concat!(
+    include_str!("../shaders/eo_camera.wgsl"),
+    include_str!("../shaders/vdtm.wgsl")
+);
+pub const POINTS: &str = concat!(
+    include_str!("../shaders/eo_camera.wgsl"),
+    include_str!("../shaders/points.wgsl")
+);
+pub const POINTS_FILL: &str = include_str!("../shaders/points_fill.wgsl");
 pub const TONEMAP: &str = include_str!("../shaders/tonemap.wgsl");
 
 /// Every shader module as (name, full source).
-pub fn modules() -> [(&'static str, String); 7] {
+pub fn modules() -> [(&'static str, String); 9] {
     [
         ("scan", source(SCAN)),
         ("merge", source(MERGE)),
@@ -20,6 +29,8 @@ pub fn modules() -> [(&'static str, String); 7] {
         ("tile", source(TILE)),
         ("vdtm", source(VDTM)),
         ("tonemap", source(TONEMAP)),
+        ("points", source(POINTS)),
+        ("points_fill", source(POINTS_FILL)),
     ]
 }
 

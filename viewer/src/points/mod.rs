@@ -4,5 +4,6 @@
 //! acquisition views' pixels (`blend`).
 
 pub mod blend;
+pub mod cloud;
 pub mod pull_push;
 pub mod splat;

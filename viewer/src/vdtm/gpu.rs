@@ -7,8 +7,8 @@
 use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, UVec4, Vec4};
 use nalgebra::{Point3, Translation3};
-use texel::Pose;
 use texel::camera::Distortion;
+use texel::{PinholeCamera, Pose};
 use texel_vdtm::Texturing;
 
 use super::prepare::PreparedVdtm;
@@ -89,7 +89,16 @@ fn eo_view_uniform(
     world_from_eo: &Pose,
     world_from_model: &Pose,
 ) -> EoViewUniform {
-    let c = &prepared.camera;
+    eo_view_uniform_of(&prepared.camera, world_from_eo, world_from_model)
+}
+
+/// An acquisition view's camera `c`, taken at `world_from_eo`, for a shader whose
+/// positions are relative to `world_from_model` (`EoView` in `eo_camera.wgsl`).
+pub(crate) fn eo_view_uniform_of(
+    c: &PinholeCamera,
+    world_from_eo: &Pose,
+    world_from_model: &Pose,
+) -> EoViewUniform {
     let eo_from_model = gpu_from_pose_relative(&world_from_eo.inverse(), world_from_model);
     let model_from_eo = gpu_from_pose_relative(&world_from_model.inverse(), world_from_eo);
     let (k, p) = match &c.distortion {

@@ -8,6 +8,7 @@ mod frame;
 mod kbuffer;
 mod naive_layers;
 mod painter;
+mod points;
 
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 
@@ -63,6 +64,9 @@ pub struct RenderSettings {
     /// frame, a few chosen scans leave their dropouts and the gaps between their
     /// triangles as holes that every scan together would have covered.
     pub fill_enclosed_holes: bool,
+    /// Render the point proxy (Lechelek et al. 2019) instead of compositing meshes;
+    /// needs [`Renderer::prepare_points`] for the scans it shows.
+    pub points: bool,
 }
 
 impl Default for RenderSettings {
@@ -75,6 +79,7 @@ impl Default for RenderSettings {
             hidden: BTreeSet::new(),
             only: None,
             fill_enclosed_holes: false,
+            points: false,
         }
     }
 }
@@ -131,6 +136,8 @@ pub(crate) struct FrameUniform {
 struct PlacedScan {
     gpu: GpuScan,
     world_from_scan: Pose,
+    /// Built when the `points` mode first needs the scan.
+    points: Option<crate::gpu::points::scan::GpuPoints>,
 }
 
 impl PlacedScan {
@@ -174,6 +181,8 @@ pub struct Renderer {
     /// The last frame went through the k-buffer, so its pre-pass target holds that
     /// frame's nearest scan distances.
     nearest_ready: bool,
+    /// The `points` mode's pipelines and targets, built on its first use.
+    points: Option<points::PointsState>,
 }
 
 impl Renderer {
@@ -207,6 +216,7 @@ impl Renderer {
             naive: None,
             profile_phases: false,
             nearest_ready: false,
+            points: None,
         }
     }
 
@@ -234,6 +244,7 @@ impl Renderer {
             PlacedScan {
                 gpu,
                 world_from_scan,
+                points: None,
             },
         );
         Ok(())
@@ -397,6 +408,9 @@ impl Renderer {
         self.depth = None;
         self.kbuffer = None;
         self.naive = None;
+        if let Some(p) = self.points.as_mut() {
+            p.release_targets();
+        }
     }
 
     /// Records and submits one frame into `target`.
@@ -410,6 +424,9 @@ impl Renderer {
         self.check_target(width, height)?;
         let (visible, mut stats) = self.cull(camera, settings);
         self.write_uniforms(camera, settings, target, &visible);
+        if settings.points {
+            return self.render_points(camera, settings, target, &visible, stats);
+        }
         let depth = match self.depth.take() {
             Some(d) if (d.width, d.height) == (width, height) => d,
             _ => DepthTarget::new(&self.device, width, height),
