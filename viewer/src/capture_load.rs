@@ -48,6 +48,9 @@ pub struct LoadedCapture {
     pub pose_source: PoseSource,
     /// The EO camera of the first frame (the default virtual camera).
     pub eo_camera: PinholeCamera,
+    /// The EO camera's response curve, where the capture's sensor model has one (what
+    /// turns the frames that record their exposure into radiance).
+    pub eo_response: Option<texel::radiance::EoResponse>,
     /// Frames fused but not placed (no pose within the tolerance).
     pub unplaced: usize,
     /// Problems met on the way (damaged messages, a truncated file, fusion errors).
@@ -61,6 +64,7 @@ pub fn load_capture(path: &Path) -> Result<LoadedCapture, LoadError> {
     let mut sensors = SensorCache::new();
     let mut scans: Vec<TexelScan> = Vec::new();
     let mut eo_camera = None;
+    let mut eo_response = None;
     let mut registered = RegisteredPoses::default();
     let mut truth: BTreeMap<u64, Pose> = BTreeMap::new();
     let mut warnings = Vec::new();
@@ -69,6 +73,9 @@ pub fn load_capture(path: &Path) -> Result<LoadedCapture, LoadError> {
         match item {
             Ok(TexelItem::Pair { pair, sensor }) => {
                 eo_camera.get_or_insert_with(|| sensor.eo.clone());
+                if eo_response.is_none() {
+                    eo_response = sensor.eo_response.clone();
+                }
                 let timestamp_ns = pair.range.timestamp_ns;
                 match sensors.fuse(pair, &sensor, &config) {
                     Ok(scan) => scans.push(scan),
@@ -128,6 +135,7 @@ pub fn load_capture(path: &Path) -> Result<LoadedCapture, LoadError> {
         model,
         pose_source,
         eo_camera,
+        eo_response,
         unplaced,
         warnings,
     })

@@ -134,6 +134,8 @@ struct SourceModel {
     model: texel::model::Model,
     default_fov_deg: f64,
     eo_camera: Option<texel::PinholeCamera>,
+    /// The EO camera's response curve, where the source's sensor model has one.
+    eo_response: Option<texel::radiance::EoResponse>,
 }
 
 impl SourceArgs {
@@ -145,6 +147,7 @@ impl SourceArgs {
                     default_fov_deg: VirtualCamera::fov_y_deg_of(&loaded.eo_camera),
                     model: loaded.model,
                     eo_camera: Some(loaded.eo_camera),
+                    eo_response: loaded.eo_response,
                 })
             }
             (None, Some(addr)) => {
@@ -164,6 +167,7 @@ impl SourceArgs {
                     model,
                     default_fov_deg,
                     eo_camera: None,
+                    eo_response: None,
                 })
             }
             (None, None) => bail!("give a model source (--capture or --connect)"),
@@ -208,6 +212,13 @@ struct DisplayArgs {
     /// Use the naive one-layer-per-scan composite instead of the k-buffer.
     #[arg(long)]
     naive: bool,
+    /// With `--mode points`: render radiance (the scans whose EO frames record their
+    /// exposure, made radiance by the sensor model's response curve, sRGB where it
+    /// has none) and tone-map it (the flags below; Lechelek et al. 2019 §6).
+    #[arg(long)]
+    hdr: bool,
+    #[command(flatten)]
+    tone: tonemap_cli::ToneArgs,
     /// GPU memory the scans may hold, MiB: the scans the view needs are kept within
     /// it, the rest evicted and fetched again when needed.
     #[arg(long, value_name = "N", default_value_t = texel_viewer::residency::DEFAULT_BUDGET_MB)]
@@ -237,6 +248,12 @@ impl DisplayArgs {
         s.range_gamma = self.range_gamma;
         s.keep_stretched = self.keep_stretched;
         s.points = self.mode == DisplayMode::Points;
+        if self.hdr {
+            if !s.points {
+                bail!("--hdr renders radiance through the point proxy: add --mode points");
+            }
+            s.tone_map = Some(self.tone.settings()?);
+        }
         if self.naive {
             s.strategy = Strategy::NaiveLayers;
         }
@@ -419,6 +436,7 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
     if args.lod {
         return render_lod(&gpu, loaded.model, &settings, budget_bytes, &views, &args);
     }
+    let radiance = hdr_response(&settings, &loaded.model, loaded.eo_response.clone())?;
     let mut renderer = Renderer::new(&gpu);
     // Each view uploads what it needs within the budget (evicting what the previous
     // view needed and this one does not).
@@ -429,7 +447,7 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
         let camera = VirtualCamera::new(pose, fov, args.width, args.height)?;
         let resident = residency.step(&mut model, &mut renderer, &camera);
         if settings.points {
-            renderer.prepare_points(&model);
+            renderer.prepare_points(&model, radiance.as_ref());
         }
         let (image, stats) = renderer.render_to_image(&camera, &settings)?;
         image
@@ -445,6 +463,36 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
         );
     }
     Ok(())
+}
+
+/// With `--hdr`: the response curve that makes the scans' EO frames radiance (the
+/// sensor model's, sRGB where it has none); an error when no frame records its
+/// exposure (nothing would be measured).
+fn hdr_response(
+    settings: &RenderSettings,
+    model: &texel::model::Model,
+    response: Option<texel::radiance::EoResponse>,
+) -> anyhow::Result<Option<texel::radiance::EoResponse>> {
+    if settings.tone_map.is_none() {
+        return Ok(None);
+    }
+    let exposed = model
+        .resident()
+        .filter(|(_, scan)| scan.texture.exposure.is_some())
+        .count();
+    if exposed == 0 {
+        bail!(
+            "--hdr: no EO frame of the model records its exposure (/eo/exposure), so none \
+             can be made radiance"
+        );
+    }
+    Ok(Some(response.unwrap_or_else(|| {
+        eprintln!(
+            "--hdr: the sensor model has no response curve (texel-calib response); assuming \
+             sRGB"
+        );
+        texel::radiance::EoResponse::srgb()
+    })))
 }
 
 /// `render --mode vdtm`: the merged surface prepared once (Debevec 1998 §5-7), then
@@ -579,10 +627,12 @@ fn open(args: OpenArgs) -> anyhow::Result<()> {
     let settings = args.display.settings()?;
     let budget_bytes = args.display.budget_bytes()?;
     let mut eo_camera = None;
+    let mut eo_response = None;
     let (events, fov, keep_alive): (_, Option<f64>, Box<dyn std::any::Any>) = if args.load {
         let loaded = load(&args.capture)?;
         let fov = VirtualCamera::fov_y_deg_of(&loaded.eo_camera);
         eo_camera = Some(loaded.eo_camera);
+        eo_response = loaded.eo_response;
         (
             live::spawn_model_feed(loaded.model),
             Some(fov),
@@ -617,6 +667,7 @@ fn open(args: OpenArgs) -> anyhow::Result<()> {
         tiles: None,
         scans_below_tiles: true,
         vdtm: args.display.vdtm(eo_camera)?,
+        eo_response,
     });
     drop(keep_alive);
     result
@@ -738,6 +789,7 @@ fn connect(args: LiveArgs, addr: String) -> anyhow::Result<()> {
             },
             scans_below_tiles: !args.lod_tiles_only,
             vdtm: args.display.vdtm(None)?,
+            eo_response: None,
         }),
     };
     connection.stop();

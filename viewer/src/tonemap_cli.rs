@@ -17,6 +17,14 @@ pub struct ToneMapArgs {
     /// The PNG to write.
     #[arg(long)]
     out: PathBuf,
+    #[command(flatten)]
+    tone: ToneArgs,
+}
+
+/// The tone-mapping controls as flags (`tonemap`, and `render`/`open`/`--connect`
+/// with `--hdr`).
+#[derive(Args, Clone)]
+pub struct ToneArgs {
     /// reinhard (Lechelek et al.'s eqs. 8-12), filmic (ACES fit) or clip.
     #[arg(long, default_value = "reinhard", value_parser = parse_operator)]
     operator: ToneOperator,
@@ -42,15 +50,23 @@ fn parse_operator(name: &str) -> Result<ToneOperator, String> {
     })
 }
 
+impl ToneArgs {
+    /// The settings, validated (a bad value named).
+    pub fn settings(&self) -> anyhow::Result<ToneMapSettings> {
+        let settings = ToneMapSettings {
+            operator: self.operator,
+            key: self.key,
+            exposure_ev: self.exposure_ev,
+            gamma: self.gamma,
+            adaptation: self.adaptation,
+        };
+        settings.validate()?;
+        Ok(settings)
+    }
+}
+
 pub fn tonemap(args: ToneMapArgs) -> anyhow::Result<()> {
-    let settings = ToneMapSettings {
-        operator: args.operator,
-        key: args.key,
-        exposure_ev: args.exposure_ev,
-        gamma: args.gamma,
-        adaptation: args.adaptation,
-    };
-    settings.validate()?;
+    let settings = args.tone.settings()?;
     let (width, height, radiance) = texel::radiance::exr::read_radiance_exr(&args.exr)?;
     let gpu = GpuContext::headless()?;
     let mut pass = ToneMapPass::new(&gpu);
@@ -63,7 +79,7 @@ pub fn tonemap(args: ToneMapArgs) -> anyhow::Result<()> {
         "{}: {width}x{height}, {} with adaptation level {l_a:.4} ({}), exposure {:+.2} EV, gamma {}; wrote {}",
         args.exr.display(),
         settings.operator.name(),
-        if args.adaptation.is_some() {
+        if args.tone.adaptation.is_some() {
             "fixed"
         } else {
             "log-average luminance"

@@ -119,6 +119,56 @@ fn renders_a_capture_deterministically_and_as_the_library_does() {
 }
 
 #[test]
+fn the_point_proxy_renders_and_hdr_asks_for_what_it_needs() {
+    let dir = tempfile::tempdir().unwrap();
+    let capture = dir.path().join("box.mcap");
+    write_box_capture(&capture, PoseTopic::Truth);
+    let pose = pose_arg(&box_camera(&texel::Pose::identity()).world_from_eo);
+    let out = dir.path().join("points.png");
+    let base = [
+        "--capture",
+        capture.to_str().unwrap(),
+        "--pose",
+        &pose,
+        "--width",
+        "80",
+        "--height",
+        "60",
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    let points = render(&[&base[..], &["--mode", "points"]].concat());
+    assert!(
+        points.status.success(),
+        "{}",
+        String::from_utf8_lossy(&points.stderr)
+    );
+    let image = image::open(&out).unwrap().to_rgb8();
+    // The box scene fills the view: the proxy coloured most of it.
+    let coloured = image.pixels().filter(|p| p.0 != [0, 0, 0]).count();
+    assert!(coloured * 10 > 9 * 80 * 60, "{coloured}");
+    // HDR is the point proxy's, and needs frames that record their exposure.
+    let meshes = render(&[&base[..], &["--mode", "blended", "--hdr"]].concat());
+    let stderr = String::from_utf8_lossy(&meshes.stderr);
+    assert!(
+        !meshes.status.success() && stderr.contains("--mode points"),
+        "{stderr}"
+    );
+    let unexposed = render(&[&base[..], &["--mode", "points", "--hdr"]].concat());
+    let stderr = String::from_utf8_lossy(&unexposed.stderr);
+    assert!(
+        !unexposed.status.success() && stderr.contains("records its exposure"),
+        "{stderr}"
+    );
+    let bad = render(&[&base[..], &["--mode", "points", "--hdr", "--gamma", "0"]].concat());
+    let stderr = String::from_utf8_lossy(&bad.stderr);
+    assert!(
+        !bad.status.success() && stderr.contains("gamma"),
+        "{stderr}"
+    );
+}
+
+#[test]
 fn registered_poses_win_over_truth() {
     let dir = tempfile::tempdir().unwrap();
     let capture = dir.path().join("reg.mcap");

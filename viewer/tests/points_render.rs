@@ -71,9 +71,9 @@ fn score(image: &image::RgbaImage, camera: &VirtualCamera, tint: [f32; 3]) -> (f
 fn render(model: &texel::model::Model, camera: &VirtualCamera) -> (Renderer, image::RgbaImage) {
     let mut renderer = Renderer::new(support::gpu());
     renderer.sync_model(model).unwrap();
-    assert_eq!(renderer.prepare_points(model), model.len());
+    assert_eq!(renderer.prepare_points(model, None), model.len());
     // Built once: a second call finds nothing new.
-    assert_eq!(renderer.prepare_points(model), 0);
+    assert_eq!(renderer.prepare_points(model, None), 0);
     let (image, _) = renderer.render_to_image(camera, &settings()).unwrap();
     (renderer, image)
 }

@@ -59,6 +59,9 @@ pub struct AppOptions {
     /// the scans, rebuilt in the background as the model changes (the scans show
     /// until the first build is done).
     pub vdtm: Option<crate::vdtm::VdtmChoice>,
+    /// The response curve that makes exposed EO frames radiance for the `points`
+    /// mode's HDR rendering (sRGB when the source gives none).
+    pub eo_response: Option<texel::radiance::EoResponse>,
 }
 
 /// How often the window reads its tile depth back for the coverage feedback.
@@ -338,7 +341,17 @@ impl App {
                     }
                     self.viewer.update_residency(&mut w.renderer, &camera);
                     if self.viewer.settings.points {
-                        w.renderer.prepare_points(&self.viewer.model);
+                        let response = self
+                            .options
+                            .eo_response
+                            .get_or_insert_with(texel::radiance::EoResponse::srgb);
+                        let radiance = self
+                            .viewer
+                            .settings
+                            .tone_map
+                            .is_some()
+                            .then_some(&*response);
+                        w.renderer.prepare_points(&self.viewer.model, radiance);
                     }
                     self.viewer.stats =
                         w.renderer.render(&camera, &self.viewer.settings, &target)?;

@@ -6,6 +6,7 @@ use super::ViewerState;
 use crate::composite::{MAX_K, Mode};
 use crate::gpu::Strategy;
 use crate::live::ConnectionState;
+use crate::tonemap::{ToneMapSettings, ToneOperator};
 
 /// `roomy`: the window is wide enough to show the panel open at first (in a small
 /// window it starts folded, so the model stays visible).
@@ -78,6 +79,9 @@ pub(super) fn panel(ctx: &egui::Context, v: &mut ViewerState, roomy: bool) {
                 &mut v.settings.points,
                 "points: the scans as a point proxy (Lechelek et al. 2019)",
             );
+            if v.settings.points {
+                tone_map_controls(ui, &mut v.settings.tone_map);
+            }
             ui.add(
                 egui::Slider::new(&mut v.settings.composite.blend_threshold, 0.0..=1.0)
                     .text("blend threshold"),
@@ -239,4 +243,43 @@ fn source_section(ui: &mut egui::Ui, v: &ViewerState) {
                 ));
             }
         });
+}
+
+/// HDR on or off and, when on, the tone-mapping controls (Lechelek et al. 2019 §6:
+/// Reinhard's operator or a filmic curve, exposure, gamma, key, auto-exposure).
+fn tone_map_controls(ui: &mut egui::Ui, tone_map: &mut Option<ToneMapSettings>) {
+    let mut hdr = tone_map.is_some();
+    if ui
+        .checkbox(&mut hdr, "HDR: radiance from exposed frames, tone-mapped")
+        .changed()
+    {
+        *tone_map = hdr.then(ToneMapSettings::default);
+    }
+    let Some(t) = tone_map.as_mut() else {
+        return;
+    };
+    egui::ComboBox::from_label("tone operator")
+        .selected_text(t.operator.name())
+        .show_ui(ui, |ui| {
+            for op in ToneOperator::ALL {
+                ui.selectable_value(&mut t.operator, op, op.name());
+            }
+        });
+    ui.add(egui::Slider::new(&mut t.exposure_ev, -8.0..=8.0).text("exposure (EV)"));
+    ui.add(egui::Slider::new(&mut t.gamma, 1.0..=3.0).text("gamma"));
+    ui.add(egui::Slider::new(&mut t.key, 0.02..=0.9).text("key"));
+    let mut auto = t.adaptation.is_none();
+    if ui
+        .checkbox(&mut auto, "auto-exposure (log-average luminance)")
+        .changed()
+    {
+        t.adaptation = if auto { None } else { Some(1.0) };
+    }
+    if let Some(level) = t.adaptation.as_mut() {
+        ui.add(
+            egui::Slider::new(level, 1.0e-4..=1.0e3)
+                .logarithmic(true)
+                .text("adaptation level"),
+        );
+    }
 }

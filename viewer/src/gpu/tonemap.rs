@@ -76,11 +76,20 @@ pub struct ToneMapPass {
     /// Per 16 x 16 tile sums; grown to the largest image seen.
     partials: wgpu::Buffer,
     partial_tiles: u64,
+    /// Display colour of the pixels no surface covers (radiance alpha 0); they do not
+    /// count towards auto-exposure either.
+    pub background: [f32; 3],
 }
 
 impl ToneMapPass {
     pub fn new(gpu: &GpuContext) -> Self {
-        let device = gpu.device.clone();
+        Self::with_device(&gpu.device, &gpu.queue)
+    }
+
+    /// The pass on a device and queue already held (the renderer's).
+    pub fn with_device(device: &wgpu::Device, queue: &wgpu::Queue) -> Self {
+        let device = device.clone();
+        let queue = queue.clone();
         let compute = wgpu::ShaderStages::COMPUTE;
         let fragment = wgpu::ShaderStages::FRAGMENT;
         let uniform = buffer_binding(wgpu::BufferBindingType::Uniform);
@@ -154,7 +163,8 @@ impl ToneMapPass {
         let adaptation = buffer("tonemap adaptation", 16, storage_usage);
         let partials = buffer("tonemap partials", 8, storage_usage);
         Self {
-            queue: gpu.queue.clone(),
+            queue,
+            background: [0.0; 3],
             module,
             compute_layout,
             draw_layout,
@@ -208,10 +218,16 @@ impl ToneMapPass {
             });
             self.partial_tiles = tiles;
         }
-        // Of `Frame`, only `params.z` (1 for an sRGB target) is read here.
+        // Of `Frame`, only the background and `params.z` (1 for an sRGB target) are
+        // read here.
         let frame = FrameUniform {
             clip_from_view: Mat4::IDENTITY,
-            background: Vec4::ZERO,
+            background: Vec4::new(
+                self.background[0],
+                self.background[1],
+                self.background[2],
+                1.0,
+            ),
             params: Vec4::new(
                 0.0,
                 0.0,

@@ -140,6 +140,13 @@ pub fn run(
             continue;
         };
         let resident = residency.step(&mut model, &mut renderer, &camera);
+        if options.settings.points {
+            // Radiance needs the sensor's response, which the stream does not carry:
+            // HDR snapshots assume sRGB.
+            let srgb = texel::radiance::EoResponse::srgb();
+            let radiance = options.settings.tone_map.is_some().then_some(&srgb);
+            renderer.prepare_points(&model, radiance);
+        }
         let since = *waiting_since.get_or_insert_with(Instant::now);
         if (resident.in_flight > 0 || resident.pending > 0)
             && since.elapsed() < FETCH_WAIT

@@ -6,7 +6,9 @@
 // keeps the result where pass 1 drew. The colour pass (§4-5, eqs. 1-5) back-projects
 // each pixel's surface point into every acquisition view, tests it against that
 // view's own depth map and the grazing angle, and accumulates the view's colour with
-// weight `max(0, V . V_k) / (|d - d_k| + 1)`; the output pass divides by the weight.
+// weight `max(0, V . V_k) / (|d - d_k| + 1)` (times a radiance texture's hat weight);
+// the output pass divides by the weight, into the target or, as radiance, into the
+// tone-mapping pass's input.
 // The same splat and scatter passes build each acquisition view's depth map once, its
 // points placed at their texture coordinates (`shape.z`), so the distorted EO image
 // and its depth map share one pixel grid.
@@ -248,8 +250,14 @@ fn fs_colour(in: FullscreenOut) -> @location(0) vec4<f32> {
         discard;
     }
     let uv = (projected.xy + vec2<f32>(0.5)) / size;
-    let colour = textureSampleLevel(eo_texture, eo_sampler, uv, 0.0).rgb;
-    return vec4<f32>(colour * w, w);
+    // An EO image is opaque; a radiance texture's alpha is its hat weight (0 where the
+    // exposure saw black or saturation there).
+    let texel = textureSampleLevel(eo_texture, eo_sampler, uv, 0.0);
+    let weight = w * clamp(texel.a, 0.0, 1.0);
+    if !(weight > 0.0) {
+        discard;
+    }
+    return vec4<f32>(texel.rgb * weight, weight);
 }
 
 // The output: the weighted mean (eq. 5), the background where no view saw the surface.
@@ -260,4 +268,15 @@ fn fs_points_output(in: FullscreenOut) -> @location(0) vec4<f32> {
         return to_target(acc.rgb / acc.a);
     }
     return to_target(frame.background.rgb);
+}
+
+// The output as radiance for the tone-mapping pass: the weighted mean, alpha 0 where
+// no view measured the pixel.
+@fragment
+fn fs_points_radiance(in: FullscreenOut) -> @location(0) vec4<f32> {
+    let acc = textureLoad(accumulated, vec2<i32>(floor(in.clip.xy)), 0);
+    if acc.a > 0.0 {
+        return vec4<f32>(acc.rgb / acc.a, 1.0);
+    }
+    return vec4<f32>(0.0);
 }

@@ -2,7 +2,9 @@
 // `tonemap.rs` step for step. Auto-exposure: `cs_partial` sums ln(eps + L) over 16 x 16
 // tiles, `cs_final` sums the tiles and writes the log-average luminance (Lechelek et
 // al. 2019, eq. 9); `fs_tonemap` scales by key / L_a (eq. 10), compresses (eq. 11, or
-// the filmic curve, or clipping), applies exposure and gamma (eq. 12).
+// the filmic curve, or clipping), applies exposure and gamma (eq. 12). Pixels of alpha 0
+// hold no surface (a rendered view's background): they show the frame's background and
+// do not count towards the log-average.
 
 struct ToneMap {
     // x: operator (0 Reinhard, 1 filmic, 2 clip), y: key, z: exposure (a linear
@@ -59,9 +61,12 @@ fn cs_partial(
 ) {
     var value = vec2<f32>(0.0, 0.0);
     if gid.x < tone.size.x && gid.y < tone.size.y {
-        let c = finite_or_zero(textureLoad(radiance, vec2<i32>(gid.xy), 0).rgb);
-        let l = max(dot(LUMINANCE, c), 0.0);
-        value = vec2<f32>(log(tone.adapt.z + l), 1.0);
+        let texel = textureLoad(radiance, vec2<i32>(gid.xy), 0);
+        // Alpha 0: no surface there (a rendered view's background); not counted.
+        if texel.a > 0.0 {
+            let l = max(dot(LUMINANCE, finite_or_zero(texel.rgb)), 0.0);
+            value = vec2<f32>(log(tone.adapt.z + l), 1.0);
+        }
     }
     shared_sum[local] = value;
     workgroupBarrier();
@@ -126,6 +131,9 @@ fn fs_tonemap(in: FullscreenOut) -> @location(0) vec4<f32> {
     if tone.adapt.x > 0.5 {
         l_a = adaptation_in[0];
     }
-    let c = textureLoad(radiance, pixel, 0).rgb;
-    return to_target(tone_map(c, l_a));
+    let texel = textureLoad(radiance, pixel, 0);
+    if !(texel.a > 0.0) {
+        return to_target(frame.background.rgb);
+    }
+    return to_target(tone_map(texel.rgb, l_a));
 }

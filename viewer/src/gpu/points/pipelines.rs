@@ -8,6 +8,7 @@ use super::super::pipelines::{
     D2, UNFILTERED, depth_state, module, replace, storage_entry, texture_entry, uniform_entry,
 };
 use super::super::shaders;
+use super::super::tonemap::RADIANCE_FORMAT;
 use crate::points::cloud::ScanPoint;
 
 /// The depth of the splats in pass 1, the front and back images of pass 2 and the
@@ -54,6 +55,8 @@ pub(crate) struct PointsPipelines {
     pub fill_push: wgpu::ComputePipeline,
     pub fill_resolve: wgpu::ComputePipeline,
     outputs: HashMap<wgpu::TextureFormat, wgpu::RenderPipeline>,
+    /// The output as radiance (`RADIANCE_FORMAT`), for tone mapping.
+    pub radiance_output: wgpu::RenderPipeline,
 }
 
 struct RenderPipelineSpec<'a> {
@@ -266,7 +269,16 @@ impl PointsPipelines {
                 cache: None,
             })
         };
+        let radiance_output = super::super::pipelines::fullscreen_pipeline(
+            device,
+            &output_pipeline_layout,
+            &module,
+            "points radiance output",
+            "fs_points_radiance",
+            RADIANCE_FORMAT,
+        );
         Self {
+            radiance_output,
             fill_load: compute("cs_load"),
             fill_pull: compute("cs_pull"),
             fill_push: compute("cs_push"),

@@ -8,18 +8,21 @@
 
 use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, Vec4};
+use texel::radiance::{EoResponse, merge_exposures};
 use texel::{PinholeCamera, Pose, RangeNoise, TexelScan};
 
 use super::depth_map::{DepthMapTargets, DepthMapView, depth_map_texture};
 use super::pipelines::PointsPipelines;
 use crate::gpu::targets::Texture;
+use crate::gpu::tonemap::{RADIANCE_FORMAT, RADIANCE_MAX};
 use crate::points::cloud::{ScanPoint, lidar_pitch_rad, scan_points};
 use crate::vdtm::gpu::{EoViewUniform, eo_view_uniform_of};
 
 /// Acquisition depth maps are at most this many pixels on their longer side (the EO
-/// image divided by a whole factor): the occlusion test needs the surface, not the
-/// image's detail.
-pub const MAX_ACQUISITION_MAP_PX: u32 = 640;
+/// image divided by a whole factor): the map is splatted from the scan's own returns,
+/// so a few pixels per lidar pixel hold all it knows (a 640x480 EO image over a
+/// 128x128 lidar gets 320x240, a quarter of the bytes of the full size).
+pub const MAX_ACQUISITION_MAP_PX: u32 = 320;
 
 /// `PointsScan` in `points.wgsl`.
 #[repr(C)]
@@ -35,6 +38,8 @@ pub(crate) struct GpuPoints {
     pub count: u32,
     pub uniform: wgpu::Buffer,
     pub bind_group: wgpu::BindGroup,
+    /// The same with the scan's radiance instead of its EO image, once built.
+    pub radiance_bind_group: Option<wgpu::BindGroup>,
     /// The EO camera fitted to the scan; `None`: the scan gives depth but no colour.
     pub camera: Option<PinholeCamera>,
     pub noise: RangeNoise,
@@ -51,7 +56,132 @@ pub fn acquisition_map_size(width: u32, height: u32) -> (u32, u32) {
     )
 }
 
+/// Group 2 of the points passes: the scan's uniform, the texture its colours come
+/// from (the EO image, or its radiance) and its acquisition depth map.
+fn scan_bind_group(
+    device: &wgpu::Device,
+    pipelines: &PointsPipelines,
+    uniform: &wgpu::Buffer,
+    texture: &wgpu::TextureView,
+    acquisition_depth: &wgpu::TextureView,
+) -> wgpu::BindGroup {
+    device.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some("points scan"),
+        layout: &pipelines.scan_layout,
+        entries: &[
+            wgpu::BindGroupEntry {
+                binding: 0,
+                resource: uniform.as_entire_binding(),
+            },
+            wgpu::BindGroupEntry {
+                binding: 1,
+                resource: wgpu::BindingResource::TextureView(texture),
+            },
+            wgpu::BindGroupEntry {
+                binding: 2,
+                resource: wgpu::BindingResource::Sampler(&pipelines.sampler),
+            },
+            wgpu::BindGroupEntry {
+                binding: 3,
+                resource: wgpu::BindingResource::TextureView(acquisition_depth),
+            },
+        ],
+    })
+}
+
+/// The scan's EO frame as radiance (`texel::radiance::merge_exposures`, a bracket of
+/// one: `exp(g(z)) / (exposure_time_s · gain)` per channel) in a `RADIANCE_FORMAT`
+/// texture whose alpha is the least of the channels' hat weights (0 to 1): a pixel
+/// black or saturated in any channel measured nothing there and colours nothing.
+/// `None` when the frame does not record its exposure.
+fn radiance_texture(
+    device: &wgpu::Device,
+    queue: &wgpu::Queue,
+    scan: &TexelScan,
+    response: &EoResponse,
+) -> Option<wgpu::Texture> {
+    let frame: &texel::EoFrame = &scan.texture;
+    frame.exposure?;
+    let radiance = merge_exposures(&[frame], response).ok()?;
+    let half = |v: f32| {
+        let v = if v.is_finite() {
+            v.clamp(0.0, RADIANCE_MAX)
+        } else {
+            0.0
+        };
+        half::f16::from_f32(v).to_bits()
+    };
+    // The hat weight of one exposure is at most 127.
+    let texels: Vec<u16> = radiance
+        .rgb
+        .iter()
+        .zip(&radiance.weight)
+        .flat_map(|(c, w)| {
+            let alpha = (w[0].min(w[1]).min(w[2]) / 127.0).clamp(0.0, 1.0);
+            [half(c[0]), half(c[1]), half(c[2]), half(alpha)]
+        })
+        .collect();
+    let texture = device.create_texture(&wgpu::TextureDescriptor {
+        label: Some("scan radiance"),
+        size: wgpu::Extent3d {
+            width: frame.width,
+            height: frame.height,
+            depth_or_array_layers: 1,
+        },
+        mip_level_count: 1,
+        sample_count: 1,
+        dimension: wgpu::TextureDimension::D2,
+        format: RADIANCE_FORMAT,
+        usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+        view_formats: &[],
+    });
+    queue.write_texture(
+        wgpu::TexelCopyTextureInfo {
+            texture: &texture,
+            mip_level: 0,
+            origin: wgpu::Origin3d::ZERO,
+            aspect: wgpu::TextureAspect::All,
+        },
+        bytemuck::cast_slice(&texels),
+        wgpu::TexelCopyBufferLayout {
+            offset: 0,
+            bytes_per_row: Some(8 * frame.width),
+            rows_per_image: Some(frame.height),
+        },
+        texture.size(),
+    );
+    Some(texture)
+}
+
 impl GpuPoints {
+    /// Adds the radiance texture and its bind group if the scan's frame records its
+    /// exposure and it has none yet; true when the scan has one afterwards.
+    pub fn ensure_radiance(
+        &mut self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        pipelines: &PointsPipelines,
+        scan: &TexelScan,
+        response: &EoResponse,
+    ) -> bool {
+        if self.radiance_bind_group.is_some() {
+            return true;
+        }
+        let Some(texture) = radiance_texture(device, queue, scan, response) else {
+            return false;
+        };
+        let view = texture.create_view(&wgpu::TextureViewDescriptor::default());
+        self.radiance_bind_group = Some(scan_bind_group(
+            device,
+            pipelines,
+            &self.uniform,
+            &view,
+            &self.acquisition_depth.view,
+        ));
+        self.bytes += u64::from(scan.texture.width) * u64::from(scan.texture.height) * 8;
+        true
+    }
+
     /// Builds the scan's points and uniform; the acquisition depth map is filled by
     /// [`GpuPoints::encode_acquisition_depth`].
     pub fn upload(
@@ -83,34 +213,20 @@ impl GpuPoints {
         });
         let (mw, mh) = acquisition_map_size(scan.texture.width, scan.texture.height);
         let acquisition_depth = depth_map_texture(device, "acquisition depth map", mw, mh);
-        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("points scan"),
-            layout: &pipelines.scan_layout,
-            entries: &[
-                wgpu::BindGroupEntry {
-                    binding: 0,
-                    resource: uniform.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 1,
-                    resource: wgpu::BindingResource::TextureView(eo_view),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 2,
-                    resource: wgpu::BindingResource::Sampler(&pipelines.sampler),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 3,
-                    resource: wgpu::BindingResource::TextureView(&acquisition_depth.view),
-                },
-            ],
-        });
+        let bind_group = scan_bind_group(
+            device,
+            pipelines,
+            &uniform,
+            eo_view,
+            &acquisition_depth.view,
+        );
         let bytes = buffer.size() + uniform.size() + u64::from(mw) * u64::from(mh) * 4;
         Self {
             count: points.len() as u32,
             points: buffer,
             uniform,
             bind_group,
+            radiance_bind_group: None,
             camera,
             noise: scan.range_noise,
             acquisition_depth,

@@ -67,6 +67,10 @@ pub struct RenderSettings {
     /// Render the point proxy (Lechelek et al. 2019) instead of compositing meshes;
     /// needs [`Renderer::prepare_points`] for the scans it shows.
     pub points: bool,
+    /// With `points`: colour from the scans' radiance (their EO frames made radiance by
+    /// the response given to [`Renderer::prepare_points`]; scans without an exposure
+    /// colour nothing) and tone-map it with these settings. `None`: display values.
+    pub tone_map: Option<crate::tonemap::ToneMapSettings>,
 }
 
 impl Default for RenderSettings {
@@ -80,6 +84,7 @@ impl Default for RenderSettings {
             only: None,
             fill_enclosed_holes: false,
             points: false,
+            tone_map: None,
         }
     }
 }

@@ -6,6 +6,7 @@
 use std::collections::HashMap;
 
 use texel::model::{Model, ScanId};
+use texel::radiance::EoResponse;
 
 use super::{FrameStats, RenderSettings, RenderTarget, Renderer};
 use crate::camera::VirtualCamera;
@@ -13,6 +14,7 @@ use crate::gpu::points::depth_map::{DepthMapTargets, DepthMapView, depth_map_tex
 use crate::gpu::points::pipelines::{POINT_ACCUMULATION_FORMAT, PointsPipelines};
 use crate::gpu::points::scan::{GpuPoints, acquisition_map_size};
 use crate::gpu::targets::{TargetMemory, Texture, pixels, texture};
+use crate::gpu::tonemap::{RADIANCE_FORMAT, ToneMapPass};
 
 /// The virtual view's targets, rebuilt when its size changes.
 struct ViewTargets {
@@ -20,6 +22,8 @@ struct ViewTargets {
     resolved: Texture,
     accumulation: Texture,
     output: wgpu::BindGroup,
+    /// The view's radiance, the tone-mapping pass's input (built on first use).
+    radiance: Option<Texture>,
 }
 
 impl ViewTargets {
@@ -49,6 +53,7 @@ impl ViewTargets {
             resolved,
             accumulation,
             output,
+            radiance: None,
         }
     }
 
@@ -64,6 +69,7 @@ pub(crate) struct PointsState {
     pipelines: PointsPipelines,
     view: Option<ViewTargets>,
     acquisition: HashMap<(u32, u32), DepthMapTargets>,
+    tone_map: Option<ToneMapPass>,
 }
 
 impl PointsState {
@@ -72,6 +78,7 @@ impl PointsState {
             pipelines: PointsPipelines::new(device, frame_layout),
             view: None,
             acquisition: HashMap::new(),
+            tone_map: None,
         }
     }
 }
@@ -85,9 +92,10 @@ impl PointsState {
 
 impl Renderer {
     /// Builds the points and the acquisition depth map of every uploaded scan of
-    /// `model` that has none yet (each scan once, as it arrives); returns how many
-    /// were built.
-    pub fn prepare_points(&mut self, model: &Model) -> usize {
+    /// `model` that has none yet (each scan once, as it arrives), and with `radiance`
+    /// each such scan's radiance texture through that response where its EO frame
+    /// records its exposure; returns how many scans' points were built.
+    pub fn prepare_points(&mut self, model: &Model, radiance: Option<&EoResponse>) -> usize {
         let device = &self.device;
         let state = self
             .points
@@ -97,10 +105,13 @@ impl Renderer {
             let Some(placed) = self.scans.get_mut(&s.id) else {
                 continue;
             };
-            if placed.points.is_some() {
+            if let Some(points) = placed.points.as_mut() {
+                if let Some(response) = radiance {
+                    points.ensure_radiance(device, &self.queue, &state.pipelines, scan, response);
+                }
                 continue;
             }
-            let gpu = GpuPoints::upload(device, &state.pipelines, scan, &placed.gpu.eo_view);
+            let mut gpu = GpuPoints::upload(device, &state.pipelines, scan, &placed.gpu.eo_view);
             let (mw, mh) = acquisition_map_size(scan.texture.width, scan.texture.height);
             let targets = state
                 .acquisition
@@ -114,6 +125,9 @@ impl Renderer {
                 &self.frame_bind_group,
                 scan,
             );
+            if let Some(response) = radiance {
+                gpu.ensure_radiance(device, &self.queue, &state.pipelines, scan, response);
+            }
             placed.points = Some(gpu);
             built += 1;
         }
@@ -154,7 +168,7 @@ impl Renderer {
             Some(v) if (v.depth_map.width, v.depth_map.height) == (width, height) => v,
             _ => ViewTargets::new(device, &state.pipelines, width, height),
         };
-        let view = &*state.view.insert(view);
+        let view = state.view.insert(view);
         let f = camera.focal_px() as f32;
         view.depth_map.write_view(
             &self.queue,
@@ -167,6 +181,8 @@ impl Renderer {
         let shown = |id: &ScanId| {
             !settings.hidden.contains(id) && settings.only.as_ref().is_none_or(|o| o.contains(id))
         };
+        // With tone mapping the views colour in radiance: only scans that have it.
+        let hdr = settings.tone_map;
         let mut colouring = Vec::new();
         for (id, placed) in self.scans.iter().filter(|(id, _)| shown(id)) {
             if let Some(points) = &placed.points {
@@ -213,9 +229,71 @@ impl Renderer {
             pass.set_bind_group(1, view.depth_map.view_bind_group(), &[]);
             pass.set_bind_group(3, &targets, &[]);
             for (_, points) in colouring.iter().filter(|(_, p)| p.camera.is_some()) {
-                pass.set_bind_group(2, &points.bind_group, &[]);
+                let group = if hdr.is_some() {
+                    points.radiance_bind_group.as_ref()
+                } else {
+                    Some(&points.bind_group)
+                };
+                if let Some(group) = group {
+                    pass.set_bind_group(2, group, &[]);
+                    pass.draw(0..3, 0..1);
+                }
+            }
+        }
+        if let Some(tone) = &hdr {
+            let radiance = view.radiance.get_or_insert_with(|| {
+                texture(
+                    device,
+                    "points radiance",
+                    width,
+                    height,
+                    1,
+                    RADIANCE_FORMAT,
+                    wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING,
+                    false,
+                )
+            });
+            {
+                let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+                    label: Some("points radiance"),
+                    color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                        view: &radiance.view,
+                        depth_slice: None,
+                        resolve_target: None,
+                        ops: wgpu::Operations {
+                            load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
+                            store: wgpu::StoreOp::Store,
+                        },
+                    })],
+                    depth_stencil_attachment: None,
+                    timestamp_writes: None,
+                    occlusion_query_set: None,
+                    multiview_mask: None,
+                });
+                pass.set_pipeline(&state.pipelines.radiance_output);
+                pass.set_bind_group(0, &self.frame_bind_group, &[]);
+                pass.set_bind_group(1, &view.output, &[]);
                 pass.draw(0..3, 0..1);
             }
+            let pass = state
+                .tone_map
+                .get_or_insert_with(|| ToneMapPass::with_device(device, &self.queue));
+            pass.background = settings.composite.background;
+            pass.record(
+                &mut encoder,
+                &radiance.view,
+                (width, height),
+                tone,
+                target.view,
+                target.format,
+            );
+            self.queue.submit(Some(encoder.finish()));
+            stats.target_memory = TargetMemory {
+                layers: view.bytes() + pixels(width, height) * 8,
+                ..Default::default()
+            };
+            self.nearest_ready = false;
+            return Ok(stats);
         }
         let output = state.pipelines.output(device, target.format);
         {
