@@ -70,6 +70,8 @@ pub struct Config {
     /// View-dependent texture mapping on the merged surface (Debevec 1998) with these
     /// switches, instead of the scans composited in `mode`.
     pub vdtm: Option<VdtmSettings>,
+    /// The scans as a point proxy (Lechelek et al. 2019) instead.
+    pub points: bool,
 }
 
 impl Config {
@@ -83,6 +85,14 @@ impl Config {
             height: 240,
             truth_poses: false,
             vdtm: None,
+            points: false,
+        }
+    }
+
+    pub(crate) fn points() -> Self {
+        Self {
+            points: true,
+            ..Self::base(Mode::default())
         }
     }
 
@@ -95,6 +105,9 @@ impl Config {
 
     /// The mode's name: a compositing mode, or `vdtm` with its switches.
     pub fn mode_name(&self) -> String {
+        if self.points {
+            return "points".to_string();
+        }
         self.vdtm
             .map_or_else(|| self.mode.name().to_string(), |v| v.label())
     }
@@ -105,13 +118,14 @@ impl Config {
         s.composite.blend_threshold = self.blend_threshold;
         s.composite.background = BACKGROUND;
         s.range_gamma = self.range_gamma;
+        s.points = self.points;
         s
     }
 
     /// A short label for the plot.
     pub fn label(&self) -> String {
         let mut l = self.mode_name();
-        if self.vdtm.is_some() {
+        if self.vdtm.is_some() || self.points {
         } else if self.mode == Mode::Blended {
             l.push_str(&format!(" k{} t{}", self.k, self.blend_threshold));
         } else if self.mode == Mode::Best {
@@ -160,6 +174,7 @@ pub fn sweep(quick: bool) -> Vec<Config> {
         .map(Config::base)
         .collect();
     configs.extend(vdtm_variants().into_iter().map(Config::vdtm));
+    configs.push(Config::points());
     let ks: &[u32] = if quick { &[1] } else { &[1, 2, 8] };
     for &k in ks {
         configs.push(Config {
@@ -309,7 +324,7 @@ fn write_images(
     }
     for (c, (images, _)) in configs.iter().zip(rendered) {
         let default = Config::base(c.mode);
-        let is_default = c.vdtm.is_some() || c.label() == default.label();
+        let is_default = c.vdtm.is_some() || c.points || c.label() == default.label();
         if !is_default || c.truth_poses || c.width != base.width {
             continue;
         }
@@ -380,6 +395,16 @@ fn measure_scene(
 
     let mut reg_renderer = Renderer::new(gpu);
     reg_renderer.sync_model(&registered.model)?;
+    // The point proxy's points and acquisition depth maps, built once, timed.
+    let started = Instant::now();
+    reg_renderer.prepare_points(&registered.model, None);
+    reg_renderer.wait_idle()?;
+    eprintln!(
+        "{scene}: point proxy of {} scans built in {:.2} s, {:.1} MB on the GPU",
+        registered.model.len(),
+        started.elapsed().as_secs_f64(),
+        reg_renderer.points_bytes() as f64 / 1e6
+    );
     let mut truth_renderer = Renderer::new(gpu);
     truth_renderer.sync_model(&truth.model)?;
     // VDTM prepared once from the registered model, its EO camera from the capture.

@@ -12,8 +12,8 @@ use texel_viewer::composite::Mode;
 
 fn row_line(r: &Row) -> String {
     let c = &r.config;
-    // VDTM has none of the compositing knobs.
-    let scans = c.vdtm.is_none();
+    // VDTM and the point proxy have none of the compositing knobs.
+    let scans = c.vdtm.is_none() && !c.points;
     format!(
         "| {} | {} | {} | {} | {} | {}x{} | {:.2} | {:.4} | {:.1} | {:.1} | {:.1} |",
         c.mode_name(),
@@ -97,6 +97,7 @@ pub fn gains(r: &SceneResult) -> Option<(f64, f64)> {
             let c = &row.config;
             c.mode == mode
                 && c.vdtm.is_none()
+                && !c.points
                 && !c.truth_poses
                 && c.width == 320
                 && c.k == 4
@@ -201,7 +202,10 @@ pub fn markdown(results: &[SceneResult], args: &TradeoffsArgs, adapter: &str) ->
          from the registered scans by view-dependent texture mapping (Debevec 1998, \
          `--mode vdtm`, its EO camera from the capture): as published, with the \
          resolution term (`+res`), with feathering at image borders (`+feather`, 24 px) \
-         and with both. The fly-through crosses four acquisition intervals from a third \
+         and with both. The `points` row draws the registered scans as the point proxy \
+         of Lechelek et al. 2019 (`--mode points`: splatted depth map with front/back \
+         classification and pull-push, each pixel coloured from the acquisition views \
+         that see it, tested against each view's own depth map). The fly-through crosses four acquisition intervals from a third \
          of the way into the walk, at 320x240.\n"
     );
     for r in results {
