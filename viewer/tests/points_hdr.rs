@@ -8,11 +8,11 @@ mod support;
 
 use std::sync::Arc;
 
+use texel::EoExposure;
 use texel::model::{Model, ModelEvent};
 use texel::radiance::EoResponse;
-use texel::EoExposure;
 use texel_viewer::camera::VirtualCamera;
-use texel_viewer::gpu::{RenderSettings, Renderer};
+use texel_viewer::gpu::{RenderSettings, Renderer, read_radiance_texture};
 use texel_viewer::scenes;
 use texel_viewer::tonemap::{ToneMapSettings, ToneOperator};
 
@@ -67,6 +67,14 @@ fn identity_tone_map() -> ToneMapSettings {
 }
 
 fn render(model: &Model, tone_map: Option<ToneMapSettings>) -> image::RgbaImage {
+    render_with(model, tone_map).0
+}
+
+/// The image, and with tone mapping the radiance it was mapped from.
+fn render_with(
+    model: &Model,
+    tone_map: Option<ToneMapSettings>,
+) -> (image::RgbaImage, Option<Vec<[f32; 4]>>) {
     let mut settings = RenderSettings {
         points: true,
         tone_map,
@@ -78,7 +86,12 @@ fn render(model: &Model, tone_map: Option<ToneMapSettings>) -> image::RgbaImage 
     // A linear camera: value z / 255 is exposure z / 255.
     let response = EoResponse::from_linear(|x| x);
     renderer.prepare_points(model, Some(&response));
-    renderer.render_to_image(&camera(), &settings).unwrap().0
+    let image = renderer.render_to_image(&camera(), &settings).unwrap().0;
+    let gpu = support::gpu();
+    let radiance = renderer
+        .points_radiance()
+        .map(|t| read_radiance_texture(&gpu.device, &gpu.queue, t).unwrap());
+    (image, radiance)
 }
 
 /// Mean absolute error (0..255) against the scene's own colours over the pixels the
@@ -112,7 +125,14 @@ fn score(image: &image::RgbaImage) -> (f64, f64) {
 fn exposures_blend_in_radiance_into_the_scene_colours() {
     // Half, once and twice the reference: the last saturates the bright checks.
     let model = exposed_model([0.5, 1.0, 2.0]);
-    let hdr = render(&model, Some(identity_tone_map()));
+    let (hdr, radiance) = render_with(&model, Some(identity_tone_map()));
+    // The radiance the image was mapped from: finite, not negative, alpha 0 or 1.
+    let radiance = radiance.unwrap();
+    assert_eq!(radiance.len(), 160 * 120);
+    for r in &radiance {
+        assert!(r.iter().all(|v| v.is_finite() && *v >= 0.0), "{r:?}");
+        assert!(r[3] == 0.0 || r[3] == 1.0, "{r:?}");
+    }
     let ldr = render(&model, None);
     let (hdr_error, hdr_covered) = score(&hdr);
     let (ldr_error, ldr_covered) = score(&ldr);

@@ -76,3 +76,11 @@ fn window_draws_the_model_by_view_dependent_texture_mapping() {
     let model = model_pixels(&img);
     assert!(model > 1000, "{model} wall pixels");
 }
+
+#[test]
+fn window_draws_the_model_as_the_point_proxy() {
+    // Replayed: each scan's points and acquisition depth map are built as it arrives.
+    let img = screenshot(&["--mode", "points"]);
+    let model = model_pixels(&img);
+    assert!(model > 1000, "{model} wall pixels");
+}

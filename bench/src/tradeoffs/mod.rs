@@ -6,6 +6,7 @@
 
 pub mod calibration;
 pub mod hdr;
+mod hdr_render;
 pub mod lod;
 pub mod lod_live;
 pub mod lod_view;

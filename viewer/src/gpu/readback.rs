@@ -186,6 +186,36 @@ pub fn read_depth_texture(
         .collect())
 }
 
+/// Reads a `RADIANCE_FORMAT` (Rgba16Float) texture back as f32 RGBA, row-major.
+pub fn read_radiance_texture(
+    device: &wgpu::Device,
+    queue: &wgpu::Queue,
+    texture: &wgpu::Texture,
+) -> Result<Vec<[f32; 4]>, GpuError> {
+    if texture.format() != super::RADIANCE_FORMAT {
+        return Err(GpuError::Readback(format!(
+            "radiance read-back of a {:?} texture",
+            texture.format()
+        )));
+    }
+    let size = texture.size();
+    let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+        label: Some("radiance read-back"),
+    });
+    let (buffer, row) = copy_texture(device, &mut encoder, texture, 1, 8);
+    queue.submit(Some(encoder.finish()));
+    let rows = map_rows(device, &buffer, row, size.width * 8, size.height, 1)?;
+    let bytes = rows.into_iter().next().unwrap_or_default();
+    Ok(bytes
+        .chunks_exact(8)
+        .map(|p| {
+            std::array::from_fn(|c| {
+                half::f16::from_bits(u16::from_le_bytes([p[2 * c], p[2 * c + 1]])).to_f32()
+            })
+        })
+        .collect())
+}
+
 impl Renderer {
     /// Renders a frame into an offscreen RGBA8 image (the headless path: the same
     /// passes as the window, into a texture instead of a swapchain image).

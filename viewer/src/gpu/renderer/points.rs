@@ -140,6 +140,21 @@ impl Renderer {
         Some(&self.points.as_ref()?.view.as_ref()?.resolved.texture)
     }
 
+    /// The last HDR `points` frame's radiance before tone mapping (`RADIANCE_FORMAT`,
+    /// alpha 0 where no view measured the pixel), for reading back.
+    pub fn points_radiance(&self) -> Option<&wgpu::Texture> {
+        Some(
+            &self
+                .points
+                .as_ref()?
+                .view
+                .as_ref()?
+                .radiance
+                .as_ref()?
+                .texture,
+        )
+    }
+
     /// GPU bytes of the scans' points and acquisition depth maps.
     pub fn points_bytes(&self) -> u64 {
         self.scans
@@ -249,7 +264,9 @@ impl Renderer {
                     height,
                     1,
                     RADIANCE_FORMAT,
-                    wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING,
+                    wgpu::TextureUsages::RENDER_ATTACHMENT
+                        | wgpu::TextureUsages::TEXTURE_BINDING
+                        | wgpu::TextureUsages::COPY_SRC,
                     false,
                 )
             });
