@@ -94,33 +94,6 @@ fn render_with(
     (image, radiance)
 }
 
-/// Mean absolute error (0..255) against the scene's own colours over the pixels the
-/// render coloured, and the share of the scene's pixels it coloured.
-fn score(image: &image::RgbaImage) -> (f64, f64) {
-    let scene = scenes::box_scene();
-    let cam = camera();
-    let eye = cam.centre_world();
-    let (mut sum, mut n, mut hit) = (0.0, 0usize, 0usize);
-    for y in 0..cam.height {
-        for x in 0..cam.width {
-            let dir = cam.world_from_eo.rotation * cam.pixel_ray_view(x, y);
-            let Some((_, c)) = scene.cast(&eye, &dir) else {
-                continue;
-            };
-            hit += 1;
-            let px = image.get_pixel(x, y);
-            if px.0[0..3] == [255, 0, 255] {
-                continue;
-            }
-            n += 1;
-            sum += (0..3)
-                .map(|k| (f64::from(px[k]) - f64::from(c[k])).abs() / 3.0)
-                .sum::<f64>();
-        }
-    }
-    (sum / n.max(1) as f64, n as f64 / hit.max(1) as f64)
-}
-
 #[test]
 fn exposures_blend_in_radiance_into_the_scene_colours() {
     // Half, once and twice the reference: the last saturates the bright checks.
@@ -134,8 +107,8 @@ fn exposures_blend_in_radiance_into_the_scene_colours() {
         assert!(r[3] == 0.0 || r[3] == 1.0, "{r:?}");
     }
     let ldr = render(&model, None);
-    let (hdr_error, hdr_covered) = score(&hdr);
-    let (ldr_error, ldr_covered) = score(&ldr);
+    let (hdr_error, hdr_covered) = support::box_scene_error(&hdr, &camera(), [1.0; 3]);
+    let (ldr_error, ldr_covered) = support::box_scene_error(&ldr, &camera(), [1.0; 3]);
     println!(
         "exposures 0.5/1/2: HDR error {hdr_error:.2} / 255 ({:.1} % coloured), 8-bit blend {ldr_error:.2} ({:.1} %)",
         100.0 * hdr_covered,

@@ -42,32 +42,6 @@ fn camera(offset: &Pose) -> VirtualCamera {
     .unwrap()
 }
 
-/// Mean absolute error (0..255) against the scene's colours under `tint`, over the
-/// pixels the scene covers and the render coloured, and the share it coloured.
-fn score(image: &image::RgbaImage, camera: &VirtualCamera, tint: [f32; 3]) -> (f64, f64) {
-    let scene = scenes::box_scene();
-    let eye = camera.centre_world();
-    let (mut sum, mut n, mut hit) = (0.0, 0usize, 0usize);
-    for y in 0..camera.height {
-        for x in 0..camera.width {
-            let dir = camera.world_from_eo.rotation * camera.pixel_ray_view(x, y);
-            let Some((_, c)) = scene.cast(&eye, &dir) else {
-                continue;
-            };
-            hit += 1;
-            let px = image.get_pixel(x, y);
-            if px.0[0..3] == [255, 0, 255] {
-                continue;
-            }
-            n += 1;
-            sum += (0..3)
-                .map(|k| (f64::from(px[k]) - f64::from(c[k]) * f64::from(tint[k])).abs() / 3.0)
-                .sum::<f64>();
-        }
-    }
-    (sum / n.max(1) as f64, n as f64 / hit.max(1) as f64)
-}
-
 fn render(model: &texel::model::Model, camera: &VirtualCamera) -> (Renderer, image::RgbaImage) {
     let mut renderer = Renderer::new(support::gpu());
     renderer.sync_model(model).unwrap();
@@ -160,14 +134,14 @@ fn points_render_the_scene_from_a_new_viewpoint_near_and_far_from_the_origin() {
     let model = box_model(&Pose::identity());
     let cam = camera(&Pose::identity());
     let (_, image) = render(&model, &cam);
-    let (error, covered) = score(&image, &cam, mean_tint);
+    let (error, covered) = support::box_scene_error(&image, &cam, mean_tint);
     // The meshes composited (Killpack & Budge) from the same scans, the same metric.
     let mut meshes = Renderer::new(support::gpu());
     meshes.sync_model(&model).unwrap();
     let mut blended = settings();
     blended.points = false;
     let (mesh_image, _) = meshes.render_to_image(&cam, &blended).unwrap();
-    let (mesh_error, mesh_covered) = score(&mesh_image, &cam, mean_tint);
+    let (mesh_error, mesh_covered) = support::box_scene_error(&mesh_image, &cam, mean_tint);
     println!(
         "points: error mean {error:.2} / 255, {:.1} % covered; blended meshes {mesh_error:.2}, {:.1} %",
         100.0 * covered,

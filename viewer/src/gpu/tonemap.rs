@@ -11,6 +11,7 @@ use glam::{Mat4, UVec4, Vec4};
 
 use super::pipelines::fullscreen_pipeline;
 use super::renderer::FrameUniform;
+use super::targets::colour_pass;
 use super::{GpuContext, GpuError, shaders};
 use crate::tonemap::{LOG_AVERAGE_EPSILON, ToneMapSettings};
 
@@ -312,26 +313,64 @@ impl ToneMapPass {
             ],
         });
         let pipeline = self.draw_pipeline(target_format).clone();
-        let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
-            label: Some("tonemap"),
-            color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                view: target,
-                depth_slice: None,
-                resolve_target: None,
-                ops: wgpu::Operations {
-                    load: wgpu::LoadOp::Clear(wgpu::Color::BLACK),
-                    store: wgpu::StoreOp::Store,
-                },
-            })],
-            depth_stencil_attachment: None,
-            timestamp_writes: None,
-            occlusion_query_set: None,
-            multiview_mask: None,
-        });
+        let mut pass = colour_pass(encoder, "tonemap", target, wgpu::Color::BLACK);
         pass.set_pipeline(&pipeline);
         pass.set_bind_group(0, &bind_group, &[]);
         pass.draw(0..3, 0..1);
     }
+}
+
+/// A radiance value as the half float a `RADIANCE_FORMAT` texel holds: non-finite and
+/// negative values as 0, values beyond [`RADIANCE_MAX`] as it.
+pub(crate) fn half_radiance(v: f32) -> u16 {
+    let v = if v.is_finite() {
+        v.clamp(0.0, RADIANCE_MAX)
+    } else {
+        0.0
+    };
+    half::f16::from_f32(v).to_bits()
+}
+
+/// A sampled `RADIANCE_FORMAT` texture holding `texels` (RGBA half floats, row-major;
+/// the caller checked the size against the device and the texel count).
+pub(crate) fn radiance_texture(
+    device: &wgpu::Device,
+    queue: &wgpu::Queue,
+    label: &str,
+    width: u32,
+    height: u32,
+    texels: &[u16],
+) -> wgpu::Texture {
+    let texture = device.create_texture(&wgpu::TextureDescriptor {
+        label: Some(label),
+        size: wgpu::Extent3d {
+            width,
+            height,
+            depth_or_array_layers: 1,
+        },
+        mip_level_count: 1,
+        sample_count: 1,
+        dimension: wgpu::TextureDimension::D2,
+        format: RADIANCE_FORMAT,
+        usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+        view_formats: &[],
+    });
+    queue.write_texture(
+        wgpu::TexelCopyTextureInfo {
+            texture: &texture,
+            mip_level: 0,
+            origin: wgpu::Origin3d::ZERO,
+            aspect: wgpu::TextureAspect::All,
+        },
+        bytemuck::cast_slice(texels),
+        wgpu::TexelCopyBufferLayout {
+            offset: 0,
+            bytes_per_row: Some(8 * width),
+            rows_per_image: Some(height),
+        },
+        texture.size(),
+    );
+    texture
 }
 
 /// Uploads linear radiance (row-major `[r, g, b]`, `width × height`) into a new
@@ -359,48 +398,18 @@ pub fn upload_radiance(
             bytes: radiance.len() * 12,
         });
     }
-    let clean = |v: f32| {
-        let v = if v.is_finite() { v.max(0.0) } else { 0.0 };
-        half::f16::from_f32(v.min(RADIANCE_MAX)).to_bits()
-    };
-    let mut texels: Vec<u16> = Vec::with_capacity(4 * radiance.len());
-    for c in radiance {
-        texels.extend([
-            clean(c[0]),
-            clean(c[1]),
-            clean(c[2]),
-            half::f16::ONE.to_bits(),
-        ]);
-    }
-    let texture = gpu.device.create_texture(&wgpu::TextureDescriptor {
-        label: Some("radiance"),
-        size: wgpu::Extent3d {
-            width,
-            height,
-            depth_or_array_layers: 1,
-        },
-        mip_level_count: 1,
-        sample_count: 1,
-        dimension: wgpu::TextureDimension::D2,
-        format: RADIANCE_FORMAT,
-        usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
-        view_formats: &[],
-    });
-    gpu.queue.write_texture(
-        wgpu::TexelCopyTextureInfo {
-            texture: &texture,
-            mip_level: 0,
-            origin: wgpu::Origin3d::ZERO,
-            aspect: wgpu::TextureAspect::All,
-        },
-        bytemuck::cast_slice(&texels),
-        wgpu::TexelCopyBufferLayout {
-            offset: 0,
-            bytes_per_row: Some(8 * width),
-            rows_per_image: Some(height),
-        },
-        texture.size(),
-    );
+    let texels: Vec<u16> = radiance
+        .iter()
+        .flat_map(|c| {
+            [
+                half_radiance(c[0]),
+                half_radiance(c[1]),
+                half_radiance(c[2]),
+                0x3c00,
+            ]
+        })
+        .collect();
+    let texture = radiance_texture(&gpu.device, &gpu.queue, "radiance", width, height, &texels);
     Ok(texture)
 }
 

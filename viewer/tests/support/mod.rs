@@ -203,3 +203,34 @@ pub fn start_xvfb() -> (Xvfb, String) {
     }
     panic!("no free X display for Xvfb");
 }
+
+/// Mean absolute error (0..255) of a render of the box scene against the scene's own
+/// colours under `tint`, over the pixels the scene covers and the render coloured
+/// (not the magenta background), and the share of the scene's pixels it coloured.
+pub fn box_scene_error(
+    image: &image::RgbaImage,
+    camera: &VirtualCamera,
+    tint: [f32; 3],
+) -> (f64, f64) {
+    let scene = scenes::box_scene();
+    let eye = camera.centre_world();
+    let (mut sum, mut n, mut hit) = (0.0, 0usize, 0usize);
+    for y in 0..camera.height {
+        for x in 0..camera.width {
+            let dir = camera.world_from_eo.rotation * camera.pixel_ray_view(x, y);
+            let Some((_, c)) = scene.cast(&eye, &dir) else {
+                continue;
+            };
+            hit += 1;
+            let px = image.get_pixel(x, y);
+            if px.0[0..3] == [255, 0, 255] {
+                continue;
+            }
+            n += 1;
+            sum += (0..3)
+                .map(|k| (f64::from(px[k]) - f64::from(c[k]) * f64::from(tint[k])).abs() / 3.0)
+                .sum::<f64>();
+        }
+    }
+    (sum / n.max(1) as f64, n as f64 / hit.max(1) as f64)
+}

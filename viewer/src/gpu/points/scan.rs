@@ -14,7 +14,7 @@ use texel::{PinholeCamera, Pose, RangeNoise, TexelScan};
 use super::depth_map::{DepthMapTargets, DepthMapView, depth_map_texture};
 use super::pipelines::PointsPipelines;
 use crate::gpu::targets::Texture;
-use crate::gpu::tonemap::{RADIANCE_FORMAT, RADIANCE_MAX};
+use crate::gpu::tonemap::{half_radiance, radiance_texture};
 use crate::points::cloud::{ScanPoint, lidar_pitch_rad, scan_points};
 use crate::vdtm::gpu::{EoViewUniform, eo_view_uniform_of};
 
@@ -94,7 +94,7 @@ fn scan_bind_group(
 /// texture whose alpha is the least of the channels' hat weights (0 to 1): a pixel
 /// black or saturated in any channel measured nothing there and colours nothing.
 /// `None` when the frame does not record its exposure.
-fn radiance_texture(
+fn scan_radiance_texture(
     device: &wgpu::Device,
     queue: &wgpu::Queue,
     scan: &TexelScan,
@@ -103,14 +103,6 @@ fn radiance_texture(
     let frame: &texel::EoFrame = &scan.texture;
     frame.exposure?;
     let radiance = merge_exposures(&[frame], response).ok()?;
-    let half = |v: f32| {
-        let v = if v.is_finite() {
-            v.clamp(0.0, RADIANCE_MAX)
-        } else {
-            0.0
-        };
-        half::f16::from_f32(v).to_bits()
-    };
     // The hat weight of one exposure is at most 127.
     let texels: Vec<u16> = radiance
         .rgb
@@ -118,37 +110,16 @@ fn radiance_texture(
         .zip(&radiance.weight)
         .flat_map(|(c, w)| {
             let alpha = (w[0].min(w[1]).min(w[2]) / 127.0).clamp(0.0, 1.0);
-            [half(c[0]), half(c[1]), half(c[2]), half(alpha)]
+            [c[0], c[1], c[2], alpha].map(half_radiance)
         })
         .collect();
-    let texture = device.create_texture(&wgpu::TextureDescriptor {
-        label: Some("scan radiance"),
-        size: wgpu::Extent3d {
-            width: frame.width,
-            height: frame.height,
-            depth_or_array_layers: 1,
-        },
-        mip_level_count: 1,
-        sample_count: 1,
-        dimension: wgpu::TextureDimension::D2,
-        format: RADIANCE_FORMAT,
-        usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
-        view_formats: &[],
-    });
-    queue.write_texture(
-        wgpu::TexelCopyTextureInfo {
-            texture: &texture,
-            mip_level: 0,
-            origin: wgpu::Origin3d::ZERO,
-            aspect: wgpu::TextureAspect::All,
-        },
-        bytemuck::cast_slice(&texels),
-        wgpu::TexelCopyBufferLayout {
-            offset: 0,
-            bytes_per_row: Some(8 * frame.width),
-            rows_per_image: Some(frame.height),
-        },
-        texture.size(),
+    let texture = radiance_texture(
+        device,
+        queue,
+        "scan radiance",
+        frame.width,
+        frame.height,
+        &texels,
     );
     Some(texture)
 }
@@ -167,7 +138,7 @@ impl GpuPoints {
         if self.radiance_bind_group.is_some() {
             return true;
         }
-        let Some(texture) = radiance_texture(device, queue, scan, response) else {
+        let Some(texture) = scan_radiance_texture(device, queue, scan, response) else {
             return false;
         };
         let view = texture.create_view(&wgpu::TextureViewDescriptor::default());

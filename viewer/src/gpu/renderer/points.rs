@@ -13,7 +13,7 @@ use crate::camera::VirtualCamera;
 use crate::gpu::points::depth_map::{DepthMapTargets, DepthMapView, depth_map_texture};
 use crate::gpu::points::pipelines::{POINT_ACCUMULATION_FORMAT, PointsPipelines};
 use crate::gpu::points::scan::{GpuPoints, acquisition_map_size};
-use crate::gpu::targets::{TargetMemory, Texture, pixels, texture};
+use crate::gpu::targets::{TargetMemory, Texture, colour_pass, pixels, texture};
 use crate::gpu::tonemap::{RADIANCE_FORMAT, ToneMapPass};
 
 /// The virtual view's targets, rebuilt when its size changes.
@@ -223,22 +223,12 @@ impl Renderer {
             &view.resolved.view,
         );
         {
-            let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
-                label: Some("points colour"),
-                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                    view: &view.accumulation.view,
-                    depth_slice: None,
-                    resolve_target: None,
-                    ops: wgpu::Operations {
-                        load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
-                        store: wgpu::StoreOp::Store,
-                    },
-                })],
-                depth_stencil_attachment: None,
-                timestamp_writes: None,
-                occlusion_query_set: None,
-                multiview_mask: None,
-            });
+            let mut pass = colour_pass(
+                &mut encoder,
+                "points colour",
+                &view.accumulation.view,
+                wgpu::Color::TRANSPARENT,
+            );
             pass.set_pipeline(&state.pipelines.colour);
             pass.set_bind_group(0, &self.frame_bind_group, &[]);
             pass.set_bind_group(1, view.depth_map.view_bind_group(), &[]);
@@ -271,22 +261,12 @@ impl Renderer {
                 )
             });
             {
-                let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
-                    label: Some("points radiance"),
-                    color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                        view: &radiance.view,
-                        depth_slice: None,
-                        resolve_target: None,
-                        ops: wgpu::Operations {
-                            load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
-                            store: wgpu::StoreOp::Store,
-                        },
-                    })],
-                    depth_stencil_attachment: None,
-                    timestamp_writes: None,
-                    occlusion_query_set: None,
-                    multiview_mask: None,
-                });
+                let mut pass = colour_pass(
+                    &mut encoder,
+                    "points radiance",
+                    &radiance.view,
+                    wgpu::Color::TRANSPARENT,
+                );
                 pass.set_pipeline(&state.pipelines.radiance_output);
                 pass.set_bind_group(0, &self.frame_bind_group, &[]);
                 pass.set_bind_group(1, &view.output, &[]);
@@ -314,22 +294,12 @@ impl Renderer {
         }
         let output = state.pipelines.output(device, target.format);
         {
-            let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
-                label: Some("points output"),
-                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                    view: target.view,
-                    depth_slice: None,
-                    resolve_target: None,
-                    ops: wgpu::Operations {
-                        load: wgpu::LoadOp::Clear(wgpu::Color::BLACK),
-                        store: wgpu::StoreOp::Store,
-                    },
-                })],
-                depth_stencil_attachment: None,
-                timestamp_writes: None,
-                occlusion_query_set: None,
-                multiview_mask: None,
-            });
+            let mut pass = colour_pass(
+                &mut encoder,
+                "points output",
+                target.view,
+                wgpu::Color::BLACK,
+            );
             pass.set_pipeline(output);
             pass.set_bind_group(0, &self.frame_bind_group, &[]);
             pass.set_bind_group(1, &view.output, &[]);
