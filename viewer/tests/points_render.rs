@@ -45,7 +45,11 @@ fn camera(offset: &Pose) -> VirtualCamera {
 fn render(model: &texel::model::Model, camera: &VirtualCamera) -> (Renderer, image::RgbaImage) {
     let mut renderer = Renderer::new(support::gpu());
     renderer.sync_model(model).unwrap();
+    let mesh_bytes = renderer.scans_bytes();
     assert_eq!(renderer.prepare_points(model, None), model.len());
+    // The proxy counts towards the scans' GPU bytes, which the residency budget holds.
+    assert!(renderer.points_bytes() > 0);
+    assert_eq!(renderer.scans_bytes(), mesh_bytes + renderer.points_bytes());
     // Built once: a second call finds nothing new.
     assert_eq!(renderer.prepare_points(model, None), 0);
     let (image, _) = renderer.render_to_image(camera, &settings()).unwrap();

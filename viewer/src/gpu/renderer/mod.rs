@@ -146,6 +146,11 @@ struct PlacedScan {
 }
 
 impl PlacedScan {
+    /// Its GPU bytes: the scan's data and, once built, its point proxy.
+    fn bytes(&self) -> u64 {
+        self.gpu.bytes + self.points.as_ref().map_or(0, |p| p.bytes)
+    }
+
     /// This scan's uniform for a camera at `view_from_world`: only poses relative to the
     /// camera reach the GPU.
     fn uniform(&self, id: ScanId, view_from_world: &Pose) -> ScanUniform {
@@ -283,21 +288,22 @@ impl Renderer {
     /// Drops a scan's GPU data (its buffers and texture are freed when no frame in
     /// flight uses them any more). Returns the bytes it held, if it was uploaded.
     pub fn remove_scan(&mut self, id: ScanId) -> Option<u64> {
-        self.scans.remove(&id).map(|p| p.gpu.bytes)
+        self.scans.remove(&id).map(|p| p.bytes())
     }
 
     pub fn has_scan(&self, id: ScanId) -> bool {
         self.scans.contains_key(&id)
     }
 
-    /// The GPU bytes of an uploaded scan (buffers and texture, exactly).
+    /// The GPU bytes of an uploaded scan (buffers and texture, exactly; with its
+    /// point proxy once the `points` mode built it).
     pub fn scan_bytes(&self, id: ScanId) -> Option<u64> {
-        self.scans.get(&id).map(|p| p.gpu.bytes)
+        self.scans.get(&id).map(PlacedScan::bytes)
     }
 
-    /// The GPU bytes of every uploaded scan.
+    /// The GPU bytes of every uploaded scan (what the residency budget holds).
     pub fn scans_bytes(&self) -> u64 {
-        self.scans.values().map(|p| p.gpu.bytes).sum()
+        self.scans.values().map(PlacedScan::bytes).sum()
     }
 
     pub fn scan_count(&self) -> usize {
@@ -320,7 +326,7 @@ impl Renderer {
         };
         let mut visible = Vec::new();
         for (&id, placed) in &self.scans {
-            stats.scan_bytes += placed.gpu.bytes;
+            stats.scan_bytes += placed.bytes();
             let left_out = settings
                 .only
                 .as_ref()
