@@ -13,8 +13,8 @@ use std::time::Duration;
 
 use texel::wire::Message;
 pub use texel::wire::client::{
-    Applied, ClientError, FrameReader, Replica, ReplicaError, ServerInfo, Update, hello, request,
-    request_tile, update, welcome,
+    Applied, ClientError, ExposureJoin, FrameReader, Replica, ReplicaError, ServerInfo, Update,
+    hello, request, request_tile, update, welcome,
 };
 pub use texel::wire::{DEFAULT_MAX_IN_FLIGHT, FetchPlan, TileCatalog, TileEvent};
 

@@ -236,6 +236,7 @@ async fn serve_viewer(
         shutdown: &shared.hard_stop,
         max_requests_in_flight: options.max_requests_in_flight,
         tiles: admitted.version >= 3,
+        version: admitted.version,
     };
     // The stream speaks the client's version (each one this server serves).
     let welcome = Message::ServerHello {

@@ -122,7 +122,7 @@ async fn run(fix: bool, field_budget_mb: u64) -> Outcome {
             .unwrap();
     let addr = session.local_addr.unwrap();
     let mut client = Client::connect(addr, "", "lod-test").await.unwrap();
-    assert_eq!(client.server.version, 3);
+    assert_eq!(client.server.version, texel::wire::PROTOCOL_VERSION);
     // Tiles only: the scans' data is not needed here.
     client.set_max_in_flight(0);
     let mut replica = Replica::new();

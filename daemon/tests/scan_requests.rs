@@ -312,7 +312,7 @@ async fn a_version_1_hello_is_refused_with_the_reason() {
     match decode_frame(&answer, &Limits::FROM_SERVER).unwrap() {
         Some((Message::Refused { reason }, _)) => assert_eq!(
             reason,
-            "protocol version 1 is not served; this daemon speaks version 3: update the viewer"
+            "protocol version 1 is not served; this daemon speaks version 4: update the viewer"
         ),
         other => panic!("expected a refusal, got {other:?}"),
     }

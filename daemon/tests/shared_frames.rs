@@ -36,6 +36,7 @@ async fn the_recorder_and_the_pair_share_one_frame() {
         policy: OverloadPolicy::Backpressure,
         sensor: Some(Arc::clone(&model)),
         metrics: Metrics::new(),
+        hub: texel_daemon::hub::Hub::new(8),
     };
     let task = tokio::spawn(ingest.run());
     for event in [

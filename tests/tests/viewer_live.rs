@@ -254,6 +254,7 @@ fn the_connection_reconnects_and_resynchronises() {
                     ViewerEvent::Status { .. } => "status".into(),
                     ViewerEvent::Connection(c) => c.describe(),
                     ViewerEvent::ScanUnavailable { id, .. } => format!("unavailable {id}"),
+                    ViewerEvent::EoResponse(_) => "response".into(),
                 });
                 if done(&event, model) {
                     return;

@@ -151,7 +151,7 @@ impl SourceArgs {
                 })
             }
             (None, Some(addr)) => {
-                let model = texel_viewer::live::fetch::fetch_model(
+                let (model, eo_response) = texel_viewer::live::fetch::fetch_model_and_response(
                     addr,
                     &fetch.token,
                     fetch.wait_scans,
@@ -167,7 +167,7 @@ impl SourceArgs {
                     model,
                     default_fov_deg,
                     eo_camera: None,
-                    eo_response: None,
+                    eo_response,
                 })
             }
             (None, None) => bail!("give a model source (--capture or --connect)"),

@@ -29,6 +29,7 @@ use texel::tile::TileId;
 use texel::wire::{Message, ModelStatus, WireError};
 use tokio::sync::mpsc;
 
+mod radiance;
 mod tiles;
 
 pub use tiles::{TileChange, TileCounts};
@@ -55,6 +56,8 @@ struct ClientSlot {
     lagged: Arc<AtomicBool>,
     /// Speaks protocol version 3: is sent the level-of-detail tree's tiles.
     tiles: bool,
+    /// Speaks protocol version 4: is sent exposures and the response curve.
+    radiance: bool,
 }
 
 /// What the hub knows of one scan.
@@ -115,6 +118,7 @@ struct Inner {
     clients: Vec<ClientSlot>,
     next_client_id: u64,
     tiles: tiles::TileTable,
+    radiance: radiance::Radiance,
     /// Set once the hub is closed: the reason clients are told.
     closed: Option<String>,
 }
@@ -242,6 +246,7 @@ impl Hub {
                 clients: Vec::new(),
                 next_client_id: 0,
                 tiles: tiles::TileTable::default(),
+                radiance: radiance::Radiance::default(),
                 closed: None,
             }),
             client_queue: client_queue.max(1),
@@ -343,6 +348,9 @@ impl Hub {
             }
         } else {
             Self::hold_frame(&mut inner, id, frame.clone());
+            if let Some(exposure) = inner.radiance.exposure(id).cloned() {
+                Self::broadcast_where(&mut inner, &exposure, |c| c.radiance);
+            }
             Self::broadcast(&mut inner, &frame);
         }
         self.apply_changes(&mut inner, &changes, Some(id))?;
@@ -694,6 +702,17 @@ impl Hub {
     /// that also sends live frames): nothing if the scan left the served model in the
     /// meantime, else the frame and, if it moved since it was encoded, its current pose.
     pub fn finish_fetch(&self, id: ScanId, frame: Bytes) -> Result<Vec<Bytes>, FetchError> {
+        self.finish_fetch_for(id, frame, false)
+    }
+
+    /// [`Hub::finish_fetch`] for a client that speaks version 4 (`radiance`): the
+    /// scan's exposure, when it has one, goes before its data.
+    pub fn finish_fetch_for(
+        &self,
+        id: ScanId,
+        frame: Bytes,
+        radiance: bool,
+    ) -> Result<Vec<Bytes>, FetchError> {
         let inner = self.lock();
         if inner.closed.is_some() {
             return Err(FetchError::Closed);
@@ -704,7 +723,11 @@ impl Hub {
         if e.retired {
             return Err(FetchError::Withdrawn(id));
         }
-        let mut frames = vec![frame];
+        let mut frames = Vec::with_capacity(3);
+        if let Some(exposure) = inner.radiance.exposure(id).filter(|_| radiance) {
+            frames.push(exposure.clone());
+        }
+        frames.push(frame);
         if e.revised {
             let pose = Message::PoseRevised {
                 id,
@@ -738,13 +761,21 @@ impl Hub {
     /// Subscribes a client: the snapshot and the live queue start at the same point,
     /// under one lock, so nothing is missed or seen twice.
     pub fn subscribe(&self) -> Result<Subscription, HubError> {
-        self.subscribe_with(true)
+        self.subscribe_version(texel::wire::PROTOCOL_VERSION)
     }
 
     /// Subscribes a client that is (`tiles`) or is not sent the level-of-detail tree
-    /// (protocol version 3 or 2). The snapshot lists the tiles, coarsest first, before
-    /// the scans: a late joiner can ask for an overview at once.
+    /// (protocol version 3 or 2).
     pub fn subscribe_with(&self, tiles: bool) -> Result<Subscription, HubError> {
+        self.subscribe_version(if tiles { 3 } else { 2 })
+    }
+
+    /// Subscribes a client of protocol `version`: from 3 it is sent the
+    /// level-of-detail tree (the snapshot lists the tiles, coarsest first, before the
+    /// scans: a late joiner can ask for an overview at once), from 4 the response
+    /// curve (in the snapshot) and the scans' exposures.
+    pub fn subscribe_version(&self, version: u16) -> Result<Subscription, HubError> {
+        let (tiles, radiance) = (version >= 3, version >= 4);
         let mut inner = self.lock();
         if inner.closed.is_some() {
             return Err(HubError::Closed);
@@ -763,6 +794,9 @@ impl Hub {
         let order = coarse_first(&served, REGION_M);
         let mut snapshot = Vec::with_capacity(order.len() + 2);
         snapshot.push(Bytes::from(Message::ModelReset { scan_count }.encode()?));
+        if let Some(response) = inner.radiance.response().filter(|_| radiance) {
+            snapshot.push(response.clone());
+        }
         if tiles {
             snapshot.extend(Self::tile_snapshot(&inner)?);
         }
@@ -790,6 +824,7 @@ impl Hub {
             tx,
             lagged: Arc::clone(&lagged),
             tiles,
+            radiance,
         });
         Ok(Subscription {
             client_id,

@@ -127,6 +127,12 @@ impl Encoder {
         if let Some(lod) = &self.lod {
             lod.scan(id, &scan, world_from_scan);
         }
+        // Version 4 clients are told how the frame was exposed, before its data.
+        if let Some(exposure) = scan.texture.exposure
+            && let Err(e) = self.hub.note_exposure(id, &exposure)
+        {
+            tracing::error!("scan {id}: its exposure cannot be served: {e}");
+        }
         drop(scan);
         self.metrics
             .record_latency(Stage::Encode, started.elapsed());

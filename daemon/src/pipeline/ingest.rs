@@ -83,9 +83,18 @@ pub struct Ingest {
     pub policy: OverloadPolicy,
     pub sensor: Option<Arc<SensorModel>>,
     pub metrics: Arc<Metrics>,
+    /// Told each sensor model's response curve, which it serves (version 4).
+    pub hub: Arc<crate::hub::Hub>,
 }
 
 impl Ingest {
+    /// Serves the sensor model's response curve from now on (or none).
+    fn serve_response(&self, sensor: &SensorModel) {
+        if let Err(e) = self.hub.set_eo_response(sensor.eo_response.as_ref()) {
+            tracing::error!("the sensor's response curve cannot be served: {e}");
+        }
+    }
+
     /// Records an item; waits while the recorder is busy (the disk sets the pace
     /// rather than anything being dropped).
     async fn record(&mut self, item: RecordItem) {
@@ -122,6 +131,7 @@ impl Ingest {
     /// Runs until every source has stopped, then passes on what is still waiting.
     pub async fn run(mut self) {
         if let Some(sensor) = self.sensor.clone() {
+            self.serve_response(&sensor);
             self.record(RecordItem::Sensor(sensor)).await;
         }
         let mut arrivals = Arrivals(VecDeque::new());
@@ -146,6 +156,7 @@ impl Ingest {
             let pair = match tagged.event {
                 SourceEvent::Sensor(model) => {
                     if self.sensor.as_deref() != Some(&*model) {
+                        self.serve_response(&model);
                         self.sensor = Some(Arc::clone(&model));
                         self.record(RecordItem::Sensor(model)).await;
                     }

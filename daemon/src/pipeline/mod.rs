@@ -531,6 +531,7 @@ async fn run(
         policy: config.pipeline.overload,
         sensor,
         metrics: Arc::clone(&metrics),
+        hub: Arc::clone(&hub),
     };
     let ingest_task = tokio::spawn(ingest.run());
     let (publish_tx, publish_rx) = mpsc::channel(config.pipeline.encode_queue);

@@ -79,6 +79,8 @@ pub struct StreamSettings<'a> {
     pub max_requests_in_flight: usize,
     /// The client speaks version 3: it may request tiles.
     pub tiles: bool,
+    /// The client's protocol version (what its subscription is sent).
+    pub version: u16,
 }
 
 /// A client's request for data.
@@ -241,7 +243,7 @@ async fn write_stream(
     let mut resyncs = 0u32;
     let mut fetching: Fetching = None;
     loop {
-        let mut sub = match hub.subscribe_with(settings.tiles) {
+        let mut sub = match hub.subscribe_version(settings.version) {
             Ok(s) => s,
             Err(HubError::Closed) => return End::Shutdown,
             Err(e) => return End::Error(e.to_string()),
@@ -304,7 +306,9 @@ async fn write_stream(
                             continue;
                         };
                         let answer = match (fetched, request) {
-                            (Ok(Ok(frame)), Request::Scan(id)) => hub.finish_fetch(id, frame),
+                            (Ok(Ok(frame)), Request::Scan(id)) => {
+                                hub.finish_fetch_for(id, frame, settings.version >= 4)
+                            }
                             // A tile's data is complete in itself: a rebuild since is
                             // listed with a newer revision, which the client fetches.
                             (Ok(Ok(frame)), Request::Tile(_)) => {

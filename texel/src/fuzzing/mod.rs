@@ -551,6 +551,14 @@ pub fn sample_messages() -> Vec<Message> {
             world_from_scan: Pose::translation(1.0, -2.0, 0.5),
         },
         Message::ScanWithdrawn { id: 3 },
+        Message::ScanExposure {
+            id: 3,
+            exposure: crate::EoExposure {
+                exposure_time_s: 0.008,
+                gain: 2.0,
+            },
+        },
+        Message::EoResponse(Box::new(crate::radiance::EoResponse::srgb())),
         Message::ScanUnavailable {
             id: 8,
             reason: "scan 8 is not in the served model".into(),

@@ -12,7 +12,9 @@ use thiserror::Error;
 
 use super::{FetchPlan, Limits, Message, PROTOCOL_VERSION, Status, WireError, decode_frame};
 use super::{TileCatalog, TileEvent};
+use crate::EoExposure;
 use crate::model::{Model, ModelError, ModelEvent, ScanId};
+use crate::radiance::EoResponse;
 use crate::tile::TileId;
 
 #[derive(Debug, Error)]
@@ -147,6 +149,9 @@ pub struct Replica {
     pub tiles: TileCatalog,
     /// Which listed scans are missing and which were requested.
     fetch: FetchPlan,
+    /// The EO camera's response curve, when the server sent one (version 4).
+    pub eo_response: Option<EoResponse>,
+    exposures: ExposureJoin,
 }
 
 impl Replica {
@@ -189,7 +194,8 @@ impl Replica {
                 self.live = true;
                 Applied::SnapshotComplete
             }
-            Update::Model(event) => {
+            Update::Model(mut event) => {
+                self.exposures.attach(&mut event);
                 let applied = match &event {
                     ModelEvent::ScanAdded { id, .. } => Applied::ScanAdded(*id),
                     ModelEvent::PoseRevised { id, .. } => Applied::PoseRevised(*id),
@@ -214,6 +220,14 @@ impl Replica {
                 };
                 self.tiles.apply(event);
                 Applied::Tile(id)
+            }
+            Update::Exposure { id, exposure } => {
+                self.exposures.hold(id, exposure);
+                Applied::Ignored
+            }
+            Update::Response(response) => {
+                self.eo_response = Some(*response);
+                Applied::Ignored
             }
             Update::Goodbye(reason) => Applied::Goodbye(reason),
             Update::Ignored => Applied::Ignored,
@@ -242,12 +256,49 @@ pub enum Update {
         reason: String,
     },
     Status(Box<Status>),
+    /// How scan `id`'s EO frame was exposed (version 4): it belongs to the
+    /// `ScanAdded` that follows ([`ExposureJoin`]).
+    Exposure {
+        id: ScanId,
+        exposure: EoExposure,
+    },
+    /// The EO camera's response curve (version 4).
+    Response(Box<EoResponse>),
     /// A change to the level-of-detail tree (version 3).
     Tile(TileEvent),
     /// The server ends the stream (a goodbye, or a refusal after the handshake).
     Goodbye(String),
     /// A message that does not concern the model (a stray hello).
     Ignored,
+}
+
+/// Joins a `ScanExposure` to the `ScanAdded` after it (the server sends them in that
+/// order, as a capture records `/eo/exposure` before its frame): holds the last
+/// exposure received, sets it on the next scan's EO frame if the ids match, and
+/// forgets it at any `ScanAdded`. One slot: a server cannot make it grow.
+#[derive(Debug, Default)]
+pub struct ExposureJoin {
+    pending: Option<(ScanId, EoExposure)>,
+}
+
+impl ExposureJoin {
+    pub fn hold(&mut self, id: ScanId, exposure: EoExposure) {
+        self.pending = Some((id, exposure));
+    }
+
+    /// Gives a `ScanAdded` event its exposure, if the last one held was for its id.
+    pub fn attach(&mut self, event: &mut ModelEvent) {
+        let ModelEvent::ScanAdded { id, scan, .. } = event else {
+            return;
+        };
+        if let Some((held, exposure)) = self.pending.take()
+            && held == *id
+        {
+            // Both are fresh from decoding: `make_mut` copies nothing.
+            let scan = std::sync::Arc::make_mut(scan);
+            std::sync::Arc::make_mut(&mut scan.texture).exposure = Some(exposure);
+        }
+    }
 }
 
 /// Decodes one server message into the [`Update`] it asks for.
@@ -282,6 +333,8 @@ pub fn update(message: Message) -> Result<Update, WireError> {
         Message::ScanWithdrawn { id } => Update::Model(ModelEvent::ScanWithdrawn { id }),
         Message::ScanUnavailable { id, reason } => Update::Unavailable { id, reason },
         Message::Status(status) => Update::Status(status),
+        Message::ScanExposure { id, exposure } => Update::Exposure { id, exposure },
+        Message::EoResponse(response) => Update::Response(response),
         Message::Goodbye { reason } | Message::Refused { reason } => Update::Goodbye(reason),
         Message::TileListed { id, listing } => Update::Tile(TileEvent::Listed { id, listing }),
         Message::TileWithdrawn { id } => Update::Tile(TileEvent::Withdrawn { id }),
@@ -317,6 +370,57 @@ mod tests {
             },
             world_from_scan: Pose::translation(id as f64, 0.0, 0.0),
         }
+    }
+
+    #[test]
+    fn an_exposure_joins_the_scan_after_it_and_no_other() {
+        let scan = sample_messages()
+            .into_iter()
+            .find(|m| matches!(m, Message::ScanAdded(_)))
+            .unwrap();
+        let Message::ScanAdded(wire) = &scan else {
+            unreachable!()
+        };
+        let id = wire.id;
+        let exposure = EoExposure {
+            exposure_time_s: 0.02,
+            gain: 1.0,
+        };
+        let mut replica = Replica::new();
+        replica
+            .apply(Message::ModelReset { scan_count: 0 })
+            .unwrap();
+        // For another scan: not attached, and forgotten at this ScanAdded.
+        replica
+            .apply(Message::ScanExposure {
+                id: id + 1,
+                exposure,
+            })
+            .unwrap();
+        replica.apply(scan.clone()).unwrap();
+        let got = |r: &Replica| {
+            r.model
+                .get(id)
+                .unwrap()
+                .scan
+                .as_ref()
+                .unwrap()
+                .texture
+                .exposure
+        };
+        assert_eq!(got(&replica), None);
+        replica
+            .apply(Message::ModelReset { scan_count: 0 })
+            .unwrap();
+        replica
+            .apply(Message::ScanExposure { id, exposure })
+            .unwrap();
+        replica.apply(scan).unwrap();
+        assert_eq!(got(&replica), Some(exposure));
+        replica
+            .apply(Message::EoResponse(Box::new(EoResponse::srgb())))
+            .unwrap();
+        assert_eq!(replica.eo_response, Some(EoResponse::srgb()));
     }
 
     #[test]

@@ -11,6 +11,7 @@ mod bytes_in;
 pub mod client;
 mod fetch;
 mod listing;
+mod radiance;
 mod scan;
 mod status;
 mod tile_catalog;
@@ -18,6 +19,7 @@ mod tiles;
 
 pub use fetch::{DEFAULT_MAX_IN_FLIGHT, FetchPlan};
 pub use listing::LISTING_LEN;
+pub use radiance::EO_RESPONSE_LEN;
 pub use scan::{
     MAX_GRID_SIDE, MAX_TEXTURE_BYTES, Texture, TextureFormat, TextureRef, WireScan, WireScanRef,
     check_sendable,
@@ -30,14 +32,15 @@ pub use tiles::{MAX_TILE_DATA_BYTES, TILE_ID_LEN, TILE_LISTED_LEN, WireTile};
 
 use thiserror::Error;
 
+use crate::EoExposure;
 use crate::model::{ScanId, ScanListing};
 use crate::pose::{Pose, pose_from_parts, pose_to_parts};
 use crate::tile::{TileId, TileListing};
 use bytes_in::{BodyReader, PutLe};
 
 /// The protocol version this module speaks: 3 adds the level-of-detail tree's tiles
-/// to version 2.
-pub const PROTOCOL_VERSION: u16 = 3;
+/// to version 2, 4 the scans' exposures and the camera's response curve (radiance).
+pub const PROTOCOL_VERSION: u16 = 4;
 /// The oldest version a server still serves (a version 2 client gets everything but
 /// the tiles).
 pub const MIN_PROTOCOL_VERSION: u16 = 2;
@@ -92,6 +95,8 @@ mod kind {
     pub const TILE_WITHDRAWN: u8 = 0x18;
     pub const TILE_DATA: u8 = 0x19;
     pub const TILE_UNAVAILABLE: u8 = 0x1a;
+    pub const SCAN_EXPOSURE: u8 = 0x1b;
+    pub const EO_RESPONSE: u8 = 0x1c;
     pub const STATUS: u8 = 0x20;
     pub const GOODBYE: u8 = 0x30;
     pub const REQUEST_SCAN: u8 = 0x40;
@@ -152,6 +157,12 @@ pub enum Message {
     /// Client -> server (version 3): send tile `id`'s data (a `TileData`, or
     /// `TileUnavailable`).
     RequestTile { id: TileId },
+    /// Server -> client (version 4): how scan `id`'s EO frame was exposed, sent just
+    /// before each `ScanAdded` of a scan whose frame recorded it.
+    ScanExposure { id: ScanId, exposure: EoExposure },
+    /// Server -> client (version 4): the EO camera's response curve, in the snapshot
+    /// after `ModelReset` when the daemon's sensor model has one.
+    EoResponse(Box<crate::radiance::EoResponse>),
     /// Server -> client: the daemon's periodic status.
     Status(Box<Status>),
     /// Either way, then the sender closes: why the stream ends.
@@ -207,6 +218,8 @@ impl Message {
             Self::TileData(_) => "TileData",
             Self::TileUnavailable { .. } => "TileUnavailable",
             Self::RequestTile { .. } => "RequestTile",
+            Self::ScanExposure { .. } => "ScanExposure",
+            Self::EoResponse(_) => "EoResponse",
             Self::Status(_) => "Status",
             Self::Goodbye { .. } => "Goodbye",
         }
@@ -289,6 +302,14 @@ impl Message {
             Self::ScanWithdrawn { id } => {
                 out.put_u8(kind::SCAN_WITHDRAWN);
                 out.put_u64(*id);
+            }
+            Self::ScanExposure { id, exposure } => {
+                out.put_u8(kind::SCAN_EXPOSURE);
+                radiance::put_scan_exposure(&mut out, *id, exposure)?;
+            }
+            Self::EoResponse(response) => {
+                out.put_u8(kind::EO_RESPONSE);
+                radiance::put_eo_response(&mut out, response);
             }
             Self::ScanUnavailable { id, reason } => {
                 out.put_u8(kind::SCAN_UNAVAILABLE);
@@ -456,6 +477,11 @@ fn decode_body(frame: &[u8]) -> Result<Message, WireError> {
         kind::SCAN_WITHDRAWN => Message::ScanWithdrawn {
             id: listing::read_id(body, "ScanWithdrawn")?,
         },
+        kind::SCAN_EXPOSURE => {
+            let (id, exposure) = radiance::read_scan_exposure(body)?;
+            Message::ScanExposure { id, exposure }
+        }
+        kind::EO_RESPONSE => Message::EoResponse(Box::new(radiance::read_eo_response(body)?)),
         kind::SCAN_UNAVAILABLE => {
             let (id, reason) = listing::read_unavailable(body)?;
             Message::ScanUnavailable { id, reason }
@@ -568,6 +594,44 @@ mod tests {
     use super::*;
 
     #[test]
+    fn bad_exposures_and_response_curves_are_invalid_by_name() {
+        let exposure = |t: f64, g: f64| {
+            let mut body = vec![0u8; 4];
+            body.push(kind::SCAN_EXPOSURE);
+            body.extend_from_slice(&3u64.to_le_bytes());
+            body.extend_from_slice(&t.to_le_bytes());
+            body.extend_from_slice(&g.to_le_bytes());
+            let len = (body.len() - 4) as u32;
+            body[..4].copy_from_slice(&len.to_le_bytes());
+            decode_frame(&body, &Limits::FROM_SERVER)
+        };
+        assert!(exposure(0.01, 1.0).unwrap().is_some());
+        for (t, g) in [(0.0, 1.0), (f64::NAN, 1.0), (0.01, -2.0), (1.0e9, 1.0)] {
+            let e = exposure(t, g).unwrap_err().to_string();
+            assert!(e.contains("ScanExposure"), "{e}");
+        }
+        // A curve that falls by more than the tolerance is refused, as from a file.
+        let mut frame = Message::EoResponse(Box::new(crate::radiance::EoResponse::srgb()))
+            .encode()
+            .unwrap();
+        let at = LENGTH_PREFIX + 1 + 8 * 200;
+        frame[at..at + 8].copy_from_slice(&(-50.0f64).to_le_bytes());
+        let e = decode_frame(&frame, &Limits::FROM_SERVER)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("EoResponse"), "{e}");
+        // Encoding refuses what decoding would.
+        let bad = Message::ScanExposure {
+            id: 1,
+            exposure: EoExposure {
+                exposure_time_s: f64::INFINITY,
+                gain: 1.0,
+            },
+        };
+        assert!(bad.encode().is_err());
+    }
+
+    #[test]
     fn short_messages_round_trip_and_split_reads_are_incomplete() {
         let messages = [
             Message::ClientHello {
@@ -595,6 +659,14 @@ mod tests {
                 reason: "scan 5 is not in the served model".into(),
             },
             Message::RequestScan { id: u64::MAX },
+            Message::ScanExposure {
+                id: 9,
+                exposure: EoExposure {
+                    exposure_time_s: 0.004,
+                    gain: 1.5,
+                },
+            },
+            Message::EoResponse(Box::new(crate::radiance::EoResponse::srgb())),
             Message::Goodbye {
                 reason: "shutting down".into(),
             },

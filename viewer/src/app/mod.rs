@@ -341,10 +341,13 @@ impl App {
                     }
                     self.viewer.update_residency(&mut w.renderer, &camera);
                     if self.viewer.settings.points {
-                        let response = self
-                            .options
-                            .eo_response
-                            .get_or_insert_with(texel::radiance::EoResponse::srgb);
+                        // The source's curve, else the one given, else sRGB.
+                        let given = &self.options.eo_response;
+                        let response = self.viewer.eo_response.get_or_insert_with(|| {
+                            given
+                                .clone()
+                                .unwrap_or_else(texel::radiance::EoResponse::srgb)
+                        });
                         let radiance = self
                             .viewer
                             .settings

@@ -50,6 +50,8 @@ pub struct ViewerState {
     pub vdtm_status: Option<crate::vdtm::VdtmStatus>,
     /// The VDTM switches the panel edits.
     pub vdtm_settings: Option<crate::vdtm::VdtmSettings>,
+    /// The response curve the source sent (a daemon of protocol version 4).
+    pub eo_response: Option<texel::radiance::EoResponse>,
     camera_placed: bool,
     fov_known: bool,
 }
@@ -71,6 +73,7 @@ impl ViewerState {
             tile_stats: None,
             vdtm_status: None,
             vdtm_settings: None,
+            eo_response: None,
             status: None,
             snapshot_complete: false,
             latency: LatencyMeter::default(),
@@ -103,6 +106,10 @@ impl ViewerState {
                 ViewerEvent::ScanUnavailable { id, reason } => {
                     self.residency.unavailable(id, reason);
                     self.planned = None;
+                    continue;
+                }
+                ViewerEvent::EoResponse(response) => {
+                    self.eo_response = Some(*response);
                     continue;
                 }
                 ViewerEvent::SnapshotComplete { .. } => {

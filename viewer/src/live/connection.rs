@@ -16,7 +16,7 @@ use std::sync::mpsc::{Receiver, SyncSender, TryRecvError};
 use std::time::{Duration, Instant};
 
 use texel::wire::Message;
-use texel_client::{ClientError, Update, update};
+use texel_client::{ClientError, ExposureJoin, Update, update};
 
 use super::transport::Link;
 use super::{ConnectionState, SourceCommand, ViewerEvent, send};
@@ -194,6 +194,9 @@ fn connect_once(
         Ok(a) => a,
         Err(e) => return (Ended::Lost(e), false),
     };
+    // Per connection: an exposure belongs to the scan that follows it on this stream.
+    let mut join = ExposureJoin::default();
+    let exposures = &mut join;
     let mut client = match Link::connect(
         addr,
         &options.token,
@@ -251,7 +254,7 @@ fn connect_once(
             *resets += 1;
             synced = true;
         }
-        match forward(message, tx) {
+        match forward(message, tx, exposures) {
             Ok(true) => {}
             Ok(false) => return (Ended::Stopped, true),
             Err(ended) => return (ended, true),
@@ -292,7 +295,11 @@ fn request_message(command: SourceCommand, resets: u64) -> Option<Message> {
 
 /// Decodes one message and forwards what it asks of the model (the window's model
 /// is the only copy: this thread keeps none). `Ok(false)`: the consumer is gone.
-pub(super) fn forward(message: Message, tx: &SyncSender<ViewerEvent>) -> Result<bool, Ended> {
+pub(super) fn forward(
+    message: Message,
+    tx: &SyncSender<ViewerEvent>,
+    exposures: &mut ExposureJoin,
+) -> Result<bool, Ended> {
     let received = Instant::now();
     let update =
         update(message).map_err(|e| Ended::Lost(format!("bad message from the daemon: {e}")))?;
@@ -301,7 +308,15 @@ pub(super) fn forward(message: Message, tx: &SyncSender<ViewerEvent>) -> Result<
         Update::SnapshotComplete { scan_count } => {
             ViewerEvent::SnapshotComplete { scans: scan_count }
         }
-        Update::Model(event) => ViewerEvent::Model { event, received },
+        Update::Model(mut event) => {
+            exposures.attach(&mut event);
+            ViewerEvent::Model { event, received }
+        }
+        Update::Exposure { id, exposure } => {
+            exposures.hold(id, exposure);
+            return Ok(true);
+        }
+        Update::Response(response) => ViewerEvent::EoResponse(response),
         Update::Status(status) => ViewerEvent::Status { status, received },
         Update::Goodbye(reason) => {
             return Err(Ended::Lost(format!(

@@ -39,6 +39,17 @@ pub fn fetch_model(
     wait_scans: usize,
     timeout: Duration,
 ) -> Result<Model, FetchError> {
+    fetch_model_and_response(addr, token, wait_scans, timeout).map(|(model, _)| model)
+}
+
+/// [`fetch_model`], and the EO camera's response curve when the daemon serves one
+/// (protocol version 4).
+pub fn fetch_model_and_response(
+    addr: &str,
+    token: &str,
+    wait_scans: usize,
+    timeout: Duration,
+) -> Result<(Model, Option<texel::radiance::EoResponse>), FetchError> {
     let failed = |message: String| FetchError::Failed {
         addr: addr.to_string(),
         message,
@@ -105,7 +116,7 @@ pub fn fetch_model(
             // Listed scans arrive without their data; the client fetches them.
             have = replica.model.resident_len();
             if replica.complete() && have >= wait_scans.max(1) {
-                return Ok(replica.model);
+                return Ok((replica.model, replica.eo_response));
             }
         }
     }

@@ -112,6 +112,8 @@ pub enum ViewerEvent {
         id: texel::model::ScanId,
         reason: String,
     },
+    /// The source's EO response curve (what makes exposed frames radiance).
+    EoResponse(Box<texel::radiance::EoResponse>),
 }
 
 impl ViewerEvent {
@@ -263,6 +265,50 @@ mod tests {
         let truth = crate::camera::VirtualCamera::fov_y_deg_of(&sensor.model.eo);
         let got = fov_y_deg_of_scan(scan).unwrap();
         assert!((got - truth).abs() < 0.5, "{got} vs {truth}");
+    }
+
+    #[test]
+    fn the_window_feed_joins_exposures_to_their_scans_and_passes_the_response_on() {
+        let model = crate::scenes::model_of(
+            &crate::scenes::box_scene(),
+            &crate::scenes::test_sensor(),
+            &crate::scenes::box_scene_poses()[..1],
+            &texel::Pose::identity(),
+        );
+        let scan = model.scans()[0].scan.clone().unwrap();
+        let wire = texel::wire::WireScan::from_scan(
+            5,
+            &scan,
+            texel::Pose::identity(),
+            texel::wire::TextureFormat::Png,
+            90,
+        )
+        .unwrap();
+        let exposure = texel::EoExposure {
+            exposure_time_s: 0.03,
+            gain: 1.0,
+        };
+        let (tx, rx) = std::sync::mpsc::sync_channel(8);
+        let mut join = texel_client::ExposureJoin::default();
+        let messages = [
+            texel::wire::Message::EoResponse(Box::new(texel::radiance::EoResponse::srgb())),
+            texel::wire::Message::ScanExposure { id: 5, exposure },
+            texel::wire::Message::ScanAdded(Box::new(wire)),
+        ];
+        for m in messages {
+            assert!(matches!(connection::forward(m, &tx, &mut join), Ok(true)));
+        }
+        drop(tx);
+        let events: Vec<ViewerEvent> = rx.iter().collect();
+        assert!(matches!(events[0], ViewerEvent::EoResponse(_)));
+        match &events[1] {
+            ViewerEvent::Model {
+                event: ModelEvent::ScanAdded { id: 5, scan, .. },
+                ..
+            } => assert_eq!(scan.texture.exposure, Some(exposure)),
+            other => panic!("{other:?}"),
+        }
+        assert_eq!(events.len(), 2);
     }
 
     #[test]

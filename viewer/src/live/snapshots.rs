@@ -97,6 +97,7 @@ pub fn run(
     let mut ended = false;
     // Until the first snapshot of the source is complete, the model is partial.
     let mut complete = false;
+    let mut eo_response: Option<texel::radiance::EoResponse> = None;
     // When the due snapshot started waiting for its scans.
     let mut waiting_since: Option<Instant> = None;
     while !stop.load(Ordering::Acquire) && !ended {
@@ -115,6 +116,7 @@ pub fn run(
                 }
                 ViewerEvent::SnapshotComplete { .. } => complete = true,
                 ViewerEvent::ScanUnavailable { id, reason } => residency.unavailable(id, reason),
+                ViewerEvent::EoResponse(response) => eo_response = Some(*response),
                 ViewerEvent::Model { event, .. } => {
                     // Scans fetched for a view do not make a new snapshot due.
                     let fetched = matches!(event, texel::model::ModelEvent::ScanAdded { id, .. }
@@ -141,10 +143,9 @@ pub fn run(
         };
         let resident = residency.step(&mut model, &mut renderer, &camera);
         if options.settings.points {
-            // Radiance needs the sensor's response, which the stream does not carry:
-            // HDR snapshots assume sRGB.
-            let srgb = texel::radiance::EoResponse::srgb();
-            let radiance = options.settings.tone_map.is_some().then_some(&srgb);
+            // The daemon's response curve (protocol version 4), else sRGB.
+            let response = eo_response.get_or_insert_with(texel::radiance::EoResponse::srgb);
+            let radiance = options.settings.tone_map.is_some().then_some(&*response);
             renderer.prepare_points(&model, radiance);
         }
         let since = *waiting_since.get_or_insert_with(Instant::now);
