@@ -414,4 +414,3 @@ fn mutated_captures_and_random_bytes_always_get_an_answer() {
     }
     assert_eq!(answered, 2_000);
 }
-
