@@ -19,6 +19,7 @@ use nalgebra::{Point3, Vector2, Vector3};
 use sims::{Effect, Scene};
 use texel::radiance::{EoResponse, merge_exposures};
 use texel::{EoFrame, PinholeCamera, Pose};
+use texel_viewer::gpu::GpuContext;
 
 use std::sync::Arc;
 
@@ -147,6 +148,7 @@ fn observations<'a>(
 }
 
 fn measure_scene(
+    gpu: &GpuContext,
     args: &HdrArgs,
     name: &'static str,
     frames: usize,
@@ -288,7 +290,7 @@ fn measure_scene(
         merged_scans += 1;
     }
     // 3. The same views rendered by the `points` mode with radiance.
-    let rendered = render_hdr(&model, &scene, &response, &held_out, &view_camera)?;
+    let rendered = render_hdr(gpu, &model, &scene, &response, &held_out, &view_camera)?;
     let pixels_per_frame = u64::from(camera.width) * u64::from(camera.height);
     Ok(SceneResult {
         name,
@@ -326,10 +328,12 @@ pub fn run(args: &HdrArgs) -> Result<()> {
     } else {
         (POSES, 1)
     };
+    // One device for every scene's rendered views.
+    let gpu = GpuContext::headless()?;
     let mut results = Vec::new();
     for (name, frames) in SCENES {
         let start = Instant::now();
-        let r = measure_scene(args, name, (frames / frame_div).max(6), poses)?;
+        let r = measure_scene(&gpu, args, name, (frames / frame_div).max(6), poses)?;
         println!(
             "{name}: {} frames, {} views, {} pixels; unmeasured LDR {:.2} % HDR {:.2} %; \
              ln error median LDR {:.4} HDR {:.4}, p95 LDR {:.4} HDR {:.4} ({:.1} s)",
@@ -371,7 +375,7 @@ pub fn run(args: &HdrArgs) -> Result<()> {
         );
         results.push(r);
     }
-    let body = markdown(&results, args);
+    let body = markdown(&results, args, &gpu.adapter_name());
     if args.quick || args.no_write {
         print!("{body}");
         return Ok(());
@@ -379,7 +383,7 @@ pub fn run(args: &HdrArgs) -> Result<()> {
     write_tradeoffs_section(&args.repo, "hdr", &body)
 }
 
-fn markdown(results: &[SceneResult], args: &HdrArgs) -> String {
+fn markdown(results: &[SceneResult], args: &HdrArgs, adapter: &str) -> String {
     let mut s = String::new();
     let _ = writeln!(s, "## High dynamic range: what exposure brackets buy\n");
     let _ = writeln!(
@@ -453,26 +457,33 @@ fn markdown(results: &[SceneResult], args: &HdrArgs) -> String {
     );
     let _ = writeln!(s, "|---|---|---|---|---|---|---|");
     for r in results {
-        let _ = writeln!(
-            s,
-            "| `{}` | merge per scan, then render | {:.2} % | {:.4} | {:.4} | {:.1} ms per scan | {:.2} MB |",
-            r.name,
-            r.per_scan.unmeasured_pct(),
-            r.per_scan.percentile(0.5),
-            r.per_scan.percentile(0.95),
-            r.per_scan_merge_ms,
-            r.hdr_bytes_per_scan as f64 / 1e6,
-        );
-        let _ = writeln!(
-            s,
-            "| `{}` | render, then merge per view | {:.2} % | {:.4} | {:.4} | {:.1} ms per view | {:.2} MB |",
-            r.name,
-            r.hdr.unmeasured_pct(),
-            r.hdr.percentile(0.5),
-            r.hdr.percentile(0.95),
-            r.per_view_merge_ms,
-            r.ldr_bytes_per_scan as f64 / 1e6,
-        );
+        let strategies = [
+            (
+                "merge per scan, then render",
+                &r.per_scan,
+                r.per_scan_merge_ms,
+                "scan",
+                r.hdr_bytes_per_scan,
+            ),
+            (
+                "render, then merge per view",
+                &r.hdr,
+                r.per_view_merge_ms,
+                "view",
+                r.ldr_bytes_per_scan,
+            ),
+        ];
+        for (strategy, scores, merge_ms, per, bytes) in strategies {
+            let _ = writeln!(
+                s,
+                "| `{}` | {strategy} | {:.2} % | {:.4} | {:.4} | {merge_ms:.1} ms per {per} | {:.2} MB |",
+                r.name,
+                scores.unmeasured_pct(),
+                scores.percentile(0.5),
+                scores.percentile(0.95),
+                bytes as f64 / 1e6,
+            );
+        }
     }
     let _ = writeln!(
         s,
@@ -487,9 +498,7 @@ fn markdown(results: &[SceneResult], args: &HdrArgs) -> String {
          or saturated); log errors over the measured ones. Frame time: render, tone mapping and read-back of the 8-bit image, \
          median over the views, on {}. Per scan: building its points, acquisition depth \
          map and radiance texture once, and the GPU bytes they add.\n",
-        texel_viewer::gpu::GpuContext::headless()
-            .map(|g| g.adapter_name())
-            .unwrap_or_else(|_| "no adapter".into())
+        adapter
     );
     let _ = writeln!(
         s,

@@ -37,14 +37,14 @@ pub struct RenderedHdr {
 }
 
 pub fn render_hdr(
+    gpu: &GpuContext,
     model: &Model,
     scene: &Scene,
     response: &EoResponse,
     held_out: &[HeldOutPose],
     view: &PinholeCamera,
 ) -> Result<RenderedHdr> {
-    let gpu = GpuContext::headless()?;
-    let mut renderer = Renderer::new(&gpu);
+    let mut renderer = Renderer::new(gpu);
     renderer.sync_model(model)?;
     let start = Instant::now();
     renderer.prepare_points(model, Some(response));

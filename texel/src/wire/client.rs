@@ -372,8 +372,8 @@ mod tests {
         }
     }
 
-    #[test]
-    fn an_exposure_joins_the_scan_after_it_and_no_other() {
+    /// The sample `ScanAdded` and the scan it carries.
+    fn sample_scan() -> (Message, Box<crate::wire::WireScan>) {
         let scan = sample_messages()
             .into_iter()
             .find(|m| matches!(m, Message::ScanAdded(_)))
@@ -381,6 +381,13 @@ mod tests {
         let Message::ScanAdded(wire) = &scan else {
             unreachable!()
         };
+        let wire = wire.clone();
+        (scan, wire)
+    }
+
+    #[test]
+    fn an_exposure_joins_the_scan_after_it_and_no_other() {
+        let (scan, wire) = sample_scan();
         let id = wire.id;
         let exposure = EoExposure {
             exposure_time_s: 0.02,
@@ -425,13 +432,7 @@ mod tests {
 
     #[test]
     fn a_replica_asks_for_what_it_lacks_and_is_complete_once_answered() {
-        let scan = sample_messages()
-            .into_iter()
-            .find(|m| matches!(m, Message::ScanAdded(_)))
-            .unwrap();
-        let Message::ScanAdded(wire) = &scan else {
-            unreachable!()
-        };
+        let (_, wire) = sample_scan();
         let with_id = |id| {
             let mut w = wire.clone();
             w.id = id;

@@ -102,7 +102,13 @@ fn render_pipeline(
 }
 
 impl PointsPipelines {
-    pub fn new(device: &wgpu::Device, frame_layout: &wgpu::BindGroupLayout) -> Self {
+    /// `frame_layout` and `sampler` are the renderer's (the frame uniform, the EO
+    /// images' bilinear sampler).
+    pub fn new(
+        device: &wgpu::Device,
+        frame_layout: &wgpu::BindGroupLayout,
+        sampler: &wgpu::Sampler,
+    ) -> Self {
         let vf = wgpu::ShaderStages::VERTEX | wgpu::ShaderStages::FRAGMENT;
         let fs = wgpu::ShaderStages::FRAGMENT;
         let cs = wgpu::ShaderStages::COMPUTE;
@@ -162,12 +168,6 @@ impl PointsPipelines {
                 },
             ],
         );
-        let sampler = device.create_sampler(&wgpu::SamplerDescriptor {
-            label: Some("points EO sampler"),
-            mag_filter: wgpu::FilterMode::Linear,
-            min_filter: wgpu::FilterMode::Linear,
-            ..Default::default()
-        });
         let module = module(device, "points", shaders::POINTS);
         let fill_module =
             super::super::pipelines::module(device, "points fill", shaders::POINTS_FILL);
@@ -288,7 +288,7 @@ impl PointsPipelines {
             scan_layout,
             targets_layout,
             fill_layout,
-            sampler,
+            sampler: sampler.clone(),
             module,
             output_pipeline_layout,
             splat_depth,

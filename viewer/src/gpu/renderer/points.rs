@@ -10,6 +10,7 @@ use texel::radiance::EoResponse;
 
 use super::{FrameStats, RenderSettings, RenderTarget, Renderer};
 use crate::camera::VirtualCamera;
+use crate::gpu::pipelines::Pipelines;
 use crate::gpu::points::depth_map::{DepthMapTargets, DepthMapView, depth_map_texture};
 use crate::gpu::points::pipelines::{POINT_ACCUMULATION_FORMAT, PointsPipelines};
 use crate::gpu::points::scan::{GpuPoints, acquisition_map_size};
@@ -57,9 +58,12 @@ impl ViewTargets {
         }
     }
 
+    /// Bytes held: the depth map's targets, the filled map, the colour sums and,
+    /// once used, the radiance.
     fn bytes(&self) -> u64 {
         let (w, h) = (self.depth_map.width, self.depth_map.height);
-        self.depth_map.bytes + pixels(w, h) * (4 + 8)
+        let radiance = if self.radiance.is_some() { 8 } else { 0 };
+        self.depth_map.bytes + pixels(w, h) * (4 + 8 + radiance)
     }
 }
 
@@ -73,9 +77,9 @@ pub(crate) struct PointsState {
 }
 
 impl PointsState {
-    fn new(device: &wgpu::Device, frame_layout: &wgpu::BindGroupLayout) -> Self {
+    fn new(device: &wgpu::Device, shared: &Pipelines) -> Self {
         Self {
-            pipelines: PointsPipelines::new(device, frame_layout),
+            pipelines: PointsPipelines::new(device, &shared.frame_layout, &shared.sampler),
             view: None,
             acquisition: HashMap::new(),
             tone_map: None,
@@ -99,7 +103,7 @@ impl Renderer {
         let device = &self.device;
         let state = self
             .points
-            .get_or_insert_with(|| PointsState::new(device, &self.pipelines.frame_layout));
+            .get_or_insert_with(|| PointsState::new(device, &self.pipelines));
         let mut built = 0;
         for (s, scan) in model.resident() {
             let Some(placed) = self.scans.get_mut(&s.id) else {
@@ -177,7 +181,7 @@ impl Renderer {
         let device = &self.device;
         let state = self
             .points
-            .get_or_insert_with(|| PointsState::new(device, &self.pipelines.frame_layout));
+            .get_or_insert_with(|| PointsState::new(device, &self.pipelines));
         let (width, height) = (target.width, target.height);
         let view = match state.view.take() {
             Some(v) if (v.depth_map.width, v.depth_map.height) == (width, height) => v,
@@ -245,65 +249,53 @@ impl Renderer {
                 }
             }
         }
-        if let Some(tone) = &hdr {
-            let radiance = view.radiance.get_or_insert_with(|| {
-                texture(
-                    device,
-                    "points radiance",
-                    width,
-                    height,
-                    1,
-                    RADIANCE_FORMAT,
-                    wgpu::TextureUsages::RENDER_ATTACHMENT
-                        | wgpu::TextureUsages::TEXTURE_BINDING
-                        | wgpu::TextureUsages::COPY_SRC,
-                    false,
-                )
-            });
-            {
-                let mut pass = colour_pass(
-                    &mut encoder,
-                    "points radiance",
-                    &radiance.view,
-                    wgpu::Color::TRANSPARENT,
-                );
+        match &hdr {
+            // Radiance into the view's float target, then tone-mapped into the target.
+            Some(tone) => {
+                let radiance = view.radiance.get_or_insert_with(|| {
+                    texture(
+                        device,
+                        "points radiance",
+                        width,
+                        height,
+                        1,
+                        RADIANCE_FORMAT,
+                        wgpu::TextureUsages::RENDER_ATTACHMENT
+                            | wgpu::TextureUsages::TEXTURE_BINDING
+                            | wgpu::TextureUsages::COPY_SRC,
+                        false,
+                    )
+                });
+                let clear = wgpu::Color::TRANSPARENT;
+                let mut pass = colour_pass(&mut encoder, "points radiance", &radiance.view, clear);
                 pass.set_pipeline(&state.pipelines.radiance_output);
                 pass.set_bind_group(0, &self.frame_bind_group, &[]);
                 pass.set_bind_group(1, &view.output, &[]);
                 pass.draw(0..3, 0..1);
+                drop(pass);
+                let pass = state
+                    .tone_map
+                    .get_or_insert_with(|| ToneMapPass::with_device(device, &self.queue));
+                pass.background = settings.composite.background;
+                let size = (width, height);
+                pass.record(
+                    &mut encoder,
+                    &radiance.view,
+                    size,
+                    tone,
+                    target.view,
+                    target.format,
+                );
             }
-            let pass = state
-                .tone_map
-                .get_or_insert_with(|| ToneMapPass::with_device(device, &self.queue));
-            pass.background = settings.composite.background;
-            pass.record(
-                &mut encoder,
-                &radiance.view,
-                (width, height),
-                tone,
-                target.view,
-                target.format,
-            );
-            self.queue.submit(Some(encoder.finish()));
-            stats.target_memory = TargetMemory {
-                layers: view.bytes() + pixels(width, height) * 8,
-                ..Default::default()
-            };
-            self.nearest_ready = false;
-            return Ok(stats);
-        }
-        let output = state.pipelines.output(device, target.format);
-        {
-            let mut pass = colour_pass(
-                &mut encoder,
-                "points output",
-                target.view,
-                wgpu::Color::BLACK,
-            );
-            pass.set_pipeline(output);
-            pass.set_bind_group(0, &self.frame_bind_group, &[]);
-            pass.set_bind_group(1, &view.output, &[]);
-            pass.draw(0..3, 0..1);
+            None => {
+                let output = state.pipelines.output(device, target.format);
+                let clear = wgpu::Color::BLACK;
+                let mut pass = colour_pass(&mut encoder, "points output", target.view, clear);
+                pass.set_pipeline(output);
+                pass.set_bind_group(0, &self.frame_bind_group, &[]);
+                pass.set_bind_group(1, &view.output, &[]);
+                pass.draw(0..3, 0..1);
+            }
         }
         self.queue.submit(Some(encoder.finish()));
         stats.target_memory = TargetMemory {
