@@ -57,7 +57,7 @@ impl Registration for AtTruth {
 fn session(recording: &std::path::Path, resume: bool) -> SessionConfig {
     let mut c = SessionConfig::default();
     c.source.sim = vec![SimConfig {
-        scene: repo_root().join("configs/scenes/plane.toml"),
+        scene: repo_root().join("configs/scenes/wall.toml"),
         seed: 1,
         frames: Some(FRAMES),
         eo_size: Some([160, 120]),

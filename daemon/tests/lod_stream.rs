@@ -27,7 +27,7 @@ use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio_util::sync::CancellationToken;
 
 const FRAMES: usize = 10;
-/// The simulated wall: the plane y = 2 m (`configs/scenes/plane.toml`).
+/// The simulated wall: the plane y = 2 m (`configs/scenes/wall.toml`).
 const WALL_Y_M: f64 = 2.0;
 
 /// Places every scan at the simulator's truth, but the first one 0.6 m off towards
@@ -81,7 +81,7 @@ fn session(field_budget_mb: u64) -> SessionConfig {
     let mut c = SessionConfig::default();
     c.model.lod.field_memory_budget_mb = field_budget_mb;
     c.source.sim = vec![SimConfig {
-        scene: repo_root().join("configs/scenes/plane.toml"),
+        scene: repo_root().join("configs/scenes/wall.toml"),
         seed: 1,
         frames: Some(FRAMES),
         eo_size: Some([160, 120]),

@@ -151,6 +151,13 @@ impl Simulator {
             (BackendKind::Mitsuba, _) | (BackendKind::Auto, Some(_)) => true,
             (BackendKind::Auto, None) => false,
         };
+        if use_mitsuba && effects.moving_lights.is_some() {
+            return Err(SimError::BadOption(
+                "moving_lights is simulated by the built-in backend only (the Mitsuba \
+                 backend exports the scene's lights once)"
+                    .into(),
+            ));
+        }
         let mut model = effective_model(scene.sensor(), effects.lens_distortion.as_ref());
         if let Some(size) = options.lidar_size {
             check_size("lidar", size, MAX_LIDAR_SIDE)?;
@@ -343,7 +350,17 @@ impl Simulator {
     }
 
     fn eo_frame(&self, poses: &[Pose], key: NoiseKey, timestamp_ns: u64) -> EoFrame {
-        let linear = eo::radiance(self.backend.as_ref(), &self.eo_rays, &self.effects, poses);
+        let linear = match &self.effects.moving_lights {
+            // The lights of this instant over the scene's geometry (shared, not copied).
+            Some(moving) => {
+                let world = &self.scene.world;
+                let t_s = timestamp_ns as f64 * 1.0e-9;
+                let lit = world.with_lighting(moving.lighting_at(&world.lighting, t_s));
+                let backend = BuiltinBackend::new(Arc::new(lit));
+                eo::radiance(&backend, &self.eo_rays, &self.effects, poses)
+            }
+            None => eo::radiance(self.backend.as_ref(), &self.eo_rays, &self.effects, poses),
+        };
         self.eo_development.develop(&linear, key, timestamp_ns)
     }
 

@@ -39,6 +39,9 @@ pub enum Path {
         pan_amplitude_deg: f64,
         pan_period_s: f64,
         pan_phase_deg: f64,
+        /// Without `look_at`: the view's elevation above the path's direction, degrees
+        /// (negative looks down).
+        pitch_deg: f64,
     },
 }
 
@@ -121,6 +124,7 @@ impl Trajectory {
                 pan_amplitude_deg,
                 pan_period_s,
                 pan_phase_deg,
+                pitch_deg,
             } => {
                 let s = speed_m_per_s * t_s;
                 let eye = point_along(waypoints, s);
@@ -129,7 +133,15 @@ impl Trajectory {
                     None => {
                         let ahead = point_along(waypoints, s + 0.5);
                         let behind = point_along(waypoints, s - 0.5);
-                        look_at(eye, eye + (ahead - behind), Vector3::z())
+                        let mut ahead = ahead - behind;
+                        // Tilted about the horizontal axis across the path.
+                        let across = ahead.cross(&Vector3::z());
+                        if *pitch_deg != 0.0 && across.norm() > 1.0e-12 {
+                            let axis = nalgebra::Unit::new_normalize(across);
+                            ahead = UnitQuaternion::from_axis_angle(&axis, pitch_deg.to_radians())
+                                * ahead;
+                        }
+                        look_at(eye, eye + ahead, Vector3::z())
                     }
                 };
                 // The sweep turns the view about the vertical through the eye. Guard:
@@ -253,6 +265,7 @@ mod tests {
                 pan_amplitude_deg: 0.0,
                 pan_period_s: 1.0,
                 pan_phase_deg: 0.0,
+                pitch_deg: 0.0,
             },
             rate_hz: 10.0,
             frames: 40,
@@ -278,6 +291,7 @@ mod tests {
                 pan_amplitude_deg: amplitude,
                 pan_period_s: 8.0,
                 pan_phase_deg: 0.0,
+                pitch_deg: 0.0,
             },
             rate_hz: 10.0,
             frames: 40,
@@ -299,5 +313,29 @@ mod tests {
         // Half a period in: back on the path.
         let (fa, fb) = (forward(&still.pose_at(4.0)), forward(&panned.pose_at(4.0)));
         assert!((fa - fb).norm() < 1e-9);
+    }
+
+    #[test]
+    fn a_pitch_tilts_the_view_off_the_path() {
+        let walk = Trajectory {
+            path: Path::Handheld {
+                waypoints: vec![Point3::origin(), Point3::new(0.0, 10.0, 0.0)],
+                look_at: None,
+                speed_m_per_s: 1.0,
+                jitter_position_m: 0.0,
+                jitter_rotation_deg: 0.0,
+                seed: 0,
+                pan_amplitude_deg: 0.0,
+                pan_period_s: 1.0,
+                pan_phase_deg: 0.0,
+                pitch_deg: -65.0,
+            },
+            rate_hz: 10.0,
+            frames: 40,
+            start_time_ns: 0,
+        };
+        let forward = walk.pose_at(3.0).rotation * Vector3::z();
+        let down = 65.0f64.to_radians();
+        assert!((forward - Vector3::new(0.0, down.cos(), -down.sin())).norm() < 1e-9);
     }
 }

@@ -2,6 +2,8 @@
 //! the per-ray queries the renderers are made of (closest surface, lidar echo,
 //! shaded radiance).
 
+use std::sync::Arc;
+
 use nalgebra::{Point3, Vector3};
 
 use crate::geometry::{Bvh, Hit, Ray};
@@ -15,10 +17,12 @@ const MIN_FOOTPRINT_COS: f64 = 0.05;
 
 #[derive(Debug, Clone)]
 pub struct World {
-    pub bvh: Bvh,
+    /// Shared, so that a world under other lights ([`Self::with_lighting`]) costs no
+    /// copy of the geometry.
+    pub bvh: Arc<Bvh>,
     /// The primitives of objects that cast shadows (`casts_shadows`, default true):
     /// what shadow rays are traced against.
-    pub shadow_bvh: Bvh,
+    pub shadow_bvh: Arc<Bvh>,
     pub materials: Vec<Material>,
     pub lighting: Lighting,
     pub background: Rgb,
@@ -52,6 +56,17 @@ pub struct SurfaceSample {
 }
 
 impl World {
+    /// The same geometry and materials under `lighting` (the geometry is shared).
+    pub fn with_lighting(&self, lighting: Lighting) -> Self {
+        Self {
+            bvh: self.bvh.clone(),
+            shadow_bvh: self.shadow_bvh.clone(),
+            materials: self.materials.clone(),
+            lighting,
+            background: self.background,
+        }
+    }
+
     /// The nearest surface along `ray` (unit direction).
     #[inline]
     pub fn trace(&self, ray: &Ray) -> Option<Hit> {

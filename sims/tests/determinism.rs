@@ -63,7 +63,7 @@ fn different_seeds_differ_where_noise_is_on_and_not_where_it_is_off() {
 
 #[test]
 fn frames_outside_the_trajectory_are_errors() {
-    let sim = small(load("plane"), 0, None);
+    let sim = small(load("wall"), 0, None);
     assert_eq!(sim.frame_count(), 10);
     assert!(matches!(
         sim.frame(10),

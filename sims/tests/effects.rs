@@ -470,3 +470,57 @@ fn adaptive_mixed_pixels_match_sampling_every_footprint() {
     assert!(worst < 0.05, "worst difference {worst} m");
     assert_eq!(validity_differs, 0);
 }
+
+/// `moving_lights`: from one pose, frames at two instants have different EO images
+/// (the lamps swing and flicker) and the same lidar ranges; without it, or with a
+/// swing and flicker of zero, the two instants look the same. The frames are
+/// deterministic in their time.
+#[test]
+fn moving_lights_change_the_shading_and_never_the_geometry() {
+    let lab = common::load("lab");
+    let pose = lab.trajectory.frame_pose(3);
+    let (t1, t2) = (1_000_000_000, 1_700_000_000);
+    let moving = sim_with(lab.clone(), 0, vec![effect("moving_lights", "")], 32);
+    let a = moving.render_at(&pose, 0, t1);
+    let b = moving.render_at(&pose, 0, t2);
+    let changed =
+        a.eo.rgb
+            .iter()
+            .zip(&b.eo.rgb)
+            .filter(|(x, y)| x != y)
+            .count();
+    assert!(changed > a.eo.rgb.len() / 10, "{changed} values changed");
+    let bits = |r: &texel::RangeFrame| r.ranges_m.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+    assert_eq!(bits(&a.range), bits(&b.range));
+    assert_eq!(moving.render_at(&pose, 0, t2).eo.rgb, b.eo.rgb);
+    for still in [
+        sim_with(lab.clone(), 0, vec![], 32),
+        sim_with(
+            lab.clone(),
+            0,
+            vec![effect(
+                "moving_lights",
+                "amplitude_m = 0.0\nintensity_modulation = 0.0",
+            )],
+            32,
+        ),
+    ] {
+        let a = still.render_at(&pose, 0, t1);
+        let b = still.render_at(&pose, 0, t2);
+        assert_eq!(a.eo.rgb, b.eo.rgb);
+        assert_eq!(bits(&a.range), bits(&b.range));
+        assert_eq!(a.eo.rgb, moving.clean_eo_at(&pose, t1).rgb);
+    }
+    // The Mitsuba backend exports the lights once: it refuses the effect.
+    let refused = Simulator::with_options(
+        lab,
+        &SimOptions {
+            effects: Some(vec![effect("moving_lights", "")]),
+            backend: sims::BackendKind::Mitsuba,
+            ..SimOptions::default()
+        },
+    );
+    assert!(
+        matches!(refused, Err(sims::SimError::BadOption(ref m)) if m.contains("moving_lights"))
+    );
+}

@@ -100,6 +100,44 @@ fn unknown_materials_missing_files_and_bad_values_are_named() {
 }
 
 #[test]
+fn bad_brick_parameters_are_named() {
+    let good = "brick_m = [0.24, 0.08], mortar_m = 0.01, palette = [[0.6, 0.25, 0.15]]";
+    let text = fixed_camera_scene(&format!("[materials.wall]\nbricks = {{ {good} }}\n"));
+    parse(&text).unwrap();
+    for (bad, key) in [
+        (good.replace("[0.24, 0.08]", "[0.24, 0.0]"), "brick_m"),
+        (good.replace("[0.24, 0.08]", "[0.24]"), "bricks"),
+        (
+            good.replace("mortar_m = 0.01", "mortar_m = 0.08"),
+            "mortar_m",
+        ),
+        (
+            good.replace("mortar_m = 0.01", "mortar_m = -0.01"),
+            "mortar_m",
+        ),
+        (good.replace("[[0.6, 0.25, 0.15]]", "[]"), "palette"),
+        (good.replace("0.25, 0.15]]", "1.5, 0.15]]"), "palette"),
+        (format!("{good}, variation = 2.0"), "variation"),
+        (
+            format!("{good}, mortar_color = [0.5, -1.0, 0.5]"),
+            "mortar_color",
+        ),
+        (format!("{good}, mortar = [0.5, 0.5, 0.5]"), "mortar"),
+    ] {
+        let text = fixed_camera_scene(&format!("[materials.wall]\nbricks = {{ {bad} }}\n"));
+        let e = parse(&text).unwrap_err();
+        assert!(e.key.contains(key) || e.message.contains(key), "{bad}: {e}");
+        // The material's table, or the line of the key serde refused.
+        let lines = [line_of(&text, "[materials.wall]"), line_of(&text, "bricks")];
+        assert!(e.line.is_some_and(|l| lines.contains(&l)), "{bad}: {e}");
+    }
+    let text = fixed_camera_scene(&format!(
+        "[materials.wall]\ncolor = [0.5, 0.5, 0.5]\nbricks = {{ {good} }}\n"
+    ));
+    assert!(parse(&text).unwrap_err().message.contains("bricks"));
+}
+
+#[test]
 fn sizes_beyond_the_limits_are_refused() {
     let dir = tempfile::tempdir().unwrap();
     let sensor = std::fs::read_to_string(configs().join("sensors/texel-default.toml"))

@@ -20,11 +20,11 @@ use sims::serial::{
 use sims::{SimOptions, Simulator};
 use texel::txl1::{Txl1Decoder, Txl1Frame};
 
-/// The plane scene with range noise (every frame differs), lidar 32x32.
+/// The wall scene (10 poses) with range noise (every frame differs), lidar 32x32.
 fn sim(frames: Option<usize>) -> Arc<Simulator> {
     Arc::new(
         Simulator::with_options(
-            common::load("plane"),
+            common::load("wall"),
             &SimOptions {
                 seed: 11,
                 effects: Some(common::effects(&["range_noise"])),

@@ -24,7 +24,7 @@ const BACKGROUND: [f32; 3] = [1.0, 0.0, 1.0];
 fn session() -> SessionConfig {
     let mut c = SessionConfig::default();
     c.source.sim = vec![SimConfig {
-        scene: repo_root().join("configs/scenes/plane.toml"),
+        scene: repo_root().join("configs/scenes/wall.toml"),
         seed: 1,
         frames: Some(FRAMES),
         eo_size: Some([160, 120]),

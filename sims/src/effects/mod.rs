@@ -5,8 +5,9 @@
 //!
 //! Lidar pipeline, per pixel: beam geometry (`mixed_pixels`, else one ray) →
 //! `dropouts` → `range_noise` → `range_quantisation`.
-//! EO pipeline, per pixel: camera model (`lens_distortion`) → radiance (`specular`
-//! adds the glossy lobe; `motion_blur` averages sub-exposures) → `vignetting` →
+//! EO pipeline, per pixel: camera model (`lens_distortion`) → radiance (`moving_lights`
+//! sets the lights of the frame's time; `specular` adds the glossy lobe; `motion_blur`
+//! averages sub-exposures) → `vignetting` →
 //! exposure (`exposure`, else exposure 0 EV) → `sensor_noise` → response curve
 //! (`exposure`'s, else sRGB) → 8 bits.
 
@@ -16,6 +17,7 @@ pub mod global_illumination;
 pub mod lens_distortion;
 pub mod mixed_pixels;
 pub mod motion_blur;
+pub mod moving_lights;
 pub mod range_noise;
 pub mod range_quantisation;
 pub mod sensor_noise;
@@ -31,6 +33,7 @@ pub use global_illumination::GlobalIllumination;
 pub use lens_distortion::LensDistortion;
 pub use mixed_pixels::MixedPixels;
 pub use motion_blur::MotionBlur;
+pub use moving_lights::MovingLights;
 pub use range_noise::RangeNoiseEffect;
 pub use range_quantisation::RangeQuantisation;
 pub use sensor_noise::SensorNoise;
@@ -81,15 +84,17 @@ pub enum Effect {
     MotionBlur(MotionBlur),
     Specular(Specular),
     GlobalIllumination(GlobalIllumination),
+    MovingLights(MovingLights),
 }
 
 /// Every effect's name, in pipeline order.
-pub const EFFECT_NAMES: [&str; 11] = [
+pub const EFFECT_NAMES: [&str; 12] = [
     MixedPixels::NAME,
     Dropouts::NAME,
     RangeNoiseEffect::NAME,
     RangeQuantisation::NAME,
     LensDistortion::NAME,
+    MovingLights::NAME,
     Specular::NAME,
     GlobalIllumination::NAME,
     MotionBlur::NAME,
@@ -140,6 +145,7 @@ pub fn effect_docs() -> Vec<EffectDoc> {
         doc_of::<RangeNoiseEffect>(),
         doc_of::<RangeQuantisation>(),
         doc_of::<LensDistortion>(),
+        doc_of::<MovingLights>(),
         doc_of::<Specular>(),
         doc_of::<GlobalIllumination>(),
         doc_of::<MotionBlur>(),
@@ -171,6 +177,7 @@ impl Effect {
             Self::MotionBlur(_) => MotionBlur::NAME,
             Self::Specular(_) => Specular::NAME,
             Self::GlobalIllumination(_) => GlobalIllumination::NAME,
+            Self::MovingLights(_) => MovingLights::NAME,
         }
     }
 
@@ -188,6 +195,7 @@ impl Effect {
             MotionBlur::NAME => Self::MotionBlur(parse_params(params)?),
             Specular::NAME => Self::Specular(parse_params(params)?),
             GlobalIllumination::NAME => Self::GlobalIllumination(parse_params(params)?),
+            MovingLights::NAME => Self::MovingLights(parse_params(params)?),
             other => {
                 return Err(format!(
                     "unknown effect {other:?}; valid effects are: {}",
@@ -240,6 +248,7 @@ pub struct EffectSet {
     pub motion_blur: Option<MotionBlur>,
     pub specular: Option<Specular>,
     pub global_illumination: Option<GlobalIllumination>,
+    pub moving_lights: Option<MovingLights>,
 }
 
 impl EffectSet {
@@ -259,6 +268,7 @@ impl EffectSet {
                 Effect::MotionBlur(p) => set.motion_blur.replace(p).is_some(),
                 Effect::Specular(p) => set.specular.replace(p).is_some(),
                 Effect::GlobalIllumination(p) => set.global_illumination.replace(p).is_some(),
+                Effect::MovingLights(p) => set.moving_lights.replace(p).is_some(),
             };
             if dup {
                 return Err(format!("effect {:?} is listed twice", e.name()));
@@ -283,6 +293,7 @@ impl EffectSet {
             self.range_noise.is_some(),
             self.range_quantisation.is_some(),
             self.lens_distortion.is_some(),
+            self.moving_lights.is_some(),
             self.specular.is_some(),
             self.global_illumination.is_some(),
             self.motion_blur.is_some(),

@@ -12,7 +12,7 @@
 //! (the sphere and cylinder frames are turned half a turn so that Mitsuba's longitude
 //! seam falls on ours), composed with the texture's own map into the bitmap's `to_uv`.
 //! Checkerboards become bitmaps of one texel per square (nearest lookup: exact),
-//! images their level-0 texels (bilinear, as ours at level 0); noise, and any texture
+//! images their level-0 texels (bilinear, as ours at level 0); noise and bricks, and any texture
 //! on a disk (polar `uv`), is baked per shape at a resolution bounded by
 //! [`MAX_BAKE_SIDE`].
 
@@ -469,7 +469,7 @@ impl Writer<'_> {
             NativeUv::Affine(a) => a,
             NativeUv::Disk(r) => return self.bake_disk(texture, r),
         };
-        if let Texture::Noise { .. } = texture {
+        if let Texture::Noise { .. } | Texture::Bricks(_) = texture {
             return self.bake_region(texture, item, &a);
         }
         let (spec, t) = match self.material_bitmaps.get(&item.material) {

@@ -75,3 +75,51 @@ fn textures_land_on_the_same_surface_points() {
     }
     assert!(stats.len() >= 9, "{:?}", stats.keys());
 }
+
+/// A brick wall is baked per shape (as noise is): Mitsuba's albedo matches our
+/// texture point-sampled at our hit, but near the joints, where the bake's bilinear
+/// lookup blends brick and mortar.
+#[test]
+fn baked_bricks_match_ours_away_from_the_joints() {
+    let text = r#"
+sensor = "../sensors/texel-default.toml"
+[trajectory]
+poses = [{ position = [0.0, -1.5, 1.0], look_at = [0.0, 0.0, 1.0] }]
+[materials.bricks]
+bricks = { brick_m = [0.225, 0.075], mortar_m = 0.01, palette = [[0.5, 0.2, 0.1], [0.6, 0.3, 0.2], [0.4, 0.15, 0.1]], mortar_color = [0.8, 0.8, 0.75], seed = 4 }
+[[objects.plane]]
+name = "wall"
+material = "bricks"
+position = [0.0, 0.0, 1.0]
+rotation_deg = [90.0, 0.0, 0.0]
+size = [2.0, 1.5]
+"#;
+    let base = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/scenes");
+    let scene = Scene::from_toml_str(text, "bricks.toml", &base).unwrap();
+    let renderer = MitsubaRenderer::start(&scene.world).unwrap();
+    let camera = PinholeCamera::from_vertical_fov(160, 120, 40.0).unwrap();
+    let rays = CameraRays::new(&camera);
+    let pose = scene.trajectory.frame_pose(0);
+    let hits = renderer.trace(&pose, &rays.rays).unwrap();
+    let (mut seen, mut off, mut sum) = (0usize, 0usize, 0.0f64);
+    for (r, m) in rays.rays.iter().zip(&hits) {
+        let ours = world_ray(&pose, r).and_then(|ray| scene.world.trace(&ray));
+        let (Some(ours), Some(m)) = (ours, m) else {
+            continue;
+        };
+        let want = scene.world.materials[ours.material as usize].albedo(ours.uv_m, 0.0);
+        let d = (0..3)
+            .map(|k| (want[k] - m.albedo[k]).abs())
+            .fold(0.0, f32::max);
+        seen += 1;
+        off += usize::from(d > 0.01);
+        sum += f64::from(d);
+    }
+    let mean = sum / seen.max(1) as f64;
+    eprintln!("bricks: {seen} px, {off} off by > 0.01, mean {mean:.4}");
+    assert!(seen > 5000, "{seen}");
+    assert!(
+        off * 10 < seen && mean < 0.02,
+        "{off} of {seen}, mean {mean}"
+    );
+}

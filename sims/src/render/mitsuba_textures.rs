@@ -1,6 +1,6 @@
 //! Textures for the Mitsuba export: bitmaps shared by a material's shapes (checkers as
-//! one texel per square, images at level 0) and textures baked per shape (noise, and
-//! anything on a disk's polar coordinates).
+//! one texel per square, images at level 0) and textures baked per shape (noise,
+//! bricks, and anything on a disk's polar coordinates).
 
 use std::f64::consts::PI;
 use std::io::Write;
@@ -96,11 +96,13 @@ impl Writer<'_> {
                 })?;
                 Ok((bitmap(file, w, h, "bilinear", "repeat"), t))
             }
-            Texture::Constant(_) | Texture::Noise { .. } => Err("not a bitmap texture".into()),
+            Texture::Constant(_) | Texture::Noise { .. } | Texture::Bricks(_) => {
+                Err("not a bitmap texture".into())
+            }
         }
     }
 
-    /// Bakes a texture over the shape's uv range (noise textures).
+    /// Bakes a texture over the shape's uv range (noise and bricks).
     pub(super) fn bake_region(
         &mut self,
         texture: &Texture,
@@ -116,6 +118,7 @@ impl Writer<'_> {
             Texture::Noise {
                 scale_m, octaves, ..
             } => scale_m / f64::from(1u32 << (*octaves).min(16)) / 2.0,
+            Texture::Bricks(b) => bricks_texel_m(b),
             _ => du.max(dv) / MAX_BAKE_SIDE as f64,
         };
         let side = |d: f64| ((d / finest.max(1e-9)).ceil() as usize).clamp(2, MAX_BAKE_SIDE);
@@ -140,6 +143,7 @@ impl Writer<'_> {
                 scale_m, octaves, ..
             } => scale_m / f64::from(1u32 << (*octaves).min(16)) / 2.0,
             Texture::Checker { square_m, .. } => square_m / 64.0,
+            Texture::Bricks(b) => bricks_texel_m(b),
             _ => r / 256.0,
         };
         let w = ((r / finest.max(1e-9)).ceil() as usize).clamp(16, MAX_BAKE_SIDE);
@@ -151,6 +155,17 @@ impl Writer<'_> {
             texture.sample([rho * phi.cos(), rho * phi.sin()], footprint)
         })?;
         Ok(bitmap(file, w, h, "bilinear", "clamp"))
+    }
+}
+
+/// The texel a brick texture is baked at: a quarter of a joint, or an eighth of a
+/// brick's height without joints (the bake is capped at [`MAX_BAKE_SIDE`] texels a
+/// side).
+fn bricks_texel_m(b: &crate::material::Bricks) -> f64 {
+    if b.mortar_m > 0.0 {
+        (0.25 * b.mortar_m).min(b.brick_m[1] / 8.0)
+    } else {
+        b.brick_m[1] / 8.0
     }
 }
 

@@ -19,7 +19,7 @@ use crate::effects::{Effect, EffectSet};
 use crate::geometry::mesh::TriMesh;
 use crate::geometry::{Bvh, Primitive, Shape, parallelogram, triangle};
 use crate::light::{Light, Lighting};
-use crate::material::{Material, MipImage, NoiseTable, Texture};
+use crate::material::{Bricks, Material, MipImage, NoiseTable, Texture};
 use crate::trajectory::{Path as TrajectoryPath, Trajectory, look_at, path_length};
 use crate::world::World;
 
@@ -116,8 +116,8 @@ pub(super) fn build(text: &str, origin: &str, base: &Path) -> Result<Scene, Scen
         trajectory,
         objects,
         world: Arc::new(World {
-            bvh: Bvh::new(primitives),
-            shadow_bvh: Bvh::new(shadow_primitives),
+            bvh: Arc::new(Bvh::new(primitives)),
+            shadow_bvh: Arc::new(Bvh::new(shadow_primitives)),
             materials,
             lighting,
             background: file.background,
@@ -193,6 +193,7 @@ fn build_material(
         m.checker.is_some(),
         m.image.is_some(),
         m.noise.is_some(),
+        m.bricks.is_some(),
     ]
     .iter()
     .filter(|&&b| b)
@@ -201,7 +202,7 @@ fn build_material(
         return Err(ctx.err(
             span.clone(),
             key,
-            "a material needs exactly one of color, checker, image, noise",
+            "a material needs exactly one of color, checker, image, noise, bricks",
         ));
     }
     let texture = if let Some(c) = &m.color {
@@ -255,6 +256,42 @@ fn build_material(
             octaves: n.octaves,
             table: Arc::new(NoiseTable::new(n.seed)),
         }
+    } else if let Some(b) = &m.bricks {
+        if !b.brick_m.iter().all(|s| *s > 0.0 && *s < 1.0e3) {
+            return Err(bad(
+                "bricks.brick_m",
+                "must be two positive lengths [length, height] below 1000 m",
+            ));
+        }
+        if !(b.mortar_m.is_finite()
+            && b.mortar_m >= 0.0
+            && b.mortar_m < b.brick_m[0].min(b.brick_m[1]))
+        {
+            return Err(bad(
+                "bricks.mortar_m",
+                "must be >= 0 and narrower than both sides of a brick",
+            ));
+        }
+        if b.palette.is_empty()
+            || b.palette.len() > 64
+            || !b.palette.iter().all(|c| check_color(c, 1.0))
+        {
+            return Err(bad("bricks.palette", "needs 1..=64 colours in [0, 1]"));
+        }
+        if !(b.variation.is_finite() && (0.0..=1.0).contains(&b.variation)) {
+            return Err(bad("bricks.variation", "must be in [0, 1]"));
+        }
+        if !check_color(&b.mortar_color, 1.0) {
+            return Err(bad("bricks.mortar_color", "components must be in [0, 1]"));
+        }
+        Texture::Bricks(Bricks {
+            brick_m: b.brick_m,
+            mortar_m: b.mortar_m,
+            palette: b.palette.clone(),
+            variation: b.variation,
+            mortar: b.mortar_color,
+            seed: b.seed,
+        })
     } else {
         Texture::Constant([0.5; 3])
     };
@@ -831,6 +868,13 @@ fn handheld(
             "needs amplitude_deg in [0, 180], period_s of at least 0.1 and a finite phase_deg",
         ));
     }
+    if !(v.pitch_deg.is_finite() && v.pitch_deg.abs() <= 85.0) {
+        return Err(ctx.err(
+            Some(h.span()),
+            format!("{key}.pitch_deg"),
+            "must be in [-85, 85] degrees",
+        ));
+    }
     let waypoints: Vec<Point3<f64>> = v.waypoints.iter().map(|w| Point3::from(*w)).collect();
     let seconds = path_length(&waypoints) / v.speed_m_per_s;
     let natural = (seconds * rate_hz).floor() + 1.0;
@@ -852,6 +896,7 @@ fn handheld(
             pan_amplitude_deg: v.pan.map_or(0.0, |p| p.amplitude_deg),
             pan_period_s: v.pan.map_or(1.0, |p| p.period_s),
             pan_phase_deg: v.pan.map_or(0.0, |p| p.phase_deg),
+            pitch_deg: v.pitch_deg,
         },
         natural as usize,
     ))

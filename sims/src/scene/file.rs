@@ -100,6 +100,10 @@ pub(crate) struct HandheldFile {
     /// The operator sweeping the camera left and right about the vertical.
     #[serde(default)]
     pub pan: Option<PanFile>,
+    /// Without `look_at`: the view tilted above (positive) or below (negative) the
+    /// path's direction, degrees.
+    #[serde(default)]
+    pub pitch_deg: f64,
 }
 
 #[derive(Debug, Deserialize, Clone, Copy)]
@@ -141,6 +145,8 @@ pub(crate) struct MaterialFile {
     #[serde(default)]
     pub noise: Option<NoiseFile>,
     #[serde(default)]
+    pub bricks: Option<BricksFile>,
+    #[serde(default)]
     pub specular: f32,
     #[serde(default = "default_shininess")]
     pub shininess: f32,
@@ -181,6 +187,31 @@ pub(crate) struct NoiseFile {
     pub scale_m: f64,
     #[serde(default = "default_octaves")]
     pub octaves: u32,
+    #[serde(default)]
+    pub seed: u64,
+}
+
+fn default_brick_variation() -> f32 {
+    0.1
+}
+
+fn default_mortar_color() -> [f32; 3] {
+    [0.62, 0.6, 0.56]
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct BricksFile {
+    /// Length and height of a brick with its share of the joints, metres.
+    pub brick_m: [f64; 2],
+    /// Width of the mortar joints, metres.
+    pub mortar_m: f64,
+    pub palette: Vec<[f32; 3]>,
+    /// Brightness variation from brick to brick, relative.
+    #[serde(default = "default_brick_variation")]
+    pub variation: f32,
+    #[serde(default = "default_mortar_color")]
+    pub mortar_color: [f32; 3],
     #[serde(default)]
     pub seed: u64,
 }
