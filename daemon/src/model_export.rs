@@ -129,7 +129,7 @@ pub fn for_each_placed_by(
                 .unwrap_or_else(texel_register::default_anchor);
             Registrar::with_anchor(registration.clone(), anchor)
         });
-        registrar.register(scan, &model.lidar);
+        registrar.register(scan, &model);
         // A whole-capture export records no anchors.
         registrar.take_anchors();
         for event in registrar.take_events() {

@@ -110,24 +110,46 @@ fn lab_capture_is_registered_with_poses_and_a_report() {
 }
 
 #[test]
-fn plane_capture_reports_its_unobservable_directions() {
+fn plane_capture_is_pinned_by_the_eo_by_default_and_named_degenerate_without_it() {
     let dir = tempfile::tempdir().unwrap();
     let input = capture(dir.path(), "plane", 4);
-    let out = dir.path().join("out.mcap");
-    let report = dir.path().join("report.json");
-    let (ok, stdout, stderr) = texeld(&[
-        "register",
-        input.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--report",
-        report.to_str().unwrap(),
-    ]);
-    assert!(ok, "{stdout}\n{stderr}");
-    let json: Value = serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    let register = |name: &str, config: Option<&str>| {
+        let out = dir.path().join(format!("{name}.mcap"));
+        let report = dir.path().join(format!("{name}.json"));
+        let mut args = vec![
+            "register".to_string(),
+            input.to_str().unwrap().to_string(),
+            "--out".into(),
+            out.to_str().unwrap().to_string(),
+            "--report".into(),
+            report.to_str().unwrap().to_string(),
+        ];
+        if let Some(text) = config {
+            let path = dir.path().join(format!("{name}.toml"));
+            std::fs::write(&path, text).unwrap();
+            args.extend(["--config".into(), path.to_str().unwrap().to_string()]);
+        }
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        let (ok, stdout, stderr) = texeld(&args);
+        assert!(ok, "{stdout}\n{stderr}");
+        let json: Value = serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+        json
+    };
+    // Defaults: the floor's texture fixes the three directions its plane leaves
+    // free; the poses follow the truth.
+    let json = register("eo", None);
+    for f in &json["per_frame"].as_array().unwrap()[1..] {
+        assert_eq!(f["status"], "registered", "{f}");
+        assert_eq!(f["degenerate"].as_array().map_or(0, Vec::len), 0, "{f}");
+        assert!(f["photometric"]["residuals"].as_u64().unwrap() > 0, "{f}");
+        assert!(f["translation_error_mm"].as_f64().unwrap() < 5.0, "{f}");
+    }
+    // Geometry alone: the three directions are named.
+    let json = register("geometry", Some("[align.photometric]\nmode = \"off\"\n"));
     for f in &json["per_frame"].as_array().unwrap()[1..] {
         let n = f["degenerate"].as_array().map_or(0, Vec::len);
         assert!(f["status"] == "failed" || n == 3, "{f}");
+        assert_eq!(f["photometric"]["residuals"], 0, "{f}");
     }
 }
 

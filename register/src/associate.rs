@@ -2,13 +2,13 @@
 //! 2011, Sec. 3.5): a source point is moved by the current pose estimate into each
 //! target scan, projected through the target's lidar model into its range grid, and
 //! paired with the point stored at that pixel: O(1) per point, no search structure.
-//! Each pair gives a point-to-plane residual (Chen & Medioni 1992) and, optionally,
-//! a photometric one on the EO intensity (Park, Zhou & Koltun 2017).
+//! Each pair gives a point-to-plane residual (Chen & Medioni 1992); the
+//! photometric term observes the same pairs in the EO images (`photometric`).
 
 use nalgebra::{Matrix3, Vector2, Vector3};
 use texel::{PinholeCamera, Pose};
 
-use super::pyramid::{GridProjector, HAS_INTENSITY, HAS_NORMAL, HAS_POINT, Level};
+use super::pyramid::{GridProjector, HAS_NORMAL, HAS_POINT, Level};
 
 /// Points nearer the lidar plane than this (metres) do not project.
 const MIN_PROJECT_DEPTH_M: f64 = 1.0e-9;
@@ -194,27 +194,4 @@ pub fn point_to_plane(
     let m = rotation.tr_mul(&pair.n);
     let c = p_source.cross(&m);
     (r, [c.x, c.y, c.z, m.x, m.y, m.z])
-}
-
-/// Photometric residual `I_t(q) + d·(T p - q) - I_s(p)` with `d` the target's
-/// intensity gradient in its tangent plane, and its Jacobian `[p × m, m]`,
-/// `m = Rᵀ d` (Park, Zhou & Koltun 2017, Eq. 9-13). `None` where either side lacks
-/// intensity or the target has no gradients.
-#[inline]
-pub fn photometric(
-    pair: &Pair,
-    target: &Level,
-    source_intensity: Option<f32>,
-    p_source: &Vector3<f64>,
-    rotation: &Matrix3<f64>,
-) -> Option<(f64, [f64; 6])> {
-    let i_s = f64::from(source_intensity?);
-    if !target.has(pair.index, HAS_INTENSITY) {
-        return None;
-    }
-    let d = target.gradient(pair.index)?;
-    let r = f64::from(target.intensity(pair.index)) + d.dot(&(pair.p_target - pair.q)) - i_s;
-    let m = rotation.tr_mul(&d);
-    let c = p_source.cross(&m);
-    Some((r, [c.x, c.y, c.z, m.x, m.y, m.z]))
 }

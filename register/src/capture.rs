@@ -21,7 +21,8 @@ use thiserror::Error;
 
 use crate::clock::{Stopwatch, quantile};
 use crate::{
-    ConfigError, DegenerateDirection, Fitness, Registrar, RegistrationConfig, RegistrationStatus,
+    ConfigError, DegenerateDirection, Fitness, PhotometricSummary, Registrar, RegistrationConfig,
+    RegistrationStatus,
 };
 
 #[derive(Debug, Error)]
@@ -55,6 +56,9 @@ pub struct FrameReport {
     pub iterations: u32,
     pub fitness: Fitness,
     pub degenerate: Vec<DegenerateDirection>,
+    /// What the photometric term did: residuals, the smallest eigenvalue of the
+    /// information before and after it, the brightness change.
+    pub photometric: PhotometricSummary,
     pub keyframe: bool,
     pub loop_closures: u32,
     /// Final pose (after global refinement): `[x, y, z, qx, qy, qz, qw]`.
@@ -183,7 +187,7 @@ pub fn register_capture(
         };
         let fuse_ms = started.elapsed().as_secs_f64() * 1000.0;
         let watch = Stopwatch::start();
-        let result = registrar.register(scan, &model.lidar);
+        let result = registrar.register(scan, &model);
         let elapsed = watch.elapsed();
         if let Some(id) = result.scan_id {
             index_of_id.insert(id, index);
@@ -214,6 +218,7 @@ pub fn register_capture(
             iterations: result.iterations,
             fitness: result.fitness,
             degenerate: result.degenerate.clone(),
+            photometric: result.photometric,
             keyframe: result.keyframe,
             loop_closures: result.loop_closures,
             world_from_scan: None,
@@ -273,6 +278,7 @@ fn failed_frame(index: usize, timestamp_ns: u64) -> FrameReport {
         iterations: 0,
         fitness: Fitness::default(),
         degenerate: Vec::new(),
+        photometric: PhotometricSummary::default(),
         keyframe: false,
         loop_closures: 0,
         world_from_scan: None,

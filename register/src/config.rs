@@ -6,6 +6,8 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
+use crate::photometric::PhotometricConfig;
+
 /// The robust kernel applied to normalised residuals (iteratively reweighted least
 /// squares; each variant's weight function `w(e) = ρ'(e)/e` is in `kernel.rs`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -56,12 +58,8 @@ pub struct AlignConfig {
     /// Kernel threshold in units of the residual scale; the kernel's usual constant
     /// when absent.
     pub kernel_threshold: Option<f64>,
-    /// Weight of the photometric (EO colour) term against the geometric one; 0 turns
-    /// it off.
-    pub photometric_weight: f64,
-    /// Standard deviation of EO intensity noise (intensities in [0, 1]), the scale
-    /// of photometric residuals.
-    pub intensity_sigma: f64,
+    /// The direct photometric term on the EO image (`[align.photometric]`).
+    pub photometric: PhotometricConfig,
     pub solver: Solver,
     /// Correspondences farther apart than this are rejected at the finest level; the
     /// gate doubles per coarser level.
@@ -108,8 +106,7 @@ impl Default for AlignConfig {
             point_stride: 2,
             kernel: RobustKernel::Huber,
             kernel_threshold: None,
-            photometric_weight: 0.0,
-            intensity_sigma: 0.03,
+            photometric: PhotometricConfig::default(),
             solver: Solver::GaussNewton,
             max_correspondence_distance_m: 0.1,
             max_normal_angle_deg: 45.0,
@@ -293,7 +290,7 @@ impl RegistrationConfig {
         let g = &self.global;
         let positive = "must be finite and > 0";
         let fraction = "must be in [0, 1]";
-        let checks: [(&'static str, f64, bool, &'static str); 26] = [
+        let checks: [(&'static str, f64, bool, &'static str); 24] = [
             (
                 "align.pyramid_levels",
                 f64::from(a.pyramid_levels),
@@ -316,18 +313,6 @@ impl RegistrationConfig {
                 "align.kernel_threshold",
                 a.kernel_threshold(),
                 is_positive(a.kernel_threshold()),
-                positive,
-            ),
-            (
-                "align.photometric_weight",
-                a.photometric_weight,
-                a.photometric_weight.is_finite() && a.photometric_weight >= 0.0,
-                "must be finite and >= 0",
-            ),
-            (
-                "align.intensity_sigma",
-                a.intensity_sigma,
-                is_positive(a.intensity_sigma),
                 positive,
             ),
             (
@@ -461,6 +446,7 @@ impl RegistrationConfig {
                 });
             }
         }
+        a.photometric.validate(origin)?;
         let more: [(&'static str, f64, bool, &'static str); 4] = [
             (
                 "global.loop_interval_keyframes",

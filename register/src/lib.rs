@@ -21,6 +21,7 @@ pub mod graph;
 pub mod kernel;
 pub mod motion;
 pub mod normal_eq;
+pub mod photometric;
 pub mod placement;
 pub mod pyramid;
 pub mod registrar;
@@ -32,6 +33,9 @@ pub use align::{AlignTarget, align, align_pair};
 pub use capture::{RegisterCommandError, RegisterReport, default_anchor, register_capture};
 pub use config::{AlignConfig, ConfigError, RegistrationConfig, RobustKernel, Solver};
 pub use normal_eq::DegenerateDirection;
+pub use photometric::{PhotometricConfig, PhotometricMode};
 pub use pyramid::{PyramidOptions, ScanPyramid};
 pub use registrar::{Registrar, RegistrarMemory, RegistrarStats, ScanAnchor};
-pub use result::{Alignment, FailureReason, Fitness, RegistrationResult, RegistrationStatus};
+pub use result::{
+    Alignment, FailureReason, Fitness, PhotometricSummary, RegistrationResult, RegistrationStatus,
+};

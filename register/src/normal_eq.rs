@@ -118,9 +118,34 @@ pub struct DegenerateDirection {
     pub eigenvalue_ratio: f64,
     /// What it is, in words: "translation along (0.00, 0.00, 1.00)" and so on.
     pub description: String,
+    /// The data constrain it, but not uniquely: the photometric cost has a second
+    /// minimum as deep along it (a repeating texture), `rival_offset_m` away in
+    /// scaled coordinates. The result keeps the prior's uncertainty there.
+    pub ambiguous: bool,
+    pub rival_offset_m: f64,
 }
 
 impl DegenerateDirection {
+    /// A direction the photometric term fixed, but at one of several equally good
+    /// positions.
+    pub fn ambiguous_at(
+        direction: Vector6<f64>,
+        eigenvalue_ratio: f64,
+        rival_offset_m: f64,
+    ) -> Self {
+        let plain = Self::new(direction, eigenvalue_ratio);
+        Self {
+            description: format!(
+                "ambiguous (repeating texture, a second photometric minimum {:.3} m away): {}",
+                rival_offset_m.abs(),
+                plain.description
+            ),
+            ambiguous: true,
+            rival_offset_m,
+            ..plain
+        }
+    }
+
     fn new(direction: Vector6<f64>, eigenvalue_ratio: f64) -> Self {
         let rot = direction.fixed_rows::<3>(0).norm_squared();
         let trans = direction.fixed_rows::<3>(3).norm_squared();
@@ -164,6 +189,8 @@ impl DegenerateDirection {
             ],
             eigenvalue_ratio,
             description,
+            ambiguous: false,
+            rival_offset_m: 0.0,
         }
     }
 }
@@ -173,6 +200,8 @@ impl DegenerateDirection {
 pub struct Step {
     /// The update `δ = (ω, v)`, zero along degenerate directions.
     pub delta: Vector6<f64>,
+    /// Directions neither the geometry nor the photometric term (where it was used)
+    /// fixes: the prior keeps them.
     pub degenerate: Vec<DegenerateDirection>,
     /// Orthonormal bases (scaled coordinates, as columns) of the observable and the
     /// degenerate subspaces.
@@ -180,6 +209,24 @@ pub struct Step {
     pub unobservable: Vec<Vector6<f64>>,
     /// Scaled weighted normal matrix, for the covariance.
     pub hessian_scaled: Matrix6<f64>,
+    /// The subspace the photometric term was admitted in (scaled coordinates): the
+    /// geometry's weak directions under the selective mode, all six under the full
+    /// one, none without it.
+    pub photometric_subspace: Vec<Vector6<f64>>,
+    /// Smallest eigenvalue of the scaled information, geometry alone and with the
+    /// photometric term added where it was admitted.
+    pub geometry_min_eigenvalue: f64,
+    pub min_eigenvalue: f64,
+}
+
+/// The photometric normal equations and where they may act.
+#[derive(Debug, Clone, Copy)]
+pub struct PhotometricEquations<'a> {
+    /// Weighted, in the geometric residuals' units (see `align`).
+    pub equations: &'a NormalEquations,
+    /// `Some(r)`: only in the directions whose geometric eigenvalue ratio is below
+    /// `r` (the selective mode); `None`: everywhere.
+    pub weak_ratio: Option<f64>,
 }
 
 /// `D = diag(L, L, L, 1, 1, 1)`: scaled coordinates `δ' = D δ` put rotations in metres
@@ -192,6 +239,21 @@ fn scaled(h: &Matrix6<f64>, d_inv: &Vector6<f64>) -> Matrix6<f64> {
     Matrix6::from_fn(|a, b| h[(a, b)] * d_inv[a] * d_inv[b])
 }
 
+/// Eigen-directions of the scaled geometric information whose eigenvalue over the
+/// largest is below `ratio` (all six without information).
+pub fn weak_directions(geometry: &NormalEquations, length_m: f64, ratio: f64) -> Vec<Vector6<f64>> {
+    let d_inv = scaling(length_m).map(|x| 1.0 / x);
+    let eigen = SymmetricEigen::new(scaled(&geometry.hessian(), &d_inv));
+    let lambda_max = eigen.eigenvalues.max();
+    (0..6)
+        .filter(|&i| {
+            let lambda = eigen.eigenvalues[i];
+            !(lambda_max.is_finite() && lambda_max > 0.0 && lambda / lambda_max >= ratio)
+        })
+        .map(|i| eigen.eigenvectors.column(i).into_owned())
+        .collect()
+}
+
 /// Solves `H δ = -g` in the observable subspace only.
 ///
 /// Zhang, Kaess & Singh (2016), Sec. IV-V: the eigenvectors of the normal matrix whose
@@ -199,16 +261,20 @@ fn scaled(h: &Matrix6<f64>, d_inv: &Vector6<f64>) -> Matrix6<f64> {
 /// fix; the update is confined to the other eigenvectors ("solution remapping",
 /// `δ = V_f⁻¹ V_u δ_u`, for a symmetric matrix the projection onto the
 /// well-conditioned eigenvectors), so the estimate keeps its prior (the initial
-/// guess) there. Observability is a property of the geometry, so it is judged on
-/// `geometry` (every gated pair with weight 1): a robust kernel that has not yet
-/// admitted the few points constraining a weak direction must not make it look
-/// unobservable. The step itself solves the robustly `weighted` system restricted to
-/// the observable subspace, with `damping` (Levenberg-Marquardt) on its diagonal.
-/// The analysis runs in scaled coordinates (`length_m` converts radians to metres)
-/// so that rotation and translation eigenvalues compare.
+/// guess) there. Observability is a property of the data, so it is judged on
+/// `geometry` (every gated pair with weight 1) plus the photometric information
+/// where it is admitted: a robust kernel that has not yet admitted the few points
+/// constraining a weak direction must not make it look unobservable. The
+/// photometric term is admitted in the geometry's weak subspace only (selective
+/// mode, `P H_p P` with `P` the projector onto it) or everywhere (full mode). The
+/// step solves the robustly `weighted` system (plus the admitted photometric one)
+/// restricted to the observable subspace, with `damping` (Levenberg-Marquardt) on
+/// its diagonal. The analysis runs in scaled coordinates (`length_m` converts
+/// radians to metres) so that rotation and translation eigenvalues compare.
 pub fn solve_remapped(
     weighted: &NormalEquations,
     geometry: &NormalEquations,
+    photometric: Option<PhotometricEquations<'_>>,
     length_m: f64,
     threshold: f64,
     damping: f64,
@@ -216,7 +282,34 @@ pub fn solve_remapped(
     let d = scaling(length_m);
     let d_inv = d.map(|x| 1.0 / x);
     let h_geometry = scaled(&geometry.hessian(), &d_inv);
-    let eigen = SymmetricEigen::new(h_geometry);
+    let mut h_weighted = scaled(&weighted.hessian(), &d_inv);
+    let mut g_weighted = weighted.gradient().component_mul(&d_inv);
+    let geometry_eigen = SymmetricEigen::new(h_geometry);
+    let geometry_min_eigenvalue = geometry_eigen.eigenvalues.min().max(0.0);
+    // The photometric term, projected onto the subspace it is admitted in.
+    let mut h_information = h_geometry;
+    let mut photometric_subspace = Vec::new();
+    if let Some(p) = photometric.filter(|p| p.equations.count > 0) {
+        photometric_subspace = match p.weak_ratio {
+            Some(ratio) => weak_directions(geometry, length_m, ratio),
+            None => (0..6).map(|i| Vector6::ith(i, 1.0)).collect(),
+        };
+        if !photometric_subspace.is_empty() {
+            let projector: Matrix6<f64> =
+                photometric_subspace.iter().map(|v| v * v.transpose()).sum();
+            let h_p = projector * scaled(&p.equations.hessian(), &d_inv) * projector;
+            let g_p = projector * p.equations.gradient().component_mul(&d_inv);
+            if h_p.iter().chain(g_p.iter()).all(|c| c.is_finite()) {
+                h_information += h_p;
+                h_weighted += h_p;
+                g_weighted += g_p;
+            } else {
+                photometric_subspace.clear();
+            }
+        }
+    }
+    let eigen = SymmetricEigen::new(h_information);
+    let min_eigenvalue = eigen.eigenvalues.min().max(0.0);
     let lambda_max = eigen.eigenvalues.max();
     let mut observable = Vec::new();
     let mut unobservable = Vec::new();
@@ -239,8 +332,6 @@ pub fn solve_remapped(
         }
     }
     // The weighted system in the observable basis B: (Bᵀ H B) y = -Bᵀ g, δ' = B y.
-    let h_weighted = scaled(&weighted.hessian(), &d_inv);
-    let g_weighted = weighted.gradient().component_mul(&d_inv);
     let m = observable.len();
     let mut delta_scaled = Vector6::zeros();
     if m > 0 {
@@ -277,6 +368,9 @@ pub fn solve_remapped(
         observable,
         unobservable,
         hessian_scaled: h_weighted,
+        photometric_subspace,
+        geometry_min_eigenvalue,
+        min_eigenvalue,
     }
 }
 
@@ -366,7 +460,7 @@ mod tests {
             let j = Vector6::from_column_slice(&row);
             eq.add(&row, -j.dot(&truth), 1.0, 0.0);
         }
-        let step = solve_remapped(&eq, &eq, 1.0, 1e-6, 0.0);
+        let step = solve_remapped(&eq, &eq, None, 1.0, 1e-6, 0.0);
         assert!(step.degenerate.is_empty());
         assert!((step.delta - truth).norm() < 1e-12);
     }
@@ -380,7 +474,7 @@ mod tests {
             let row = [-y, x, 0.0, 0.0, 0.0, -1.0];
             eq.add(&row, 0.05, 1.0, 0.0);
         }
-        let step = solve_remapped(&eq, &eq, 2.0, 1e-6, 0.0);
+        let step = solve_remapped(&eq, &eq, None, 2.0, 1e-6, 0.0);
         assert_eq!(step.degenerate.len(), 3);
         assert!(step.delta[2].abs() < 1e-12);
         assert!(step.delta[3].abs() < 1e-12 && step.delta[4].abs() < 1e-12);
@@ -406,6 +500,7 @@ mod tests {
         let step = solve_remapped(
             &NormalEquations::default(),
             &NormalEquations::default(),
+            None,
             1.0,
             0.01,
             0.0,

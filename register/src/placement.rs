@@ -20,7 +20,7 @@ use texel::capture::{
 use texel::coverage::Shelf;
 use texel::model::{ModelEvent, ScanId};
 use texel::paged::PageStore;
-use texel::{PinholeCamera, Pose, TexelScan};
+use texel::{Pose, SensorModel, TexelScan};
 
 use crate::{Registrar, RegistrationConfig, RegistrationStatus, ScanAnchor};
 
@@ -29,8 +29,8 @@ use crate::{Registrar, RegistrationConfig, RegistrationStatus, ScanAnchor};
 pub struct ScanInput<'a> {
     /// The texel frame's timestamp (its range frame's).
     pub timestamp_ns: u64,
-    /// The lidar model the scan was taken with.
-    pub lidar: &'a PinholeCamera,
+    /// The sensor (lidar and EO camera models) the scan was taken with.
+    pub sensor: &'a SensorModel,
     /// The true pose at this timestamp when a simulator or capture knows it; only
     /// ever used to anchor the world frame at the first scan.
     pub truth: Option<Pose>,
@@ -173,7 +173,7 @@ impl Registration for RegistrarStage {
             self.registrar = Some(self.make_registrar(world_from_scan));
         }
         if let Some(r) = self.registrar.as_mut() {
-            r.restore(Arc::clone(scan), input.lidar, id, world_from_scan);
+            r.restore(Arc::clone(scan), input.sensor, id, world_from_scan);
         }
     }
 
@@ -190,7 +190,7 @@ impl Registration for RegistrarStage {
                 self.registrar.insert(registrar)
             }
         };
-        let result = registrar.register(Arc::clone(scan), input.lidar);
+        let result = registrar.register(Arc::clone(scan), input.sensor);
         let recovered = registrar.take_recovered().len() as u32;
         let events = registrar.take_events();
         let anchors = registrar.take_anchors();

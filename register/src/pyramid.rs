@@ -1,21 +1,22 @@
 //! Range-image pyramids of a scan: per lidar pixel, the point, its normal from the
-//! range grid, its EO intensity and that intensity's gradient in the tangent plane,
-//! at full resolution and at successive halvings (KinectFusion, Newcombe et al. 2011,
-//! Sec. 3.2). Built once per scan; used as the moving scan (source) and, later, as a
-//! model-side keyframe (target) that others are projected into.
+//! range grid and its EO intensity, at full resolution and at successive halvings
+//! (KinectFusion, Newcombe et al. 2011, Sec. 3.2), with the scan's EO luminance
+//! pyramid for the photometric term. Built once per scan; used as the moving scan
+//! (source) and, later, as a model-side keyframe (target) that others are projected
+//! into.
 
 use std::sync::Arc;
 
-use nalgebra::{Matrix3, Vector2, Vector3};
+use nalgebra::{Vector2, Vector3};
 use texel::{PinholeCamera, Pose, TexelScan};
+
+use crate::photometric::EoPyramid;
 
 /// Steepest incidence (ray to surface normal) at which neighbouring pixels are still
 /// taken as one surface when downsampling and when differencing for normals.
 const MAX_INCIDENCE_TAN: f64 = 5.67; // tan(80°)
 /// Range-noise allowance of the same rule, in standard deviations.
 const NOISE_ALLOWANCE_SIGMAS: f64 = 3.0;
-/// Collinear tangents (sine of their angle below this) give no normal.
-const MIN_NORMAL_SINE: f64 = 1.0e-6;
 
 /// Flags of a pyramid pixel.
 pub const HAS_POINT: u8 = 1;
@@ -27,8 +28,11 @@ pub const HAS_INTENSITY: u8 = 4;
 pub struct PyramidOptions {
     /// Levels (at least one; fewer if the grid becomes smaller than 4 pixels).
     pub levels: u32,
-    /// Intensity gradients in the tangent plane, needed only by the photometric term.
-    pub gradients: bool,
+    /// Levels of the EO luminance pyramid, kept only for the photometric term (0:
+    /// none).
+    pub eo_levels: u32,
+    /// The finest EO level kept (the finer ones are not read).
+    pub first_eo_level: u32,
 }
 
 /// Projects scan-frame points into the scan's lidar grid (full-resolution pixels).
@@ -99,10 +103,6 @@ pub struct Level {
     pub surfels: Vec<Surfel>,
     /// Range from the lidar centre, metres.
     pub ranges_m: Vec<f32>,
-    /// Gradient of the intensity along the surface (perpendicular to the normal),
-    /// per metre (Park, Zhou & Koltun 2017, Sec. 3); empty when the pyramid was built
-    /// without gradients.
-    pub gradient: Vec<[f32; 3]>,
 }
 
 impl Level {
@@ -115,7 +115,6 @@ impl Level {
             flags: vec![0; n],
             surfels: vec![Surfel::default(); n],
             ranges_m: vec![0.0; n],
-            gradient: Vec::new(),
         }
     }
 
@@ -144,21 +143,6 @@ impl Level {
     #[inline]
     pub fn intensity(&self, index: usize) -> f32 {
         self.surfels[index].intensity
-    }
-
-    /// The intensity gradient, where the level has gradients.
-    #[inline]
-    pub fn gradient(&self, index: usize) -> Option<Vector3<f64>> {
-        let p = self.gradient.get(index)?;
-        Some(Vector3::new(
-            f64::from(p[0]),
-            f64::from(p[1]),
-            f64::from(p[2]),
-        ))
-    }
-
-    pub fn has_gradients(&self) -> bool {
-        !self.gradient.is_empty()
     }
 
     /// Pixels with a point and a normal, every `stride`-th in each direction.
@@ -191,26 +175,34 @@ pub struct ScanPyramid {
     pub projector: GridProjector,
     /// Finest first.
     pub levels: Vec<Level>,
+    /// The EO luminance pyramid, for the photometric term.
+    pub eo: Option<EoPyramid>,
 }
 
 impl ScanPyramid {
-    /// Builds `levels` levels with intensity gradients. `lidar` is the camera model
-    /// the scan's range grid was taken with.
+    /// Builds `levels` levels of the range image, without the EO pyramid (geometry
+    /// only). `lidar` is the camera model the scan's range grid was taken with.
     pub fn build(scan: Arc<TexelScan>, lidar: &PinholeCamera, levels: u32) -> Self {
         Self::build_with(
             scan,
             lidar,
+            None,
             PyramidOptions {
                 levels,
-                gradients: true,
+                eo_levels: 0,
+                first_eo_level: 0,
             },
         )
     }
 
-    /// Builds the pyramid as `options` say.
+    /// Builds the pyramid as `options` say; the EO luminance pyramid too when `eo`
+    /// (the camera the scan's EO image was taken with) is given and
+    /// `options.eo_levels` is not 0 (an EO image that does not match the camera is
+    /// left out: the scan then registers on geometry alone).
     pub fn build_with(
         scan: Arc<TexelScan>,
         lidar: &PinholeCamera,
+        eo: Option<&Arc<PinholeCamera>>,
         options: PyramidOptions,
     ) -> Self {
         let projector = GridProjector::new(lidar, &scan.scan_from_lidar);
@@ -220,9 +212,6 @@ impl ScanPyramid {
         // Sec. 3.2 of KinectFusion: the finest level from the measurements...
         let mut level = finest_level(&scan, &projector);
         compute_normals(&mut level, scan.cop_m, normal_radius(0));
-        if options.gradients {
-            compute_gradients(&mut level, pitch);
-        }
         out.push(level);
         // ... each coarser one by averaging 2x2 blocks within one surface.
         while out.len() < levels {
@@ -231,16 +220,21 @@ impl ScanPyramid {
                 break;
             }
             let mut coarser = downsample(finer, pitch * finer.scale);
-            let coarse_pitch = pitch * coarser.scale;
             compute_normals(&mut coarser, scan.cop_m, normal_radius(out.len()));
-            if options.gradients {
-                compute_gradients(&mut coarser, coarse_pitch);
-            }
             out.push(coarser);
         }
+        let eo = eo.filter(|_| options.eo_levels > 0).and_then(|camera| {
+            EoPyramid::build(
+                &scan.texture,
+                Arc::clone(camera),
+                options.eo_levels,
+                options.first_eo_level,
+            )
+        });
         Self {
             projector,
             levels: out,
+            eo,
         }
     }
 
@@ -258,10 +252,11 @@ impl ScanPyramid {
                 l.flags.capacity()
                     + l.surfels.capacity() * size_of::<Surfel>()
                     + l.ranges_m.capacity() * size_of::<f32>()
-                    + l.gradient.capacity() * size_of::<[f32; 3]>()
             })
             .sum();
-        levels + self.levels.capacity() * size_of::<Level>()
+        levels
+            + self.levels.capacity() * size_of::<Level>()
+            + self.eo.as_ref().map_or(0, EoPyramid::heap_bytes)
     }
 }
 
@@ -391,40 +386,6 @@ fn downsample(finer: &Level, pitch_rad: f64) -> Level {
     out
 }
 
-/// A difference vector across pixel `c` along one grid axis (central where both
-/// neighbours are on `c`'s surface, one-sided otherwise) and the intensity
-/// difference along it, when both ends have intensity.
-fn tangent(
-    level: &Level,
-    c: usize,
-    minus: Option<usize>,
-    plus: Option<usize>,
-    pitch_rad: f64,
-) -> Option<(Vector3<f64>, Option<f64>)> {
-    let on_surface = |i: Option<usize>| {
-        i.filter(|&i| {
-            level.has(i, HAS_POINT)
-                && same_surface(
-                    level.ranges_m[c],
-                    level.ranges_m[i],
-                    level.sigma_m(c),
-                    level.sigma_m(i),
-                    pitch_rad,
-                )
-        })
-    };
-    let (a, b) = match (on_surface(minus), on_surface(plus)) {
-        (Some(m), Some(p)) => (m, p),
-        (Some(m), None) => (m, c),
-        (None, Some(p)) => (c, p),
-        (None, None) => return None,
-    };
-    let d = level.point(b) - level.point(a);
-    let di = (level.has(a, HAS_INTENSITY) && level.has(b, HAS_INTENSITY))
-        .then(|| f64::from(level.intensity(b)) - f64::from(level.intensity(a)));
-    Some((d, di))
-}
-
 /// Summed-area tables of `[1, x, y, z, xx, xy, xz, yy, yz, zz]` over a level's
 /// points, `(w + 1) x (h + 1)` entries of 10 sums each. Coordinates are taken
 /// relative to `origin` (a point of the level) so the sums stay small and the
@@ -504,36 +465,6 @@ fn compute_normals(level: &mut Level, cop: [f64; 3], radius: usize) {
     }
 }
 
-/// Intensity gradients: the vector `d` in the tangent plane with `d·t_u = ΔI_u` and
-/// `d·t_v = ΔI_v` over the grid neighbours (Park, Zhou & Koltun 2017, Eq. 11-12
-/// solved on the grid). Only where a pixel has a normal and both grid-axis tangents
-/// have intensities.
-fn compute_gradients(level: &mut Level, pitch_rad: f64) {
-    let (w, h) = (level.width, level.height);
-    let mut gradient = vec![[0.0f32; 3]; w * h];
-    for v in 0..h {
-        for u in 0..w {
-            let c = v * w + u;
-            if !level.has(c, HAS_NORMAL) {
-                continue;
-            }
-            let normal = level.normal(c);
-            let left = (u > 0).then(|| c - 1);
-            let right = (u + 1 < w).then_some(c + 1);
-            let up = (v > 0).then(|| c - w);
-            let down = (v + 1 < h).then_some(c + w);
-            if let (Some((tu, Some(du))), Some((tv, Some(dv)))) = (
-                tangent(level, c, left, right, pitch_rad),
-                tangent(level, c, up, down, pitch_rad),
-            ) && let Some(g) = tangent_gradient(&normal, &tu, &tv, du, dv)
-            {
-                gradient[c] = [g.x as f32, g.y as f32, g.z as f32];
-            }
-        }
-    }
-    level.gradient = gradient;
-}
-
 /// Steepest plane the fit accepts: slope of depth across the ray, tan 85°.
 const MAX_FIT_SLOPE: f64 = 11.4;
 
@@ -607,28 +538,6 @@ fn fit_plane_normal(
     normal.iter().all(|c| c.is_finite()).then_some(normal)
 }
 
-/// Solves `d = a t_u' + b t_v'` (`t'` the tangents projected onto the plane normal
-/// to `n`) with `d·t_u' = du`, `d·t_v' = dv`; `None` when the tangents are parallel.
-fn tangent_gradient(
-    n: &Vector3<f64>,
-    tu: &Vector3<f64>,
-    tv: &Vector3<f64>,
-    du: f64,
-    dv: f64,
-) -> Option<Vector3<f64>> {
-    let project = Matrix3::identity() - n * n.transpose();
-    let (eu, ev) = (project * tu, project * tv);
-    let (a11, a12, a22) = (eu.dot(&eu), eu.dot(&ev), ev.dot(&ev));
-    let det = a11 * a22 - a12 * a12;
-    if !(det > MIN_NORMAL_SINE * a11 * a22) {
-        return None;
-    }
-    let a = (a22 * du - a12 * dv) / det;
-    let b = (a11 * dv - a12 * du) / det;
-    let d = eu * a + ev * b;
-    d.iter().all(|c| c.is_finite()).then_some(d)
-}
-
 #[cfg(test)]
 mod tests {
     #![allow(clippy::unwrap_used)]
@@ -688,16 +597,5 @@ mod tests {
             }
         }
         assert!(fit_plane_normal(&line, &centre, &Vector3::zeros(), 0.005).is_none());
-    }
-
-    #[test]
-    fn tangent_gradient_recovers_a_linear_ramp() {
-        // I = 0.5 x on the plane z = 2 seen along z.
-        let n = Vector3::new(0.0, 0.0, -1.0);
-        let tu = Vector3::new(0.02, 0.0, 0.0);
-        let tv = Vector3::new(0.0, 0.02, 0.0);
-        let g = tangent_gradient(&n, &tu, &tv, 0.5 * 0.02, 0.0).unwrap();
-        assert!((g - Vector3::new(0.5, 0.0, 0.0)).norm() < 1e-12);
-        assert!(tangent_gradient(&n, &tu, &tu, 0.1, 0.1).is_none());
     }
 }

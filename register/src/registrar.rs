@@ -15,7 +15,7 @@ use texel::coverage::links::Dependents;
 use texel::model::{ModelEvent, ScanId};
 use texel::paged::PageStore;
 use texel::pose::pose_difference;
-use texel::{PinholeCamera, Pose, TexelScan};
+use texel::{PinholeCamera, Pose, SensorModel, TexelScan};
 
 use super::align::{AlignTarget, align};
 use super::config::RegistrationConfig;
@@ -118,8 +118,10 @@ pub struct Registrar {
     stats: RegistrarStats,
     /// Keyframe ordinal of the last accepted loop closure.
     last_loop_keyframe: Option<usize>,
-    /// The lidar model of the last scan, shared by the scans that use the same one.
+    /// The lidar and EO models of the last scan, shared by the scans that use the
+    /// same ones.
     lidar: Option<Arc<PinholeCamera>>,
+    eo: Option<Arc<PinholeCamera>>,
     /// Counts `register` calls: the clock of least-recently-used pyramid eviction.
     tick: u64,
     resident: usize,
@@ -157,6 +159,7 @@ impl Registrar {
             stats: RegistrarStats::default(),
             last_loop_keyframe: None,
             lidar: None,
+            eo: None,
             tick: 0,
             resident: 0,
         }
@@ -357,19 +360,11 @@ impl Registrar {
     ///    it moved far enough to be a keyframe, either it re-localises on an existing
     ///    keyframe of mapped ground or it becomes a new keyframe (a graph node), which
     ///    looks for loop closures; then retry the failed scans against the window.
-    pub fn register(&mut self, scan: Arc<TexelScan>, lidar: &PinholeCamera) -> RegistrationResult {
+    pub fn register(&mut self, scan: Arc<TexelScan>, sensor: &SensorModel) -> RegistrationResult {
         self.tick += 1;
-        let lidar = self.shared_camera(lidar);
         let timestamp_ns = scan.timestamp_ns;
         let seq = scan.seq;
-        let pyramid = Arc::new(ScanPyramid::build_with(
-            Arc::clone(&scan),
-            &lidar,
-            PyramidOptions {
-                levels: self.config.align.pyramid_levels,
-                gradients: self.config.align.photometric_weight > 0.0,
-            },
-        ));
+        let pyramid = self.pyramid_of(Arc::clone(&scan), sensor);
         if self.scans.is_empty() {
             return self.anchor_first(scan, pyramid);
         }
@@ -411,15 +406,26 @@ impl Registrar {
         }
     }
 
-    fn shared_camera(&mut self, lidar: &PinholeCamera) -> Arc<PinholeCamera> {
-        match &self.lidar {
-            Some(l) if **l == *lidar => Arc::clone(l),
-            _ => {
-                let l = Arc::new(lidar.clone());
-                self.lidar = Some(Arc::clone(&l));
-                l
-            }
-        }
+    /// The scan's pyramid, with its EO luminance pyramid when the photometric term
+    /// is on.
+    fn pyramid_of(&mut self, scan: Arc<TexelScan>, sensor: &SensorModel) -> Arc<ScanPyramid> {
+        let lidar = shared(&mut self.lidar, &sensor.lidar);
+        let eo = shared(&mut self.eo, &sensor.eo);
+        let photometric = &self.config.align.photometric;
+        Arc::new(ScanPyramid::build_with(
+            scan,
+            &lidar,
+            Some(&eo),
+            PyramidOptions {
+                levels: self.config.align.pyramid_levels,
+                eo_levels: if photometric.enabled() {
+                    photometric.eo_levels
+                } else {
+                    0
+                },
+                first_eo_level: photometric.finest_eo_level,
+            },
+        ))
     }
 
     fn anchor_first(
@@ -463,6 +469,7 @@ impl Registrar {
             iterations: 0,
             keyframe: true,
             loop_closures: 0,
+            photometric: Default::default(),
         }
     }
 
@@ -549,6 +556,7 @@ impl Registrar {
             iterations: alignment.iterations,
             keyframe,
             loop_closures,
+            photometric: alignment.photometric,
         }
     }
 
@@ -736,5 +744,18 @@ fn failed_result(
         iterations: alignment.iterations,
         keyframe: false,
         loop_closures: 0,
+        photometric: alignment.photometric,
+    }
+}
+
+/// The camera in `slot` when it equals `camera`, else `camera` shared from now on.
+fn shared(slot: &mut Option<Arc<PinholeCamera>>, camera: &PinholeCamera) -> Arc<PinholeCamera> {
+    match slot {
+        Some(c) if **c == *camera => Arc::clone(c),
+        _ => {
+            let c = Arc::new(camera.clone());
+            *slot = Some(Arc::clone(&c));
+            c
+        }
     }
 }

@@ -26,6 +26,36 @@ pub struct Fitness {
     pub rms_residual_m: f64,
 }
 
+/// What the photometric term did in an alignment.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct PhotometricSummary {
+    /// Photometric residuals at the final evaluation (0: the term did not run).
+    pub residuals: usize,
+    /// Smallest eigenvalue of the information (scaled coordinates: rotations in
+    /// metres at the scene's scale; units 1/m² of the noise-normalised residuals)
+    /// of the geometry alone, and with the photometric term where it was admitted.
+    pub geometry_min_eigenvalue: f64,
+    pub min_eigenvalue: f64,
+    /// Directions the term was admitted in (the geometry's weak ones, or six).
+    pub admitted_directions: usize,
+    /// The brightness change to the first target, `I_t = gain · I_s + bias`.
+    pub brightness_gain: f64,
+    pub brightness_bias: f64,
+}
+
+impl Default for PhotometricSummary {
+    fn default() -> Self {
+        Self {
+            residuals: 0,
+            geometry_min_eigenvalue: 0.0,
+            min_eigenvalue: 0.0,
+            admitted_directions: 0,
+            brightness_gain: 1.0,
+            brightness_bias: 0.0,
+        }
+    }
+}
+
 /// Why a registration failed. A failed scan never enters the model with this pose.
 #[derive(Debug, Clone, PartialEq, Serialize, thiserror::Error)]
 #[serde(tag = "kind", rename_all = "snake_case")]
@@ -87,6 +117,7 @@ pub struct Alignment {
     pub fitness: Fitness,
     pub degenerate: Vec<DegenerateDirection>,
     pub iterations: u32,
+    pub photometric: PhotometricSummary,
 }
 
 impl Alignment {
@@ -131,4 +162,5 @@ pub struct RegistrationResult {
     pub keyframe: bool,
     /// Loop closures accepted while registering this scan.
     pub loop_closures: u32,
+    pub photometric: PhotometricSummary,
 }

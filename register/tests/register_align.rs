@@ -12,10 +12,30 @@ use nalgebra::Vector6;
 use register_support::*;
 use texel::{FuseConfig, Pose, TexelScan, fuse};
 use texel_register::se3;
-use texel_register::{AlignConfig, FailureReason, RobustKernel, ScanPyramid, Solver, align_pair};
+use texel_register::{
+    AlignConfig, FailureReason, PhotometricMode, PyramidOptions, RobustKernel, ScanPyramid, Solver,
+    align_pair,
+};
 
+/// The scan's pyramid with its EO luminance pyramid, as the registrar builds it.
 fn pyramid(scan: Arc<TexelScan>, s: &texel::Sensor) -> ScanPyramid {
-    ScanPyramid::build(scan, &s.model.lidar, AlignConfig::default().pyramid_levels)
+    let defaults = AlignConfig::default();
+    ScanPyramid::build_with(
+        scan,
+        &s.model.lidar,
+        Some(&Arc::new(s.model.eo.clone())),
+        PyramidOptions {
+            levels: defaults.pyramid_levels,
+            eo_levels: defaults.photometric.eo_levels,
+            first_eo_level: defaults.photometric.finest_eo_level,
+        },
+    )
+}
+
+fn with_photometric(mode: PhotometricMode) -> AlignConfig {
+    let mut config = AlignConfig::default();
+    config.photometric.mode = mode;
+    config
 }
 
 fn assert_finite(a: &texel_register::Alignment) {
@@ -60,19 +80,18 @@ fn room_pair_converges_with_every_kernel_and_solver() {
         RobustKernel::GemanMcclure,
     ] {
         for solver in [Solver::GaussNewton, Solver::LevenbergMarquardt] {
-            for photometric_weight in [0.0, 0.05] {
+            for photometric in [PhotometricMode::Off, PhotometricMode::Full] {
                 let config = AlignConfig {
                     kernel,
                     solver,
-                    photometric_weight,
-                    ..AlignConfig::default()
+                    ..with_photometric(photometric)
                 };
                 let result = align_pair(&b, &a, &Pose::identity(), &config);
                 let (r, t) = error_deg_mm(&result.world_from_source, &truth);
                 assert!(result.is_ok(), "{kernel:?} {solver:?}: {:?}", result.status);
                 assert!(
                     r < 0.1 && t < 5.0,
-                    "{kernel:?} {solver:?} {photometric_weight}: {r} deg {t} mm"
+                    "{kernel:?} {solver:?} {photometric:?}: {r} deg {t} mm"
                 );
                 assert!(result.degenerate.is_empty(), "{:?}", result.degenerate);
                 assert_finite(&result);
@@ -109,18 +128,20 @@ fn lab_converges_from_five_degrees_and_twenty_centimetres() {
 }
 
 #[test]
-fn plane_keeps_the_prior_in_its_three_unobservable_directions() {
-    let sim = sim("plane", vec![sims::Effect::RangeNoise(Default::default())]);
+fn plane_keeps_the_prior_in_its_three_unobservable_directions_without_the_eo() {
+    let sim = sim("wall", vec![sims::Effect::RangeNoise(Default::default())]);
     let world_from_a = sim.true_pose(4);
     let a = pyramid(sim_scan(&sim, &world_from_a, 0), sim.sensor());
     // The second view: 1.5 degrees and 4 cm away in every direction.
     let truth = perturbation(1.5, [0.4, 0.8, -0.3], 0.04, [0.6, -0.5, 0.6]);
     let b = pyramid(sim_scan(&sim, &(world_from_a * truth), 1), sim.sensor());
     let initial = Pose::identity();
-    let result = align_pair(&b, &a, &initial, &AlignConfig::default());
+    // Geometry alone: the three directions keep the prior.
+    let result = align_pair(&b, &a, &initial, &with_photometric(PhotometricMode::Off));
     assert_finite(&result);
     assert!(result.is_ok(), "{:?}", result.status);
     assert_eq!(result.degenerate.len(), 3, "{:?}", result.degenerate);
+    assert_eq!(result.photometric.residuals, 0);
     // The degenerate subspace in scaled coordinates (ω·L, v).
     let dirs: Vec<Vector6<f64>> = result
         .degenerate
@@ -197,7 +218,7 @@ fn plane_keeps_the_prior_in_its_three_unobservable_directions() {
 fn corridor_has_one_unobservable_direction_along_its_axis() {
     // The simulator's featureless corridor (plain walls, open ends), looking down it.
     let sim = sim(
-        "corridor",
+        "corridor-plain",
         vec![sims::Effect::RangeNoise(Default::default())],
     );
     let world_from_a = sim.true_pose(10);
@@ -382,8 +403,7 @@ fn poses_are_bit_identical_with_one_and_two_threads() {
     let b = pyramid(scan(&scene, &s, &world_from_b, 0.005, 2), &s);
     let config = AlignConfig {
         point_stride: 1,
-        photometric_weight: 0.05,
-        ..AlignConfig::default()
+        ..with_photometric(PhotometricMode::Full)
     };
     let run = |threads: usize| {
         let pool = rayon::ThreadPoolBuilder::new()
@@ -416,4 +436,23 @@ fn poses_are_bit_identical_with_one_and_two_threads() {
         assert_eq!(one.covariance, other.covariance);
         assert_eq!(one.iterations, other.iterations);
     }
+}
+
+#[test]
+fn the_eo_image_fixes_what_the_textured_plane_leaves_to_the_prior() {
+    let sim = sim("wall", vec![sims::Effect::RangeNoise(Default::default())]);
+    let world_from_a = sim.true_pose(4);
+    let a = pyramid(sim_scan(&sim, &world_from_a, 0), sim.sensor());
+    let truth = perturbation(1.5, [0.4, 0.8, -0.3], 0.04, [0.6, -0.5, 0.6]);
+    let b = pyramid(sim_scan(&sim, &(world_from_a * truth), 1), sim.sensor());
+    let result = align_pair(&b, &a, &Pose::identity(), &AlignConfig::default());
+    assert_finite(&result);
+    assert!(result.is_ok(), "{:?}", result.status);
+    let (r, t) = error_deg_mm(&result.world_from_source, &truth);
+    assert!(result.degenerate.is_empty(), "{:?}", result.degenerate);
+    // Selective: admitted in the three weak directions only.
+    assert_eq!(result.photometric.admitted_directions, 3);
+    assert!(result.photometric.residuals > 200);
+    assert!(result.photometric.min_eigenvalue > 100.0 * result.photometric.geometry_min_eigenvalue);
+    assert!(r < 0.1 && t < 5.0, "{r} deg {t} mm");
 }

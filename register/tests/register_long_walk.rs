@@ -84,7 +84,7 @@ fn walk_paged(
     let mut placed = Vec::new();
     let mut anchors = Vec::new();
     for (k, t) in truth.iter().enumerate() {
-        let r = reg.register(frame(&scene, &s, t, k), &s.model.lidar);
+        let r = reg.register(frame(&scene, &s, t, k), &s.model);
         assert!(r.status.is_registered(), "frame {k}: {:?}", r.status);
         let id = r.scan_id.unwrap();
         let kf = reg.keyframe_of(id).unwrap();

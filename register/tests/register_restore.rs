@@ -48,7 +48,7 @@ fn a_restored_registrar_goes_on_like_the_uninterrupted_one() {
     for f in &frames {
         assert!(
             whole
-                .register(Arc::clone(f), &s.model.lidar)
+                .register(Arc::clone(f), &s.model)
                 .status
                 .is_registered()
         );
@@ -58,7 +58,7 @@ fn a_restored_registrar_goes_on_like_the_uninterrupted_one() {
     // sent: here its poses at the cut), then going on.
     let mut first = Registrar::with_anchor(config.clone(), truth[0]);
     for f in &frames[..CUT] {
-        first.register(Arc::clone(f), &s.model.lidar);
+        first.register(Arc::clone(f), &s.model);
     }
     let placed: Vec<Pose> = (0..CUT).map(|id| first.pose(id as u64).unwrap()).collect();
     let mut resumed = Registrar::new(config);
@@ -66,12 +66,7 @@ fn a_restored_registrar_goes_on_like_the_uninterrupted_one() {
     let mut order: Vec<usize> = (0..CUT).collect();
     order.swap(3, 5);
     for &id in &order {
-        resumed.restore(
-            Arc::clone(&frames[id]),
-            &s.model.lidar,
-            id as u64,
-            placed[id],
-        );
+        resumed.restore(Arc::clone(&frames[id]), &s.model, id as u64, placed[id]);
     }
     assert!(resumed.take_events().is_empty(), "restoring emits nothing");
     for (id, p) in placed.iter().enumerate() {
@@ -92,7 +87,7 @@ fn a_restored_registrar_goes_on_like_the_uninterrupted_one() {
     assert!(resumed.take_anchors().is_empty(), "taken once");
     assert!(resumed.stats().keyframes >= 2, "{:?}", resumed.stats());
     for (k, f) in frames.iter().enumerate().skip(CUT) {
-        let r = resumed.register(Arc::clone(f), &s.model.lidar);
+        let r = resumed.register(Arc::clone(f), &s.model);
         assert!(r.status.is_registered(), "frame {k}: {:?}", r.status);
         assert_eq!(r.scan_id, Some(k as u64));
     }

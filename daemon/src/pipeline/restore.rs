@@ -70,7 +70,7 @@ pub async fn restore_session(
                 &r.scan,
                 ScanInput {
                     timestamp_ns: r.timestamp_ns,
-                    lidar: &r.sensor.lidar,
+                    sensor: &r.sensor,
                     truth: None,
                 },
                 r.id,

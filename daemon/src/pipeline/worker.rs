@@ -113,7 +113,7 @@ impl Worker {
             .record_latency(Stage::Fuse, fused.duration_since(started));
         let input = ScanInput {
             timestamp_ns,
-            lidar: &sensor.model.lidar,
+            sensor: &sensor.model,
             truth: job.truth,
         };
         let output = self.registration.register(&scan, input);

@@ -443,15 +443,15 @@ impl<'a> Problem<'a> {
         let wanted = match config.photometric.mode {
             PhotometricMode::Off => false,
             PhotometricMode::Full => true,
-            PhotometricMode::Selective => !weak_directions(
-                &geometry,
-                self.length_m,
-                config.photometric.weak_ratio,
-            )
-            .is_empty(),
+            PhotometricMode::Selective => {
+                !weak_directions(&geometry, self.length_m, config.photometric.weak_ratio).is_empty()
+            }
         };
         let pairs: Vec<(u32, u8)> = if wanted {
-            chunks.iter().flat_map(|c| c.pairs.iter().copied()).collect()
+            chunks
+                .iter()
+                .flat_map(|c| c.pairs.iter().copied())
+                .collect()
         } else {
             Vec::new()
         };
@@ -638,17 +638,16 @@ fn finish(
     let mut step = problem.solve(evaluation, config, 0.0);
     // A direction fixed photometrically at one of several equally good positions
     // keeps the prior's uncertainty and is named.
-    let ambiguous = match (&evaluation.photometric, config.photometric.ambiguity_check) {
-        (Some(sums), true) if !step.photometric_subspace.is_empty() => problem.check_ambiguity(
+    let ambiguous = if config.photometric.ambiguity_check && !step.photometric_subspace.is_empty() {
+        problem.check_ambiguity(
             &pose,
             &mut step,
-            &evaluation.pairs,
-            sums,
-            &evaluation.geometry,
+            evaluation,
             config,
             AMBIGUITY_SPAN_PRIOR_SIGMAS * config.prior_sigma_translation_m,
-        ),
-        _ => Vec::new(),
+        )
+    } else {
+        Vec::new()
     };
     let (covariance, information) =
         covariance_and_information(&step, problem.length_m, evaluation.geometric_scale, &prior);

@@ -11,11 +11,10 @@ use nalgebra::Matrix6;
 use texel::coverage::links::Dependents;
 use texel::model::ScanId;
 use texel::pose::pose_difference;
-use texel::{PinholeCamera, Pose, TexelScan};
+use texel::{Pose, SensorModel, TexelScan};
 
 use super::{Keyframe, Registrar};
 use crate::graph::Edge;
-use crate::pyramid::{PyramidOptions, ScanPyramid};
 use crate::scan_table::{CompactPose, ScanRecord};
 
 /// Information of a restored odometry edge, per unit of the `(ω, v)` perturbation
@@ -30,7 +29,7 @@ impl Registrar {
     pub fn restore(
         &mut self,
         scan: Arc<TexelScan>,
-        lidar: &PinholeCamera,
+        sensor: &SensorModel,
         id: ScanId,
         world_from_scan: Pose,
     ) {
@@ -42,7 +41,7 @@ impl Registrar {
         if self.keyframes.is_empty() {
             self.anchor = world_from_scan;
             self.graph.add_node(world_from_scan);
-            let pyramid = self.pyramid_of(scan, lidar);
+            let pyramid = self.pyramid_of(scan, sensor);
             self.keyframes.push(Keyframe {
                 scan: id as u32,
                 pyramid: Some(pyramid),
@@ -70,7 +69,7 @@ impl Registrar {
                 information: Matrix6::identity() * RESTORED_EDGE_INFORMATION,
                 loop_closure: false,
             });
-            let pyramid = self.pyramid_of(scan, lidar);
+            let pyramid = self.pyramid_of(scan, sensor);
             self.keyframes.push(Keyframe {
                 scan: id as u32,
                 pyramid: Some(pyramid),
@@ -88,18 +87,6 @@ impl Registrar {
         self.place(id, reference, world_from_scan, timestamp_ns);
         // (The motion model ignores a scan older than its newest.)
         self.motion.update(timestamp_ns, world_from_scan);
-    }
-
-    fn pyramid_of(&mut self, scan: Arc<TexelScan>, lidar: &PinholeCamera) -> Arc<ScanPyramid> {
-        let lidar = self.shared_camera(lidar);
-        Arc::new(ScanPyramid::build_with(
-            scan,
-            &lidar,
-            PyramidOptions {
-                levels: self.config.align.pyramid_levels,
-                gradients: self.config.align.photometric_weight > 0.0,
-            },
-        ))
     }
 
     /// Records scan `id` as hanging from keyframe `reference` at `world_from_scan`.

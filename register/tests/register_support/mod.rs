@@ -187,6 +187,20 @@ pub fn render(
     sigma_m: f64,
     seed: u64,
 ) -> (RangeFrame, EoFrame) {
+    render_with(scene, sensor, world_from_eo, sigma_m, seed, &albedo, 1.0)
+}
+
+/// [`render`] with the surface's albedo given and the EO exposure scaled by `gain`
+/// (8-bit values clip at 255).
+pub fn render_with(
+    scene: &Scene,
+    sensor: &Sensor,
+    world_from_eo: &Pose,
+    sigma_m: f64,
+    seed: u64,
+    albedo: &dyn Fn(&Vector3<f64>) -> f64,
+    gain: f64,
+) -> (RangeFrame, EoFrame) {
     let m = &sensor.model;
     let world_from_lidar = world_from_eo * m.eo_from_lidar;
     let mut noise = Gaussian::new(seed);
@@ -218,7 +232,7 @@ pub fn render(
             let c = scene
                 .cast(&eo_origin, &dir)
                 .map_or(0.0, |t| albedo(&(eo_origin + dir * t)));
-            let g = (c * 255.0).round() as u8;
+            let g = (gain * c * 255.0).round().clamp(0.0, 255.0) as u8;
             rgb.extend_from_slice(&[g, g, g]);
         }
     }
@@ -242,6 +256,37 @@ pub fn scan(
 ) -> Arc<TexelScan> {
     let (range, eo) = render(scene, sensor, world_from_eo, sigma_m, seed);
     Arc::new(fuse(&range, eo, sensor, &FuseConfig::default()).unwrap())
+}
+
+/// Renders and fuses one scan with the surface's albedo given and the exposure
+/// scaled by `gain`.
+pub fn scan_with(
+    scene: &Scene,
+    sensor: &Sensor,
+    world_from_eo: &Pose,
+    seed: u64,
+    albedo: &dyn Fn(&Vector3<f64>) -> f64,
+    gain: f64,
+) -> Arc<TexelScan> {
+    let (range, eo) = render_with(scene, sensor, world_from_eo, 0.003, seed, albedo, gain);
+    Arc::new(fuse(&range, eo, sensor, &FuseConfig::default()).unwrap())
+}
+
+/// A non-repeating texture with detail at 5 to 30 cm (posters, plaster, tiles):
+/// sinusoids of incommensurate frequencies in several directions.
+pub fn speckle(p: &Vector3<f64>) -> f64 {
+    let waves = [
+        (23.0, 7.1, 3.3, 0.0),
+        (-11.3, 29.0, 5.9, 1.1),
+        (41.7, -13.9, 17.3, 2.3),
+        (5.3, 19.1, -37.7, 0.7),
+        (61.1, 3.7, 11.9, 1.9),
+    ];
+    let sum: f64 = waves
+        .iter()
+        .map(|&(a, b, c, phase)| (a * p.x + b * p.y + c * p.z + phase).sin())
+        .sum();
+    (0.5 + 0.08 * sum).clamp(0.05, 0.95)
 }
 
 /// A pose perturbation: `rot_deg` about `axis`, `trans_m` along `dir`.

@@ -137,7 +137,7 @@ fn run(
         };
         let input = ScanInput {
             timestamp_ns,
-            lidar: &model.lidar,
+            sensor: &model,
             truth: None,
         };
         let output = stage.register(&scan, input);
