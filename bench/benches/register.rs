@@ -51,7 +51,8 @@ fn one_thread() -> rayon::ThreadPool {
 fn options(levels: u32) -> PyramidOptions {
     PyramidOptions {
         levels,
-        gradients: false,
+        eo_levels: 0,
+        first_eo_level: 0,
     }
 }
 
@@ -63,8 +64,10 @@ fn pairwise(c: &mut Criterion) {
     let config = AlignConfig::default();
     let pool = one_thread();
     let levels = config.pyramid_levels;
-    let target = ScanPyramid::build_with(Arc::clone(&pair.target), &pair.lidar, options(levels));
-    let source = ScanPyramid::build_with(Arc::clone(&pair.source), &pair.lidar, options(levels));
+    let target =
+        ScanPyramid::build_with(Arc::clone(&pair.target), &pair.lidar, None, options(levels));
+    let source =
+        ScanPyramid::build_with(Arc::clone(&pair.source), &pair.lidar, None, options(levels));
     println!(
         "pair: {} and {} points",
         pair.target.vertex_count(),
@@ -80,6 +83,7 @@ fn pairwise(c: &mut Criterion) {
                     black_box(ScanPyramid::build_with(
                         Arc::clone(&pair.source),
                         &pair.lidar,
+                        None,
                         options(levels),
                     ));
                 }
@@ -110,11 +114,13 @@ fn pairwise(c: &mut Criterion) {
                     let t = ScanPyramid::build_with(
                         Arc::clone(&pair.target),
                         &pair.lidar,
+                        None,
                         options(levels),
                     );
                     let s = ScanPyramid::build_with(
                         Arc::clone(&pair.source),
                         &pair.lidar,
+                        None,
                         options(levels),
                     );
                     black_box(align_pair(&s, &t, &pair.initial, &config));
@@ -153,13 +159,13 @@ fn per_scan(c: &mut Criterion) {
                     // A fresh registrar per pass over the sequence; the anchor scan
                     // does no registration and is not timed.
                     let mut reg = Registrar::new(RegistrationConfig::default());
-                    reg.register(Arc::clone(&sequence.scans[0]), &sequence.lidar);
+                    reg.register(Arc::clone(&sequence.scans[0]), &sequence.sensor);
                     for scan in &sequence.scans[1..] {
                         if done == iters {
                             break;
                         }
                         let start = cpu();
-                        black_box(reg.register(Arc::clone(scan), &sequence.lidar));
+                        black_box(reg.register(Arc::clone(scan), &sequence.sensor));
                         total += cpu().saturating_sub(start);
                         done += 1;
                     }

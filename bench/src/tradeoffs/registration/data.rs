@@ -9,7 +9,7 @@ use std::sync::Arc;
 use anyhow::{Context, Result, bail};
 use nalgebra::{Translation3, UnitQuaternion, Vector3};
 use texel::capture::{PoseTopic, SensorCache, TexelItem, open_texel_frames};
-use texel::{FuseConfig, PinholeCamera, Pose, TexelScan};
+use texel::{FuseConfig, PinholeCamera, Pose, SensorModel, TexelScan};
 
 /// A fused capture with its true poses.
 pub struct Sequence {
@@ -18,6 +18,8 @@ pub struct Sequence {
     /// `world_from_scan` of each scan, from `/truth/pose`.
     pub truth: Vec<Pose>,
     pub lidar: PinholeCamera,
+    /// The sensor of the first frame (both camera models).
+    pub sensor: SensorModel,
     pub path_length_m: f64,
 }
 
@@ -117,6 +119,7 @@ pub fn read_sequence(capture: &Path, scene: &str) -> Result<Sequence> {
         bail!("{}: no texel frames", capture.display());
     };
     let lidar = first_model.lidar.clone();
+    let sensor = (**first_model).clone();
     // Each frame is fused with its own sensor model (a capture may change it midway);
     // the cache rebuilds the ray tables only when the model changes.
     let mut sensors = SensorCache::new();
@@ -142,6 +145,7 @@ pub fn read_sequence(capture: &Path, scene: &str) -> Result<Sequence> {
         scans,
         truth,
         lidar,
+        sensor,
         path_length_m,
     })
 }
@@ -152,6 +156,7 @@ pub struct ScanPair {
     pub target: Arc<TexelScan>,
     pub source: Arc<TexelScan>,
     pub lidar: PinholeCamera,
+    pub eo: Arc<PinholeCamera>,
     /// True `target_from_source`.
     pub truth: Pose,
     /// The initial guess both methods start from.
@@ -241,6 +246,7 @@ pub fn perturbed_pairs(
             target: render(&world_from_target, 2 * k as u64)?,
             source: render(&world_from_source, 2 * k as u64 + 1)?,
             lidar: sensor.model.lidar.clone(),
+            eo: Arc::new(sensor.model.eo.clone()),
             truth,
             initial: Pose::identity(),
         });

@@ -1,20 +1,27 @@
 //! The registration section of `docs/tradeoffs.md`: a sweep of registration settings
 //! over simulator captures (ATE, RPE, drift and time per scan on one core), Texel's
 //! pairwise registration side by side with Open3D's point-to-plane ICP on the same
-//! pairs, and the pose graph's optimisation time against the number of scans.
+//! pairs, where the geometry is blind (corridor, floor, tunnel) Texel with and
+//! without its EO term against Open3D's point-to-plane and colored ICP, and the pose
+//! graph's optimisation time against the number of scans.
 //!
 //! The recipe:
 //! 1. render (or take from the cache) and fuse the captures;
 //! 2. run every setting over every capture;
-//! 3. make the scan pairs, run Texel and Open3D on them;
+//! 3. make the scan pairs, run Texel and Open3D on them, and on corridor pairs
+//!    Texel with and without the EO term and Open3D's two ICPs;
 //! 4. time pose-graph optimisations of 10 to 500 scans;
-//! 5. write the Pareto plot, the raw results (JSON) and the Markdown section.
+//! 5. write the Pareto plot, the eigenvalue figure, the raw results (JSON) and the
+//!    Markdown section.
 
 pub mod data;
+pub mod eo;
 pub mod graph_scaling;
 pub mod open3d;
 mod report;
 pub mod sweep;
+
+use std::path::Path;
 
 use anyhow::{Context, Result};
 use serde::Serialize;
@@ -26,10 +33,11 @@ use texel_register::{AlignConfig, RegistrationConfig};
 /// The captures of the sweep: scene, frame count (full run, quick run) and, for an
 /// orbit, the frames of a full turn when they differ from the scene's (none do now:
 /// `courtyard` walks a third of its circle at 1 degree and 17 cm a frame).
-const SEQUENCES: [(&str, usize, usize, Option<usize>); 4] = [
+const SEQUENCES: [(&str, usize, usize, Option<usize>); 5] = [
     ("lab-walk", 200, 60, None),
-    ("corridor", 60, 30, None),
-    ("plane", 10, 10, None),
+    ("corridor", 288, 150, None),
+    ("plane", 63, 30, None),
+    ("tunnel", 121, 60, None),
     ("courtyard", 120, 40, None),
 ];
 
@@ -38,6 +46,8 @@ const PAIRS: [(&str, usize, usize); 2] = [("lab", 8, 2), ("courtyard", 4, 1)];
 /// How far apart a pair's scans are.
 const PAIR_ANGLE_DEG: f64 = 3.0;
 const PAIR_DISTANCE_M: f64 = 0.05;
+/// Corridor pairs for the EO comparison (full, quick).
+const CORRIDOR_PAIRS: (usize, usize) = (6, 2);
 
 /// Everything the run measured, also written as JSON next to the figures.
 #[derive(Debug, Serialize)]
@@ -48,6 +58,9 @@ pub struct Results {
     pub open3d_version: String,
     pub texel_pairs: Vec<open3d::PairOutcome>,
     pub open3d_pairs: Vec<open3d::PairOutcome>,
+    /// Corridor pairs: Texel with and without the EO term, Open3D point-to-plane and
+    /// colored ICP.
+    pub corridor_pairs: Vec<open3d::PairOutcome>,
     pub graph: Vec<graph_scaling::GraphTiming>,
 }
 
@@ -117,7 +130,29 @@ pub fn run(paths: &Paths, options: &RunOptions) -> Result<String> {
             max_correspondence_distance_m: align.max_correspondence_distance_m,
             max_iterations: 30,
             repeats,
+            colored: false,
         },
+    )?;
+    // Step 3b: corridor pairs, where the geometry leaves the axis free.
+    let corridor = data::perturbed_pairs(
+        &paths.scenes(),
+        "corridor",
+        if quick {
+            CORRIDOR_PAIRS.1
+        } else {
+            CORRIDOR_PAIRS.0
+        },
+        PAIR_ANGLE_DEG,
+        PAIR_DISTANCE_M,
+        7,
+    )?;
+    eprintln!("corridor pairs: Texel and Open3D on {}", corridor.len());
+    let (_, corridor_pairs) = eo::corridor_pairs(
+        &corridor,
+        &python,
+        &open3d::script(&paths.repo),
+        &paths.cache.join("open3d-corridor-pairs"),
+        repeats,
     )?;
     // Step 4: the pose graph's cost.
     let sizes: &[usize] = if quick {
@@ -131,6 +166,19 @@ pub fn run(paths: &Paths, options: &RunOptions) -> Result<String> {
         RegistrationConfig::default().global.max_iterations,
         if quick { 1 } else { 3 },
     );
+    let eigen_stem = (if quick {
+        paths.quick_dir()
+    } else {
+        paths.figures()
+    })
+    .join(if quick {
+        "registration-eo-eigenvalues-quick"
+    } else {
+        "registration-eo-eigenvalues"
+    });
+    std::fs::create_dir_all(eigen_stem.parent().unwrap_or(Path::new(".")))?;
+    eo::write_eigenvalue_figure(&eigen_stem, &metrics)?;
+    eo::keep_figure_eigenvalues(&mut metrics);
     let results = Results {
         quick,
         load_average: format!("{load_before} (before), {} (after)", load_average()),
@@ -138,6 +186,7 @@ pub fn run(paths: &Paths, options: &RunOptions) -> Result<String> {
         open3d_version,
         texel_pairs,
         open3d_pairs,
+        corridor_pairs,
         graph,
     };
     // Step 5: figures, raw results and the Markdown.
@@ -168,7 +217,7 @@ pub fn run(paths: &Paths, options: &RunOptions) -> Result<String> {
 
 /// Scenes whose trajectory error says nothing about the settings (their motion is
 /// along unobservable directions), left out of the plot.
-const NOT_PLOTTED: [&str; 2] = ["corridor", "plane"];
+const NOT_PLOTTED: [&str; 1] = ["tunnel"];
 
 fn pareto_series(results: &Results) -> Vec<Series> {
     let mut series: Vec<Series> = Vec::new();

@@ -88,6 +88,10 @@ struct ManifestPair {
     name: String,
     source: String,
     target: String,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    source_colors: Option<String>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    target_colors: Option<String>,
     initial: [[f64; 4]; 4],
 }
 
@@ -98,6 +102,7 @@ struct Manifest {
     normal_radius_m: f64,
     normal_max_nn: u32,
     repeats: u32,
+    method: &'static str,
     pairs: Vec<ManifestPair>,
 }
 
@@ -122,6 +127,20 @@ pub struct Open3dSettings {
     pub max_correspondence_distance_m: f64,
     pub max_iterations: u32,
     pub repeats: u32,
+    /// Park, Zhou & Koltun's colored ICP (each point with its texel colour) instead
+    /// of point-to-plane.
+    pub colored: bool,
+}
+
+/// Each vertex's texel colour in [0, 1] (mid grey where the EO camera did not see
+/// it).
+fn vertex_colours(scan: &texel::TexelScan) -> Vec<[f32; 3]> {
+    (0..scan.vertex_count())
+        .map(|v| {
+            scan.vertex_colour(v)
+                .map_or([0.5; 3], |c| c.map(|x| f32::from(x) / 255.0))
+        })
+        .collect()
 }
 
 /// Runs Open3D on `pairs` with `python`; returns its version and outcomes.
@@ -139,6 +158,11 @@ pub fn run_open3d(
         normal_radius_m: 0.1,
         normal_max_nn: 30,
         repeats: settings.repeats,
+        method: if settings.colored {
+            "colored"
+        } else {
+            "point_to_plane"
+        },
         pairs: Vec::new(),
     };
     for (k, pair) in pairs.iter().enumerate() {
@@ -146,10 +170,22 @@ pub fn run_open3d(
         let (source, target) = (format!("{name}-source.npy"), format!("{name}-target.npy"));
         write_npy(&dir.join(&source), &pair.source.vertices)?;
         write_npy(&dir.join(&target), &pair.target.vertices)?;
+        let (mut source_colors, mut target_colors) = (None, None);
+        if settings.colored {
+            let (s, t) = (
+                format!("{name}-source-rgb.npy"),
+                format!("{name}-target-rgb.npy"),
+            );
+            write_npy(&dir.join(&s), &vertex_colours(&pair.source))?;
+            write_npy(&dir.join(&t), &vertex_colours(&pair.target))?;
+            (source_colors, target_colors) = (Some(s), Some(t));
+        }
         manifest.pairs.push(ManifestPair {
             name,
             source,
             target,
+            source_colors,
+            target_colors,
             initial: matrix(&pair.initial),
         });
     }
@@ -191,7 +227,11 @@ pub fn run_open3d(
         outcomes.push(PairOutcome {
             name,
             scene: pair.scene.clone(),
-            method: "open3d".to_string(),
+            method: if settings.colored {
+                "open3d colored".to_string()
+            } else {
+                "open3d".to_string()
+            },
             rotation_error_deg: angle.to_degrees(),
             translation_error_mm: dist * 1000.0,
             normals_ms: r.normals_ms,
@@ -216,7 +256,12 @@ pub fn run_texel(
     };
     let options = PyramidOptions {
         levels: config.pyramid_levels,
-        gradients: config.photometric_weight > 0.0,
+        eo_levels: if config.photometric.enabled() {
+            config.photometric.eo_levels
+        } else {
+            0
+        },
+        first_eo_level: config.photometric.finest_eo_level,
     };
     pairs
         .iter()
@@ -226,10 +271,18 @@ pub fn run_texel(
             let mut last = None;
             for _ in 0..repeats.max(1) {
                 let watch = Stopwatch::start();
-                let target =
-                    ScanPyramid::build_with(Arc::clone(&pair.target), &pair.lidar, options);
-                let source =
-                    ScanPyramid::build_with(Arc::clone(&pair.source), &pair.lidar, options);
+                let target = ScanPyramid::build_with(
+                    Arc::clone(&pair.target),
+                    &pair.lidar,
+                    Some(&pair.eo),
+                    options,
+                );
+                let source = ScanPyramid::build_with(
+                    Arc::clone(&pair.source),
+                    &pair.lidar,
+                    Some(&pair.eo),
+                    options,
+                );
                 normals.push(watch.elapsed().cpu_ms);
                 let watch = Stopwatch::start();
                 let alignment = align_pair(&source, &target, &pair.initial, &config);

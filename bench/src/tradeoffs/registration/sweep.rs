@@ -11,7 +11,7 @@ use texel::pose::pose_difference;
 
 use super::data::Sequence;
 use texel_register::clock::{Stopwatch, quantile};
-use texel_register::{Registrar, RegistrationConfig, RobustKernel, Solver};
+use texel_register::{PhotometricMode, Registrar, RegistrationConfig, RobustKernel, Solver};
 
 /// A named configuration.
 #[derive(Debug, Clone)]
@@ -35,6 +35,9 @@ fn setting(name: &str, edit: impl FnOnce(&mut RegistrationConfig)) -> Setting {
 pub fn settings(quick: bool) -> Vec<Setting> {
     let mut out = vec![
         setting("defaults", |_| {}),
+        setting("photometric off", |c| {
+            c.align.photometric.mode = PhotometricMode::Off
+        }),
         setting("global refinement off", |c| c.global.enabled = false),
         setting("pyramid levels 1", |c| c.align.pyramid_levels = 1),
         setting("point stride 4", |c| c.align.point_stride = 4),
@@ -53,7 +56,9 @@ pub fn settings(quick: bool) -> Vec<Setting> {
         setting("kernel geman-mcclure", |c| {
             c.align.kernel = RobustKernel::GemanMcclure
         }),
-        setting("photometric 0.1", |c| c.align.photometric_weight = 0.1),
+        setting("photometric full", |c| {
+            c.align.photometric.mode = PhotometricMode::Full
+        }),
         setting("levenberg-marquardt", |c| {
             c.align.solver = Solver::LevenbergMarquardt
         }),
@@ -88,6 +93,14 @@ pub struct RunMetrics {
     pub time_p95_ms: f64,
     /// Wall time per scan on this (shared) machine.
     pub wall_median_ms: f64,
+    /// Registered frames whose result names a direction neither sensor fixed (or
+    /// fixed ambiguously).
+    pub degenerate_frames: usize,
+    /// Per registered frame: the smallest eigenvalue of the alignment's
+    /// information, geometry alone and with the photometric term (kept for the
+    /// corridor's figure only; empty otherwise).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub min_eigenvalues: Vec<[f64; 2]>,
 }
 
 /// Registers `sequence` with `setting` (anchored at the first true pose) and
@@ -102,10 +115,11 @@ pub fn run(sequence: &Sequence, setting: &Setting) -> RunMetrics {
     let mut frame_of_id: BTreeMap<u64, usize> = BTreeMap::new();
     let mut frame_of_time: BTreeMap<u64, usize> = BTreeMap::new();
     let (mut cpu, mut wall) = (Vec::new(), Vec::new());
+    let (mut degenerate_frames, mut min_eigenvalues) = (0, Vec::new());
     for (frame, scan) in sequence.scans.iter().enumerate() {
         frame_of_time.insert(scan.timestamp_ns, frame);
         let watch = Stopwatch::start();
-        let result = registrar.register(Arc::clone(scan), &sequence.lidar);
+        let result = registrar.register(Arc::clone(scan), &sequence.sensor);
         let elapsed = watch.elapsed();
         if frame > 0 {
             cpu.push(elapsed.cpu_ms);
@@ -113,6 +127,13 @@ pub fn run(sequence: &Sequence, setting: &Setting) -> RunMetrics {
         }
         if let Some(id) = result.scan_id {
             frame_of_id.insert(id, frame);
+            if frame > 0 {
+                degenerate_frames += usize::from(!result.degenerate.is_empty());
+                min_eigenvalues.push([
+                    result.photometric.geometry_min_eigenvalue,
+                    result.photometric.min_eigenvalue,
+                ]);
+            }
         }
         for recovered in registrar.take_recovered() {
             if let (Some(id), Some(&f)) = (
@@ -154,6 +175,8 @@ pub fn run(sequence: &Sequence, setting: &Setting) -> RunMetrics {
         time_median_ms: quantile(&cpu, 0.5),
         time_p95_ms: quantile(&cpu, 0.95),
         wall_median_ms: quantile(&wall, 0.5),
+        degenerate_frames,
+        min_eigenvalues,
     }
 }
 
