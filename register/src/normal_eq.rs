@@ -508,4 +508,90 @@ mod tests {
         assert_eq!(step.delta, Vector6::zeros());
         assert_eq!(step.degenerate.len(), 6);
     }
+
+    /// A corridor-like system: every direction but x translation fixed by geometry;
+    /// a photometric system constraining x translation (and, less, others).
+    fn corridor_systems(photometric_weight: f64) -> (NormalEquations, NormalEquations) {
+        let mut geometry = NormalEquations::default();
+        for i in [0, 1, 2, 4, 5] {
+            let mut row = [0.0; 6];
+            row[i] = 1.0;
+            for _ in 0..100 {
+                geometry.add(&row, 0.0, 1.0, 0.0);
+            }
+        }
+        let mut photometric = NormalEquations::default();
+        for row in [
+            [0.0, 0.1, 0.0, 1.0, 0.0, 0.0],
+            [0.0, 0.0, 0.2, 0.8, 0.3, 0.0],
+            [0.1, 0.0, 0.0, 0.9, 0.0, 0.2],
+        ] {
+            // Residuals of a true step of 0.05 along x translation.
+            let r = -0.05 * row[3];
+            photometric.add(&row, r, photometric_weight, 0.0);
+        }
+        (geometry, photometric)
+    }
+
+    #[test]
+    fn the_photometric_weight_fills_the_weak_direction_only_and_conditions_the_system() {
+        let mut last_min = 0.0;
+        for w in [0.0, 0.1, 1.0, 10.0, 100.0] {
+            let (geometry, photometric) = corridor_systems(w);
+            let selective = solve_remapped(
+                &geometry,
+                &geometry,
+                Some(PhotometricEquations {
+                    equations: &photometric,
+                    weak_ratio: Some(0.01),
+                }),
+                1.0,
+                1e-3,
+                0.0,
+            );
+            // The geometry's smallest eigenvalue is the free axis: zero.
+            assert!(selective.geometry_min_eigenvalue < 1e-9);
+            // The combined one grows with the weight (monotonically)...
+            assert!(selective.min_eigenvalue >= last_min, "{w}");
+            last_min = selective.min_eigenvalue;
+            // ... and the weak direction becomes observable once there is any: its
+            // eigenvalue (2.45 w) is then above 1e-3 of the largest (100).
+            if w > 0.0 {
+                assert!(
+                    selective.degenerate.is_empty(),
+                    "{w}: {:?}",
+                    selective.degenerate
+                );
+                // Only the axis moved, by the photometric step: the other directions
+                // are the geometry's alone (their residuals are 0).
+                assert!(
+                    (selective.delta[3] - 0.05).abs() < 1e-9,
+                    "{:?}",
+                    selective.delta
+                );
+                for i in [0, 1, 2, 4, 5] {
+                    assert!(selective.delta[i].abs() < 1e-12, "{:?}", selective.delta);
+                }
+                assert_eq!(selective.photometric_subspace.len(), 1);
+            } else {
+                assert_eq!(selective.degenerate.len(), 1);
+                assert_eq!(selective.delta, Vector6::zeros());
+            }
+            // The full mode admits the same equations in every direction.
+            let full = solve_remapped(
+                &geometry,
+                &geometry,
+                Some(PhotometricEquations {
+                    equations: &photometric,
+                    weak_ratio: None,
+                }),
+                1.0,
+                1e-3,
+                0.0,
+            );
+            assert_eq!(full.photometric_subspace.len(), 6);
+            assert_eq!(full.min_eigenvalue > 0.0, w > 0.0);
+            assert!(full.delta.iter().all(|c| c.is_finite()));
+        }
+    }
 }

@@ -200,9 +200,6 @@ struct SourceSample {
     p: Vector3<f64>,
     n: Vector3<f64>,
     sigma_m: f64,
-    /// Luminance of the source's EO image where the point projects, at the
-    /// problem's EO level.
-    eo_intensity: Option<f64>,
     /// Its position in the problem's samples.
     index: u32,
 }
@@ -216,6 +213,9 @@ struct Problem<'a> {
     source_eo: Option<&'a EoPyramid>,
     /// The EO pyramid level this alignment level reads.
     eo_level: usize,
+    /// The source's EO value where each sample projects, at `eo_level`: read on the
+    /// photometric term's first use (where the geometry suffices it never runs).
+    source_intensities: std::sync::OnceLock<Vec<Option<f64>>>,
     gates: Gates,
     /// RMS distance of the samples from the source origin: converts rotation to
     /// metres for the degeneracy analysis.
@@ -298,14 +298,10 @@ impl<'a> Problem<'a> {
             .enumerate()
             .map(|(k, &i)| {
                 let i = i as usize;
-                let p = source_level.point(i);
                 SourceSample {
-                    p,
+                    p: source_level.point(i),
                     n: source_level.normal(i),
                     sigma_m: f64::from(source_level.sigma_m(i)),
-                    eo_intensity: source_eo.and_then(|eo| {
-                        Some(eo.sample(eo_level, &eo.project(&p)?.pixel)?.intensity)
-                    }),
                     index: k as u32,
                 }
             })
@@ -325,6 +321,7 @@ impl<'a> Problem<'a> {
             samples,
             source_eo,
             eo_level,
+            source_intensities: std::sync::OnceLock::new(),
             gates: Gates {
                 max_distance_m: config.max_correspondence_distance_m * level_scale,
                 min_normal_cosine: config.max_normal_angle_deg.to_radians().cos(),

@@ -153,6 +153,24 @@ impl Problem<'_> {
             .collect()
     }
 
+    /// The source's EO value at each sample, at the problem's EO level (read once).
+    fn source_intensities(&self) -> &[Option<f64>] {
+        self.source_intensities.get_or_init(|| {
+            let Some(eo) = self.source_eo else {
+                return vec![None; self.samples.len()];
+            };
+            self.samples
+                .iter()
+                .map(|s| {
+                    Some(
+                        eo.sample(self.eo_level, &eo.project(&s.p)?.pixel)?
+                            .intensity,
+                    )
+                })
+                .collect()
+        })
+    }
+
     /// One paired sample seen by one target's EO image at `eo_level`.
     fn observe_pair(
         &self,
@@ -164,7 +182,7 @@ impl Problem<'_> {
     ) -> Option<Observation> {
         let s = self.samples.get(sample as usize)?;
         let source_intensity = if eo_level == self.eo_level {
-            s.eo_intensity?
+            (*self.source_intensities().get(sample as usize)?)?
         } else {
             let eo = self.source_eo?;
             eo.sample(eo_level, &eo.project(&s.p)?.pixel)?.intensity
