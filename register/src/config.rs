@@ -290,7 +290,7 @@ impl RegistrationConfig {
         let g = &self.global;
         let positive = "must be finite and > 0";
         let fraction = "must be in [0, 1]";
-        let checks: [(&'static str, f64, bool, &'static str); 24] = [
+        let checks: [Check; 24] = [
             (
                 "align.pyramid_levels",
                 f64::from(a.pyramid_levels),
@@ -436,18 +436,9 @@ impl RegistrationConfig {
                 fraction,
             ),
         ];
-        for (key, value, ok, rule) in checks {
-            if !ok {
-                return Err(ConfigError::Invalid {
-                    origin: origin.to_string(),
-                    key,
-                    value: value.to_string(),
-                    rule,
-                });
-            }
-        }
+        first_failed(origin, &checks)?;
         a.photometric.validate(origin)?;
-        let more: [(&'static str, f64, bool, &'static str); 4] = [
+        let more: [Check; 4] = [
             (
                 "global.loop_interval_keyframes",
                 f64::from(g.loop_interval_keyframes),
@@ -473,17 +464,23 @@ impl RegistrationConfig {
                 "must be 1..=100",
             ),
         ];
-        for (key, value, ok, rule) in more {
-            if !ok {
-                return Err(ConfigError::Invalid {
-                    origin: origin.to_string(),
-                    key,
-                    value: value.to_string(),
-                    rule,
-                });
-            }
-        }
-        Ok(())
+        first_failed(origin, &more)
+    }
+}
+
+/// A value check: the key, the value, whether it holds, the rule it breaks.
+pub(crate) type Check = (&'static str, f64, bool, &'static str);
+
+/// The first check that fails, as the error naming its key, value and rule.
+pub(crate) fn first_failed(origin: &str, checks: &[Check]) -> Result<(), ConfigError> {
+    match checks.iter().find(|(_, _, ok, _)| !ok) {
+        Some(&(key, value, _, rule)) => Err(ConfigError::Invalid {
+            origin: origin.to_string(),
+            key,
+            value: value.to_string(),
+            rule,
+        }),
+        None => Ok(()),
     }
 }
 

@@ -13,23 +13,12 @@ use register_support::*;
 use texel::{FuseConfig, Pose, TexelScan, fuse};
 use texel_register::se3;
 use texel_register::{
-    AlignConfig, FailureReason, PhotometricMode, PyramidOptions, RobustKernel, ScanPyramid, Solver,
-    align_pair,
+    AlignConfig, FailureReason, PhotometricMode, RobustKernel, ScanPyramid, Solver, align_pair,
 };
 
-/// The scan's pyramid with its EO luminance pyramid, as the registrar builds it.
-fn pyramid(scan: Arc<TexelScan>, s: &texel::Sensor) -> ScanPyramid {
-    let defaults = AlignConfig::default();
-    ScanPyramid::build_with(
-        scan,
-        &s.model.lidar,
-        Some(&Arc::new(s.model.eo.clone())),
-        PyramidOptions {
-            levels: defaults.pyramid_levels,
-            eo_levels: defaults.photometric.eo_levels,
-            first_eo_level: defaults.photometric.finest_eo_level,
-        },
-    )
+/// The scan's pyramid with its EO pyramid, as the registrar builds it.
+fn pyramid(scan: Arc<texel::TexelScan>, s: &texel::Sensor) -> ScanPyramid {
+    eo_pyramid(scan, s)
 }
 
 fn with_photometric(mode: PhotometricMode) -> AlignConfig {

@@ -13,23 +13,12 @@ use register_support::*;
 use texel::Pose;
 use texel_register::se3;
 use texel_register::{
-    AlignConfig, Alignment, PhotometricMode, PyramidOptions, Registrar, RegistrationConfig,
-    ScanPyramid, align_pair,
+    AlignConfig, Alignment, PhotometricMode, Registrar, RegistrationConfig, ScanPyramid, align_pair,
 };
 
-/// The registrar's pyramid of a scan: range levels and the EO pyramid.
+/// The scan's pyramid with its EO pyramid, as the registrar builds it.
 fn pyramid(scan: Arc<texel::TexelScan>, s: &texel::Sensor) -> ScanPyramid {
-    let defaults = AlignConfig::default();
-    ScanPyramid::build_with(
-        scan,
-        &s.model.lidar,
-        Some(&Arc::new(s.model.eo.clone())),
-        PyramidOptions {
-            levels: defaults.pyramid_levels,
-            eo_levels: defaults.photometric.eo_levels,
-            first_eo_level: defaults.photometric.finest_eo_level,
-        },
-    )
+    eo_pyramid(scan, s)
 }
 
 /// The test texel camera with an EO camera four times the lidar's resolution (the

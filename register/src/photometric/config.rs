@@ -3,7 +3,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::config::ConfigError;
+use crate::config::{Check, ConfigError, first_failed};
 
 /// Where the photometric term constrains the pose.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -85,7 +85,7 @@ impl PhotometricConfig {
 
     pub fn validate(&self, origin: &str) -> Result<(), ConfigError> {
         let positive = |x: f64| x.is_finite() && x > 0.0;
-        let checks: [(&'static str, f64, bool, &'static str); 7] = [
+        let checks: [Check; 7] = [
             (
                 "align.photometric.gradient_snr",
                 self.gradient_snr,
@@ -129,16 +129,6 @@ impl PhotometricConfig {
                 "must be finite and > 0",
             ),
         ];
-        for (key, value, ok, rule) in checks {
-            if !ok {
-                return Err(ConfigError::Invalid {
-                    origin: origin.to_string(),
-                    key,
-                    value: value.to_string(),
-                    rule,
-                });
-            }
-        }
-        Ok(())
+        first_failed(origin, &checks)
     }
 }

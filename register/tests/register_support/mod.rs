@@ -289,6 +289,22 @@ pub fn speckle(p: &Vector3<f64>) -> f64 {
     (0.5 + 0.08 * sum).clamp(0.05, 0.95)
 }
 
+/// The registrar's pyramid of a scan under the default settings: range levels and
+/// the EO pyramid.
+pub fn eo_pyramid(scan: Arc<TexelScan>, s: &Sensor) -> texel_register::ScanPyramid {
+    let defaults = texel_register::AlignConfig::default();
+    texel_register::ScanPyramid::build_with(
+        scan,
+        &s.model.lidar,
+        Some(&Arc::new(s.model.eo.clone())),
+        texel_register::PyramidOptions {
+            levels: defaults.pyramid_levels,
+            eo_levels: defaults.photometric.eo_levels,
+            first_eo_level: defaults.photometric.finest_eo_level,
+        },
+    )
+}
+
 /// A pose perturbation: `rot_deg` about `axis`, `trans_m` along `dir`.
 pub fn perturbation(rot_deg: f64, axis: [f64; 3], trans_m: f64, dir: [f64; 3]) -> Pose {
     let axis = Vector3::from(axis).normalize();
