@@ -8,18 +8,29 @@
 //! behind or stops reading is resynchronised or dropped by policy (`stream`). Closing
 //! the hub ends every viewer's stream with the rest of its queue and a goodbye saying
 //! why; `shutdown` then stops accepting and waits a bounded time.
+//!
+//! The same port serves the browser viewer (`[serve] web`): a connection whose first
+//! bytes are an HTTP method is an HTTP request (`http`): a file of the browser
+//! viewer's page, or the WebSocket upgrade of `/ws`, whose binary messages carry the
+//! same byte stream as a TCP connection (`websocket`), through the same handshake,
+//! slots and stream as a native viewer.
 
 mod handshake;
+mod http;
 mod pending;
 mod stream;
+mod web_files;
+mod websocket;
 
 use std::net::SocketAddr;
+use std::path::PathBuf;
 use std::sync::atomic::Ordering;
 use std::sync::{Arc, Weak};
 use std::time::{Duration, Instant};
 
 use bytes::BytesMut;
 use texel::wire::Message;
+use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::Semaphore;
 use tokio::task::JoinSet;
@@ -31,6 +42,9 @@ use crate::status::{Counter, Metrics, QueueProbe};
 use handshake::HelloOutcome;
 use pending::{Admission, PendingHandshakes, PendingLimits};
 use stream::{End, StreamSettings};
+
+pub use http::display_url;
+pub use web_files::{BUILD_COMMAND as WEB_BUILD_COMMAND, default_web_dir, web_page_missing};
 
 /// How the server treats clients.
 #[derive(Debug, Clone)]
@@ -51,6 +65,11 @@ pub struct ServeOptions {
     pub goodbye_timeout: Duration,
     /// Scan requests a viewer may have outstanding before it is disconnected.
     pub max_requests_in_flight: usize,
+    /// Serve the browser viewer's page and the stream over WebSocket on this port.
+    pub web: bool,
+    /// Where the browser viewer's files are; `None` when no place could be found (the
+    /// page then says it is not built).
+    pub web_dir: Option<PathBuf>,
 }
 
 impl ServeOptions {
@@ -68,6 +87,8 @@ impl ServeOptions {
             session_name: session_name.to_string(),
             goodbye_timeout: Duration::from_millis(500),
             max_requests_in_flight: serve.max_requests_in_flight,
+            web: serve.web,
+            web_dir: serve.web_dir.clone().or_else(default_web_dir),
         }
     }
 }
@@ -82,6 +103,25 @@ struct Shared {
     shutdown: CancellationToken,
     /// Cancelled only if viewers do not finish in time after `shutdown`.
     hard_stop: CancellationToken,
+    /// Places for HTTP responses being sent (a file can take a while), so the
+    /// connections that read no viewer stream stay bounded too.
+    http_slots: Arc<Semaphore>,
+}
+
+/// How a viewer's connection carries the stream.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Transport {
+    Tcp,
+    WebSocket,
+}
+
+impl Transport {
+    fn name(self) -> &'static str {
+        match self {
+            Self::Tcp => "tcp",
+            Self::WebSocket => "websocket",
+        }
+    }
 }
 
 /// Accepts viewers until `shutdown`; then waits (bounded by the goodbye timeout,
@@ -104,6 +144,7 @@ pub async fn run(
         metrics,
         shutdown,
         hard_stop: CancellationToken::new(),
+        http_slots: Arc::new(Semaphore::new(http::MAX_RESPONSES)),
     });
     // The status shows the pending handshakes as a queue, until the server ends.
     let probe: Weak<PendingHandshakes> = Arc::downgrade(&pending);
@@ -159,24 +200,99 @@ pub async fn run(
     }
 }
 
-/// One connection: the handshake in its pending place, then a viewer slot.
+/// One connection: the handshake in its pending place, then a viewer slot. With the
+/// browser viewer on, its first bytes tell an HTTP request (`http`) from a native hello.
 async fn connection(
-    stream: TcpStream,
+    mut stream: TcpStream,
     peer: SocketAddr,
     ticket: pending::PendingTicket,
     shared: &Shared,
 ) {
-    let (options, metrics) = (&shared.options, &shared.metrics);
-    let (mut rd, mut wr) = stream.into_split();
+    let deadline = tokio::time::Instant::now() + shared.options.handshake_timeout;
     let mut inbuf = BytesMut::with_capacity(1024);
-    let outcome = handshake::read_hello(
-        &mut rd,
-        &mut inbuf,
-        options.handshake_timeout,
-        &ticket.evicted,
-        &shared.shutdown,
+    let mut early = None;
+    if shared.options.web {
+        match sniff(&mut stream, &mut inbuf, deadline, &ticket.evicted, shared).await {
+            Ok(true) => {
+                http::serve(stream, peer, inbuf, ticket, deadline, shared).await;
+                return;
+            }
+            Ok(false) => {}
+            Err(outcome) => early = Some(outcome),
+        }
+    }
+    let (rd, wr) = stream.into_split();
+    viewer(
+        rd,
+        wr,
+        inbuf,
+        peer,
+        ticket,
+        early,
+        deadline,
+        Transport::Tcp,
+        shared,
     )
     .await;
+}
+
+/// Reads until the first four bytes tell an HTTP request (`true`) from anything else,
+/// a native hello above all (`false`), within the handshake's time; the bytes stay in
+/// `buf` for whichever reads on. A connection that ends sooner goes the hello's way,
+/// which says why it is refused.
+async fn sniff(
+    stream: &mut TcpStream,
+    buf: &mut BytesMut,
+    deadline: tokio::time::Instant,
+    evicted: &CancellationToken,
+    shared: &Shared,
+) -> Result<bool, HelloOutcome> {
+    let read = async {
+        loop {
+            if let Some(http) = http::may_be_request(buf) {
+                return Ok(http);
+            }
+            match stream.read_buf(buf).await {
+                Ok(0) => return Ok(false),
+                Ok(_) => {}
+                Err(e) => return Err(HelloOutcome::Invalid(format!("read failed: {e}"))),
+            }
+        }
+    };
+    tokio::select! {
+        r = tokio::time::timeout_at(deadline, read) => r.unwrap_or(Err(HelloOutcome::TimedOut)),
+        () = evicted.cancelled() => Err(HelloOutcome::Evicted),
+        () = shared.shutdown.cancelled() => Err(HelloOutcome::Shutdown),
+    }
+}
+
+/// A viewer's connection over any transport: its hello (unless `early` says how
+/// waiting for it already ended) by `deadline` in its pending place, then a viewer
+/// slot, or the refusal.
+#[allow(clippy::too_many_arguments)] // one call per transport, each with all of these
+async fn viewer<R, W>(
+    mut rd: R,
+    mut wr: W,
+    mut inbuf: BytesMut,
+    peer: SocketAddr,
+    ticket: pending::PendingTicket,
+    early: Option<HelloOutcome>,
+    deadline: tokio::time::Instant,
+    transport: Transport,
+    shared: &Shared,
+) where
+    R: AsyncRead + Unpin + Send,
+    W: AsyncWrite + Unpin + Send,
+{
+    let (options, metrics) = (&shared.options, &shared.metrics);
+    let outcome = match early {
+        Some(outcome) => outcome,
+        None => {
+            let left = deadline.saturating_duration_since(tokio::time::Instant::now());
+            handshake::read_hello(&mut rd, &mut inbuf, left, &ticket.evicted, &shared.shutdown)
+                .await
+        }
+    };
     // Hello or not, the connection no longer waits for one.
     drop(ticket);
     let refusal = match outcome {
@@ -190,7 +306,8 @@ async fn connection(
                     return;
                 };
                 metrics.clients.fetch_add(1, Ordering::Relaxed);
-                serve_viewer(&mut rd, &mut wr, &mut inbuf, peer, &admitted, shared).await;
+                let conn = (peer, transport);
+                serve_viewer(&mut rd, &mut wr, &mut inbuf, conn, &admitted, shared).await;
                 metrics.clients.fetch_sub(1, Ordering::Relaxed);
                 drop(slot);
                 return;
@@ -219,14 +336,18 @@ async fn connection(
 }
 
 /// An admitted viewer holding a slot: welcome, stream, goodbye.
-async fn serve_viewer(
-    rd: &mut tokio::net::tcp::OwnedReadHalf,
-    wr: &mut tokio::net::tcp::OwnedWriteHalf,
+async fn serve_viewer<R, W>(
+    rd: &mut R,
+    wr: &mut W,
     inbuf: &mut BytesMut,
-    peer: SocketAddr,
+    (peer, transport): (SocketAddr, Transport),
     admitted: &handshake::Admitted,
     shared: &Shared,
-) {
+) where
+    R: AsyncRead + Unpin + Send,
+    W: AsyncWrite + Unpin + Send,
+{
+    let transport = transport.name();
     let client_name = &admitted.client_name;
     let (options, metrics) = (&shared.options, &shared.metrics);
     let settings = StreamSettings {
@@ -249,7 +370,7 @@ async fn serve_viewer(
             match stream::write_frame(wr, &welcome, settings.write_timeout, settings.shutdown).await
             {
                 Ok(()) => {
-                    tracing::info!(%peer, client = %client_name, "viewer connected");
+                    tracing::info!(%peer, client = %client_name, transport, "viewer connected");
                     // Snapshot, then live updates; again after every resync.
                     stream::stream_model(rd, wr, inbuf, &shared.hub, &settings, || {
                         metrics.add(Counter::ClientsResynced, 1);

@@ -230,8 +230,8 @@ async fn hostile_clients_are_refused_with_a_reason_and_the_server_carries_on() {
     // A frame claiming 4 GB.
     let r = refused(raw_exchange(addr, &u32::MAX.to_le_bytes()).await);
     assert!(r.contains("frame length 4294967295"), "{r}");
-    // Another protocol.
-    let r = refused(raw_exchange(addr, b"GET / HTTP/1.1\r\nHost: x\r\n\r\n").await);
+    // Another protocol (HTTP is the browser viewer's: `web_serve`).
+    let r = refused(raw_exchange(addr, b"SSH-2.0-OpenSSH_9.6\r\n").await);
     assert!(r.contains("frame length"), "{r}");
     // A hello whose token length claims far more than the frame holds.
     let mut hello = vec![0u8; 4];

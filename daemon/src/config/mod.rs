@@ -327,6 +327,15 @@ pub struct ServeSection {
     /// Scan requests (`RequestScan`) a viewer may have outstanding; one more and it
     /// is told so and disconnected.
     pub max_requests_in_flight: usize,
+    /// Serve the browser viewer on the same port: its page over HTTP and the stream
+    /// over WebSocket (`/ws`), with the same hello, token and limits as a native
+    /// viewer. Off: an HTTP request is refused like any other invalid hello.
+    pub web: bool,
+    /// The directory of the browser viewer's files (`index.html`, its script and
+    /// wasm). Unset: `$TEXEL_WEB_DIR`, else `web` in the target directory the daemon
+    /// runs from (`target/web` for `target/release/texeld`), which is where
+    /// `scripts/build-web.sh` puts it.
+    pub web_dir: Option<PathBuf>,
 }
 
 impl Default for ServeSection {
@@ -353,6 +362,8 @@ impl Default for ServeSection {
             // Four times what a client keeps outstanding by default: room for the
             // requests still in transit when a resync makes it start over.
             max_requests_in_flight: 64,
+            web: true,
+            web_dir: None,
         }
     }
 }

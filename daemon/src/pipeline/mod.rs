@@ -646,10 +646,23 @@ async fn run(
     // Server.
     let server_stop = CancellationToken::new();
     let server_task = listener.map(|listener| {
+        let options = ServeOptions::from_config(&config.serve, &config.session.name);
         if let Ok(addr) = listener.local_addr() {
             tracing::info!("serving viewers on {addr}");
+            if options.web {
+                tracing::info!("field display: {}", server::display_url(addr));
+                let dir = options.web_dir.as_deref();
+                if server::web_page_missing(dir) {
+                    let dir =
+                        dir.map_or_else(|| "no web directory".into(), |d| d.display().to_string());
+                    tracing::warn!(
+                        "the browser viewer is not built: {dir} has no index.html; build it \
+                         with `{}` (or set serve.web_dir)",
+                        server::WEB_BUILD_COMMAND
+                    );
+                }
+            }
         }
-        let options = ServeOptions::from_config(&config.serve, &config.session.name);
         tokio::spawn(server::run(
             listener,
             Arc::clone(&hub),

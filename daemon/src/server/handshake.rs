@@ -8,8 +8,7 @@ use std::time::Duration;
 use bytes::BytesMut;
 use subtle::ConstantTimeEq;
 use texel::wire::{Limits, MIN_PROTOCOL_VERSION, Message, PROTOCOL_VERSION, decode_frame};
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use tokio::net::tcp::{OwnedReadHalf, OwnedWriteHalf};
+use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
 use tokio_util::sync::CancellationToken;
 
 /// How waiting for a hello ended.
@@ -24,8 +23,8 @@ pub enum HelloOutcome {
 }
 
 /// Waits for the hello, at most `timeout`.
-pub async fn read_hello(
-    rd: &mut OwnedReadHalf,
+pub async fn read_hello<R: AsyncRead + Unpin + Send>(
+    rd: &mut R,
     buf: &mut BytesMut,
     timeout: Duration,
     evicted: &CancellationToken,
@@ -44,7 +43,10 @@ pub async fn read_hello(
 
 /// Reads one client message, bounded by the client limits: the decoder refuses a
 /// frame longer than the limit before waiting for it, so `buf` stays small.
-async fn read_message(rd: &mut OwnedReadHalf, buf: &mut BytesMut) -> Result<Message, String> {
+async fn read_message<R: AsyncRead + Unpin + Send>(
+    rd: &mut R,
+    buf: &mut BytesMut,
+) -> Result<Message, String> {
     loop {
         match decode_frame(buf, &Limits::FROM_CLIENT) {
             Ok(Some((message, used))) => {
@@ -107,7 +109,7 @@ pub fn admit(hello: Message, token: Option<&str>) -> Result<Admitted, String> {
 
 /// Sends `Refused { reason }` and closes, giving up after `timeout` (a client that
 /// does not read is not waited for).
-pub async fn refuse(wr: &mut OwnedWriteHalf, reason: &str, timeout: Duration) {
+pub async fn refuse<W: AsyncWrite + Unpin + Send>(wr: &mut W, reason: &str, timeout: Duration) {
     let message = Message::Refused {
         reason: reason
             .chars()

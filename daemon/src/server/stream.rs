@@ -25,8 +25,7 @@ use bytes::{Bytes, BytesMut};
 use texel::model::ScanId;
 use texel::tile::TileId;
 use texel::wire::{Limits, MAX_REASON_LEN, Message, decode_frame};
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use tokio::net::tcp::{OwnedReadHalf, OwnedWriteHalf};
+use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
 use tokio::sync::{mpsc, oneshot};
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
@@ -93,8 +92,8 @@ pub enum Request {
 /// Writes one frame. Each write must hand the socket some bytes within
 /// `write_timeout`: a viewer reading slowly but steadily keeps going however long the
 /// frame, one that stopped reading is cut off.
-pub async fn write_frame(
-    wr: &mut OwnedWriteHalf,
+pub async fn write_frame<W: AsyncWrite + Unpin + Send>(
+    wr: &mut W,
     frame: &[u8],
     write_timeout: Duration,
     shutdown: &CancellationToken,
@@ -116,7 +115,7 @@ pub async fn write_frame(
 }
 
 /// Sends a goodbye and closes, giving up after `timeout`.
-pub async fn goodbye(wr: &mut OwnedWriteHalf, reason: &str, timeout: Duration) {
+pub async fn goodbye<W: AsyncWrite + Unpin + Send>(wr: &mut W, reason: &str, timeout: Duration) {
     let message = Message::Goodbye {
         reason: reason.to_string(),
     };
@@ -134,9 +133,9 @@ type Fetching = Option<(Request, JoinHandle<Result<Bytes, FetchError>>)>;
 
 /// Streams the model to a viewer until it leaves, is dropped, or the hub closes.
 /// Resyncs are counted in `resynced`.
-pub async fn stream_model(
-    rd: &mut OwnedReadHalf,
-    wr: &mut OwnedWriteHalf,
+pub async fn stream_model<R: AsyncRead + Unpin + Send, W: AsyncWrite + Unpin + Send>(
+    rd: &mut R,
+    wr: &mut W,
     inbuf: &mut BytesMut,
     hub: &Arc<Hub>,
     settings: &StreamSettings<'_>,
@@ -175,8 +174,8 @@ pub async fn stream_model(
 /// Reads the client's messages until it leaves or misbehaves; then hands the writer
 /// the reason (which it acts on between two frames, so a goodbye never lands inside
 /// a frame) and waits to be dropped.
-async fn read_client(
-    rd: &mut OwnedReadHalf,
+async fn read_client<R: AsyncRead + Unpin + Send>(
+    rd: &mut R,
     inbuf: &mut BytesMut,
     outstanding: &AtomicUsize,
     limit: usize,
@@ -230,8 +229,8 @@ fn reader_end(end_rx: &mut oneshot::Receiver<End>, fallback: End) -> End {
 }
 
 /// Snapshots, live frames and request answers, until the stream ends.
-async fn write_stream(
-    wr: &mut OwnedWriteHalf,
+async fn write_stream<W: AsyncWrite + Unpin + Send>(
+    wr: &mut W,
     hub: &Arc<Hub>,
     settings: &StreamSettings<'_>,
     outstanding: &AtomicUsize,
@@ -359,8 +358,8 @@ fn describe(request: Request) -> String {
 
 /// Writes the answer to a request: the scan's or tile's frames, or why it is
 /// unavailable.
-async fn answer_request(
-    wr: &mut OwnedWriteHalf,
+async fn answer_request<W: AsyncWrite + Unpin + Send>(
+    wr: &mut W,
     request: Request,
     answer: Result<Vec<Bytes>, FetchError>,
     settings: &StreamSettings<'_>,
