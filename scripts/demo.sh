@@ -3,7 +3,8 @@
 # scene, registered as it goes; configs/sessions/demo-lab.toml, which waits for every
 # frame rather than skipping late ones) with the viewer attached. With a display the viewer
 # opens a window; without one it renders snapshots of the live model to a folder and
-# says where. Ctrl-C stops both cleanly.
+# says where. The daemon also serves the field display (the browser viewer) on the
+# same port; the script prints its address. Ctrl-C stops both cleanly.
 #   bash scripts/demo.sh
 # Environment: TEXEL_DEMO_ADDR (default 127.0.0.1:7878), TEXEL_DEMO_SNAPSHOTS (the
 # snapshot folder, default demo-snapshots), TEXEL_DEMO_CONFIG (the session file).
@@ -19,6 +20,8 @@ snapshots="${TEXEL_DEMO_SNAPSHOTS:-demo-snapshots}"
 bash scripts/setup.sh
 echo "demo: building release binaries" >&2
 cargo build --release --locked -q -p texel-daemon -p texel-viewer -p sims
+# The field display: the browser viewer the daemon serves on its viewer port.
+bash scripts/build-web.sh
 bin="$repo/target/release"
 
 daemon_pid=""
@@ -58,6 +61,8 @@ else
   "$bin/texeld" replay "$capture" --speed 1 --stay --bind "$addr" &
   daemon_pid=$!
 fi
+
+echo "demo: the field display is at http://$addr/ (open it in a browser with WebGPU)" >&2
 
 viewer_args=(--connect "$addr")
 if [ -z "${DISPLAY:-}" ] && [ -z "${WAYLAND_DISPLAY:-}" ]; then

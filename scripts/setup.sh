@@ -10,11 +10,13 @@ repo="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 # Packages: lavapipe (software Vulkan) for wgpu; Xvfb and X client libraries for the
 # windowed viewer; libclang for the v4l crate's bindgen; libusb for Open3D; LLVM 19
 # for Mitsuba's LLVM backend; DejaVu fonts for the text of plots; g++ for meshoptimizer;
-# Chromium for CesiumJS, the independent 3D Tiles viewer the exports are checked in.
+# clang for the C and C++ the browser viewer compiles to wasm32; Chromium for CesiumJS,
+# the independent 3D Tiles viewer the exports are checked in, and for the browser
+# viewer's test.
 packages=(
   mesa-vulkan-drivers libvulkan1 xvfb xauth libxcursor1 libxi6 libxrandr2
   libxkbcommon-x11-0 libx11-xcb1 libclang-dev libusb-1.0-0 libllvm19 pkg-config fonts-dejavu-core
-  g++ chromium
+  g++ clang chromium
 )
 
 missing=()

@@ -3,6 +3,8 @@
 set -euo pipefail
 repo="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 bash "$repo/scripts/setup.sh"
+# The browser viewer, which the browser test opens in headless Chromium.
+bash "$repo/scripts/build-web.sh"
 cd "$repo"
 # Incremental caches only pay off on rebuilds and cost gigabytes on a clean clone.
 export CARGO_INCREMENTAL="${CARGO_INCREMENTAL:-0}"

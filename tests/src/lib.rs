@@ -95,6 +95,44 @@ pub fn run_node(script: &str, args: &[&std::ffi::OsStr]) -> Output {
     output
 }
 
+/// A Node.js peer script running beside the test, its stdin and stdout piped (for
+/// scripts the test talks to while they run); the script's copy is removed on drop.
+pub struct NodeChild {
+    pub child: std::process::Child,
+    copy: PathBuf,
+}
+
+impl Drop for NodeChild {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+        let _ = std::fs::remove_file(&self.copy);
+    }
+}
+
+/// Starts `node SCRIPT ARGS` like [`run_node`] but without waiting for it.
+pub fn spawn_node(script: &str, args: &[&std::ffi::OsStr]) -> NodeChild {
+    let modules = node_dir().join("node_modules");
+    assert!(
+        modules.exists(),
+        "the Node.js peer checks are missing at {}; run scripts/setup.sh (the README's \
+         test command does this)",
+        modules.display()
+    );
+    let source = repo_root().join("scripts").join("node").join(script);
+    let copy = node_dir().join(format!(".{}-spawned-{script}", std::process::id()));
+    std::fs::copy(&source, &copy)
+        .unwrap_or_else(|e| panic!("cannot copy {} beside its packages: {e}", source.display()));
+    let child = Command::new("node")
+        .arg(&copy)
+        .args(args)
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .unwrap_or_else(|e| panic!("cannot run node {script}: {e}"));
+    NodeChild { child, copy }
+}
+
 /// The path of a binary of this workspace, built by cargo for the tests.
 pub fn workspace_binary(name: &str) -> PathBuf {
     // Integration tests run from target/<profile>/deps; binaries sit one level up.

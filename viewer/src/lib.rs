@@ -1,11 +1,13 @@
 //! The texel model viewer: the view-dependent wgpu renderer (Killpack & Budge 2016),
-//! its CPU reference, capture loading, headless rendering and the window.
+//! its CPU reference, capture loading, headless rendering, the window and the browser
+//! page (`web`, built for wasm32).
 
 pub mod app;
 pub mod camera;
 pub mod capture_load;
 pub mod composite;
 pub mod cull;
+pub mod deep_link;
 pub mod display_mode;
 pub mod gpu;
 pub mod headless;
@@ -17,3 +19,4 @@ pub mod scenes;
 pub mod tiles;
 pub mod tonemap;
 pub mod vdtm;
+pub mod web;

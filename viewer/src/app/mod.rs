@@ -12,7 +12,8 @@ mod ui;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::mpsc::{Receiver, SyncSender};
-use std::time::{Duration, Instant};
+// `web_time`: the std clock natively, the browser's in wasm (where std's panics).
+use web_time::{Duration, Instant};
 
 use anyhow::Context;
 use winit::application::ApplicationHandler;
@@ -24,7 +25,7 @@ use winit::window::{Window, WindowId};
 pub use controls::CameraControls;
 pub use state::ViewerState;
 
-use state::window_residency;
+pub(crate) use state::window_residency;
 
 use crate::gpu::{GpuContext, RenderSettings, RenderTarget, Renderer};
 use crate::live::{SourceCommand, ViewerEvent};

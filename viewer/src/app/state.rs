@@ -3,7 +3,8 @@
 //! statistics the overlay shows.
 
 use std::sync::mpsc::{Receiver, SyncSender};
-use std::time::Instant;
+// `web_time`: the std clock natively, the browser's in wasm (where std's panics).
+use web_time::Instant;
 
 use texel::model::{Model, ModelEvent};
 use texel::wire::Status;
@@ -206,6 +207,12 @@ impl ViewerState {
         self.planned = Some((*camera, self.model.events_applied()));
     }
 
+    /// Puts the camera at `world_from_eo` (a deep link's fixed view), pivoting
+    /// `pivot_m` ahead; scans arriving later no longer move it.
+    pub fn place_camera(&mut self, world_from_eo: texel::Pose, pivot_m: f64) {
+        self.jump(world_from_eo, pivot_m);
+    }
+
     /// Puts the camera at a scan's acquisition pose, pivoting `pivot_m` ahead.
     fn jump(&mut self, world_from_scan: texel::Pose, pivot_m: f64) {
         self.controls = CameraControls::new(world_from_scan, pivot_m);
@@ -239,7 +246,7 @@ fn listing_range_m(listing: &texel::model::ScanListing) -> f64 {
 
 /// The residency of a window: fetching through `commands` when there are any, else
 /// from a store of every scan that arrived.
-pub(super) fn window_residency(
+pub(crate) fn window_residency(
     budget_bytes: u64,
     commands: Option<SyncSender<SourceCommand>>,
 ) -> Residency {

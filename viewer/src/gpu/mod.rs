@@ -74,6 +74,11 @@ pub enum GpuError {
          (lower the views VDTM textures from)"
     )]
     TooManyViews { views: usize, limit: u32 },
+    #[error(
+        "the k-buffer keeps fragments in storage buffers, which this device lacks \
+         (WebGL2): composite with the naive layers"
+    )]
+    NoStorageBuffers,
     #[error("reading back from the GPU failed: {0}")]
     Readback(String),
 }
@@ -101,25 +106,38 @@ impl GpuContext {
         instance: wgpu::Instance,
         surface: Option<&wgpu::Surface<'_>>,
     ) -> Result<Self, GpuError> {
-        let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
-            power_preference: wgpu::PowerPreference::HighPerformance,
-            force_fallback_adapter: false,
-            compatible_surface: surface,
-            apply_limit_buckets: false,
-        }))
-        .map_err(|e| GpuError::NoAdapter(e.to_string()))?;
+        pollster::block_on(Self::request(instance, surface))
+    }
+
+    /// [`Self::with_instance`] without blocking: the browser, where nothing may block,
+    /// awaits it.
+    pub async fn request(
+        instance: wgpu::Instance,
+        surface: Option<&wgpu::Surface<'_>>,
+    ) -> Result<Self, GpuError> {
+        let adapter = instance
+            .request_adapter(&wgpu::RequestAdapterOptions {
+                power_preference: wgpu::PowerPreference::HighPerformance,
+                force_fallback_adapter: false,
+                compatible_surface: surface,
+                apply_limit_buckets: false,
+            })
+            .await
+            .map_err(|e| GpuError::NoAdapter(e.to_string()))?;
         let info = adapter.get_info();
-        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
-            label: Some("texel-viewer"),
-            required_features: wgpu::Features::empty(),
-            // The k-buffer and naive layers can be large: take what the adapter offers.
-            required_limits: adapter.limits(),
-            ..Default::default()
-        }))
-        .map_err(|e| GpuError::Device {
-            adapter: format!("{} ({:?})", info.name, info.backend),
-            message: e.to_string(),
-        })?;
+        let (device, queue) = adapter
+            .request_device(&wgpu::DeviceDescriptor {
+                label: Some("texel-viewer"),
+                required_features: wgpu::Features::empty(),
+                // The k-buffer and naive layers can be large: take what the adapter offers.
+                required_limits: adapter.limits(),
+                ..Default::default()
+            })
+            .await
+            .map_err(|e| GpuError::Device {
+                adapter: format!("{} ({:?})", info.name, info.backend),
+                message: e.to_string(),
+            })?;
         Ok(Self {
             instance,
             adapter,

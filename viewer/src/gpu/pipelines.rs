@@ -8,26 +8,34 @@ use super::{DEPTH_FORMAT, LAYER_COLOUR_FORMAT, LAYER_DATA_FORMAT, NEAREST_FORMAT
 /// Pipelines writing into the caller's target.
 pub(crate) struct OutputPipelines {
     pub painter: wgpu::RenderPipeline,
-    pub composite_kbuffer: wgpu::RenderPipeline,
+    /// `None` where the device has no storage buffers (`Pipelines::kbuffer`).
+    pub composite_kbuffer: Option<wgpu::RenderPipeline>,
     pub composite_naive: wgpu::RenderPipeline,
+}
+
+/// The k-buffer's own state: it keeps each pixel's best fragments in a storage
+/// buffer, which some devices (WebGL2) lack; there the naive layers composite.
+pub(crate) struct KBufferPipelines {
+    pub merge_layout: wgpu::BindGroupLayout,
+    pub composite_layout: wgpu::BindGroupLayout,
+    module: wgpu::ShaderModule,
+    pipeline_layout: wgpu::PipelineLayout,
+    pub merge: wgpu::RenderPipeline,
 }
 
 pub(crate) struct Pipelines {
     pub frame_layout: wgpu::BindGroupLayout,
     pub scan_layout: wgpu::BindGroupLayout,
-    pub merge_layout: wgpu::BindGroupLayout,
-    pub kbuffer_layout: wgpu::BindGroupLayout,
     pub naive_layout: wgpu::BindGroupLayout,
     pub sampler: wgpu::Sampler,
     scan_module: wgpu::ShaderModule,
-    kbuffer_module: wgpu::ShaderModule,
     naive_module: wgpu::ShaderModule,
     scan_pipeline_layout: wgpu::PipelineLayout,
-    kbuffer_pipeline_layout: wgpu::PipelineLayout,
     naive_pipeline_layout: wgpu::PipelineLayout,
     pub prepass: wgpu::RenderPipeline,
     pub layer: wgpu::RenderPipeline,
-    pub merge: wgpu::RenderPipeline,
+    /// `None` on a device without storage buffers in fragment shaders.
+    pub kbuffer: Option<KBufferPipelines>,
 }
 
 pub(crate) fn uniform_entry(
@@ -151,26 +159,6 @@ impl Pipelines {
                 },
             ],
         });
-        let mf = fs;
-        let merge_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("merge"),
-            entries: &[
-                uniform_entry(0, mf, false),
-                texture_entry(1, mf, UINT, D2),
-                texture_entry(2, mf, UNFILTERED, D2_ARRAY),
-                texture_entry(3, mf, UINT, D2_ARRAY),
-                storage_entry(4, mf, false),
-                uniform_entry(5, mf, true),
-            ],
-        });
-        let kbuffer_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("composite k-buffer"),
-            entries: &[
-                uniform_entry(0, fs, false),
-                storage_entry(1, fs, true),
-                texture_entry(2, fs, UINT, D2),
-            ],
-        });
         let naive_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("composite naive"),
             entries: &[
@@ -195,12 +183,8 @@ impl Pipelines {
             })
         };
         let scan_pipeline_layout = layout("scan", &[Some(&frame_layout), Some(&scan_layout)]);
-        let merge_pipeline_layout = layout("merge", &[Some(&merge_layout)]);
-        let kbuffer_pipeline_layout = layout("composite k-buffer", &[Some(&kbuffer_layout)]);
         let naive_pipeline_layout = layout("composite naive", &[Some(&naive_layout)]);
         let scan_module = module(device, "scan.wgsl", shaders::SCAN);
-        let merge_module = module(device, "merge.wgsl", shaders::MERGE);
-        let kbuffer_module = module(device, "composite_kbuffer.wgsl", shaders::COMPOSITE_KBUFFER);
         let naive_module = module(device, "composite_naive.wgsl", shaders::COMPOSITE_NAIVE);
         let scan_pipeline =
             |label: &str, entry: &str, targets: &[Option<wgpu::ColorTargetState>]| {
@@ -219,6 +203,58 @@ impl Pipelines {
             "fs_layer",
             &[replace(LAYER_COLOUR_FORMAT), replace(LAYER_DATA_FORMAT)],
         );
+        let kbuffer = (device.limits().max_storage_buffers_per_shader_stage > 0)
+            .then(|| KBufferPipelines::new(device));
+        Self {
+            frame_layout,
+            scan_layout,
+            naive_layout,
+            sampler,
+            scan_module,
+            naive_module,
+            scan_pipeline_layout,
+            naive_pipeline_layout,
+            prepass,
+            layer,
+            kbuffer,
+        }
+    }
+}
+
+impl KBufferPipelines {
+    fn new(device: &wgpu::Device) -> Self {
+        let fs = wgpu::ShaderStages::FRAGMENT;
+        let mf = fs;
+        let merge_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("merge"),
+            entries: &[
+                uniform_entry(0, mf, false),
+                texture_entry(1, mf, UINT, D2),
+                texture_entry(2, mf, UNFILTERED, D2_ARRAY),
+                texture_entry(3, mf, UINT, D2_ARRAY),
+                storage_entry(4, mf, false),
+                uniform_entry(5, mf, true),
+            ],
+        });
+        let composite_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("composite k-buffer"),
+            entries: &[
+                uniform_entry(0, fs, false),
+                storage_entry(1, fs, true),
+                texture_entry(2, fs, UINT, D2),
+            ],
+        });
+        let layout = |label: &str, group: &wgpu::BindGroupLayout| {
+            device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+                label: Some(label),
+                bind_group_layouts: &[Some(group)],
+                immediate_size: 0,
+            })
+        };
+        let merge_pipeline_layout = layout("merge", &merge_layout);
+        let pipeline_layout = layout("composite k-buffer", &composite_layout);
+        let merge_module = module(device, "merge.wgsl", shaders::MERGE);
+        let module = module(device, "composite_kbuffer.wgsl", shaders::COMPOSITE_KBUFFER);
         let merge = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
             label: Some("merge (fragment)"),
             layout: Some(&merge_pipeline_layout),
@@ -249,20 +285,10 @@ impl Pipelines {
             cache: None,
         });
         Self {
-            frame_layout,
-            scan_layout,
             merge_layout,
-            kbuffer_layout,
-            naive_layout,
-            sampler,
-            scan_module,
-            kbuffer_module,
-            naive_module,
-            scan_pipeline_layout,
-            kbuffer_pipeline_layout,
-            naive_pipeline_layout,
-            prepass,
-            layer,
+            composite_layout,
+            module,
+            pipeline_layout,
             merge,
         }
     }
@@ -280,14 +306,16 @@ impl OutputPipelines {
                 "fs_painter",
                 &[replace(format)],
             ),
-            composite_kbuffer: fullscreen_pipeline(
-                device,
-                &pipelines.kbuffer_pipeline_layout,
-                &pipelines.kbuffer_module,
-                "composite k-buffer",
-                "fs_composite",
-                format,
-            ),
+            composite_kbuffer: pipelines.kbuffer.as_ref().map(|k| {
+                fullscreen_pipeline(
+                    device,
+                    &k.pipeline_layout,
+                    &k.module,
+                    "composite k-buffer",
+                    "fs_composite",
+                    format,
+                )
+            }),
             composite_naive: fullscreen_pipeline(
                 device,
                 &pipelines.naive_pipeline_layout,

@@ -89,18 +89,21 @@ impl GpuScan {
         let with_stretched = drawn_indices(scan, true);
         let vertex_buffer = buffer(
             device,
+            queue,
             "scan vertices",
             bytemuck::cast_slice(&vertices),
             wgpu::BufferUsages::VERTEX,
         );
         let usable_buffer = buffer(
             device,
+            queue,
             "scan triangles",
             bytemuck::cast_slice(&usable),
             wgpu::BufferUsages::INDEX,
         );
         let stretched_buffer = buffer(
             device,
+            queue,
             "scan triangles with stretched",
             bytemuck::cast_slice(&with_stretched),
             wgpu::BufferUsages::INDEX,
@@ -212,23 +215,33 @@ pub fn scan_gpu_bytes(scan: &TexelScan) -> u64 {
 
 fn buffer(
     device: &wgpu::Device,
+    queue: &wgpu::Queue,
     label: &str,
     data: &[u8],
     usage: wgpu::BufferUsages,
 ) -> wgpu::Buffer {
-    // wgpu refuses zero-sized vertex/index buffers in some paths; keep one word.
-    let padded;
-    let contents = if data.is_empty() {
-        padded = [0u8; 4];
-        &padded[..]
-    } else {
-        data
-    };
-    device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+    // Written through the queue, not mapped at creation: Chromium's WebGPU refuses
+    // buffers mapped at creation beyond a small size when its GPU process cannot share
+    // memory with the page (headless, software rendering), and both cost the same
+    // copy. Sizes are whole words (the queue writes words); wgpu refuses zero-sized
+    // vertex/index buffers in some paths, so one word at least.
+    let size = (data.len() as u64).div_ceil(4).max(1) * 4;
+    let buffer = device.create_buffer(&wgpu::BufferDescriptor {
         label: Some(label),
-        contents,
-        usage,
-    })
+        size,
+        usage: usage | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    let whole = data.len() / 4 * 4;
+    if whole > 0 {
+        queue.write_buffer(&buffer, 0, &data[..whole]);
+    }
+    if whole < data.len() {
+        let mut tail = [0u8; 4];
+        tail[..data.len() - whole].copy_from_slice(&data[whole..]);
+        queue.write_buffer(&buffer, whole as u64, &tail);
+    }
+    buffer
 }
 
 fn vertex_data(scan: &TexelScan) -> Vec<Vertex> {

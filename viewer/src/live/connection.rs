@@ -13,7 +13,8 @@ use std::net::{SocketAddr, ToSocketAddrs};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::{Receiver, SyncSender, TryRecvError};
-use std::time::{Duration, Instant};
+// `web_time`: the std clock natively, the browser's in wasm (where std's panics).
+use web_time::{Duration, Instant};
 
 use texel::wire::Message;
 use texel_client::{ClientError, ExposureJoin, Update, update};
@@ -97,7 +98,7 @@ pub fn spawn(
 }
 
 /// Why one connection ended.
-pub(super) enum Ended {
+pub(crate) enum Ended {
     /// Try again (after backoff).
     Lost(String),
     /// Do not try again.
@@ -285,7 +286,7 @@ fn send_requests(
 }
 
 /// The wire message of a command, `None` when it is stale.
-fn request_message(command: SourceCommand, resets: u64) -> Option<Message> {
+pub(crate) fn request_message(command: SourceCommand, resets: u64) -> Option<Message> {
     match command {
         SourceCommand::RequestScan { id, generation } => {
             (generation == resets).then_some(Message::RequestScan { id })
@@ -295,7 +296,7 @@ fn request_message(command: SourceCommand, resets: u64) -> Option<Message> {
 
 /// Decodes one message and forwards what it asks of the model (the window's model
 /// is the only copy: this thread keeps none). `Ok(false)`: the consumer is gone.
-pub(super) fn forward(
+pub(crate) fn forward(
     message: Message,
     tx: &SyncSender<ViewerEvent>,
     exposures: &mut ExposureJoin,

@@ -7,12 +7,14 @@
 pub mod connection;
 pub mod eo_fit;
 pub mod fetch;
+#[cfg(not(target_arch = "wasm32"))]
 pub mod replay;
 pub mod snapshots;
 pub mod transport;
 
 use std::sync::mpsc::{Receiver, SyncSender, TrySendError};
-use std::time::{Duration, Instant};
+// `web_time`: the std clock natively, the browser's in wasm (where std's panics).
+use web_time::{Duration, Instant};
 
 use texel::model::{Model, ModelEvent};
 use texel::wire::Status;

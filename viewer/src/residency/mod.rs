@@ -9,7 +9,8 @@ pub mod plan;
 use std::collections::{BTreeMap, BTreeSet};
 use std::sync::Arc;
 use std::sync::mpsc::{SyncSender, TrySendError};
-use std::time::{Duration, Instant};
+// `web_time`: the std clock natively, the browser's in wasm (where std's panics).
+use web_time::{Duration, Instant};
 
 use texel::TexelScan;
 use texel::model::{Model, ModelEvent, ScanId, ScanListing};

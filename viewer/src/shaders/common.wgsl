@@ -69,8 +69,20 @@ fn empty_frag() -> Frag {
     return Frag(vec3<f32>(0.0), 0.0, 0.0, 0.0, 0u);
 }
 
+// pack4x8unorm and unpack4x8unorm by hand, with their exact rounding: WebGL2's GLSL
+// ES 3.0 has neither, and the browser's naive layers share this code.
+fn pack_rgba8(c: vec4<f32>) -> u32 {
+    let q = vec4<u32>(clamp(c, vec4<f32>(0.0), vec4<f32>(1.0)) * 255.0 + 0.5);
+    return q.x | (q.y << 8u) | (q.z << 16u) | (q.w << 24u);
+}
+
+fn unpack_rgba8(p: u32) -> vec4<f32> {
+    let q = vec4<u32>(p & 255u, (p >> 8u) & 255u, (p >> 16u) & 255u, p >> 24u);
+    return vec4<f32>(q) / 255.0;
+}
+
 fn ranked_of(f: Frag) -> Ranked {
-    return Ranked(pack4x8unorm(vec4<f32>(f.colour, 1.0)), f.reliability, f.scan);
+    return Ranked(pack_rgba8(vec4<f32>(f.colour, 1.0)), f.reliability, f.scan);
 }
 
 fn is_valid(f: Frag) -> bool {
@@ -151,7 +163,7 @@ fn shade(top: ptr<function, array<Ranked, MAX_K>>, count: u32) -> vec3<f32> {
         for (var i = 0u; i < count; i = i + 1u) {
             let f = (*top)[i];
             if f.reliability >= floor_rel {
-                sum = sum + f.reliability * unpack4x8unorm(f.colour).rgb;
+                sum = sum + f.reliability * unpack_rgba8(f.colour).rgb;
                 weight = weight + f.reliability;
             }
         }
@@ -163,7 +175,7 @@ fn shade(top: ptr<function, array<Ranked, MAX_K>>, count: u32) -> vec3<f32> {
     if mode == MODE_RELIABILITY {
         return heat(best.reliability);
     }
-    return unpack4x8unorm(best.colour).rgb;
+    return unpack_rgba8(best.colour).rgb;
 }
 
 fn srgb_to_linear(c: vec3<f32>) -> vec3<f32> {

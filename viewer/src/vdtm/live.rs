@@ -7,7 +7,8 @@
 
 use std::sync::Arc;
 use std::sync::mpsc::{Receiver, TryRecvError, sync_channel};
-use std::time::{Duration, Instant};
+// `web_time`: the std clock natively, the browser's in wasm (where std's panics).
+use web_time::{Duration, Instant};
 
 use texel::camera::PinholeCamera;
 use texel::model::Model;

@@ -4,12 +4,13 @@
 //! the pre-pass, scans a batch at a time into the layers with each batch merged into
 //! the k-buffer, then the composite. Optionally timed phase by phase.
 
-use std::time::Instant;
+// `web_time`: the std clock natively, the browser's in wasm (where std's panics).
+use web_time::Instant;
 
 use texel::model::ScanId;
 
 use super::frame::Frame;
-use crate::gpu::pipelines::Pipelines;
+use crate::gpu::pipelines::{KBufferPipelines, Pipelines};
 use crate::gpu::targets::{Layers, TargetMemory, Texture, pixels, texture};
 use crate::gpu::{GpuError, NEAREST_FORMAT};
 
@@ -56,7 +57,7 @@ impl KBufferTargets {
 
     fn new(
         device: &wgpu::Device,
-        pipelines: &Pipelines,
+        pipelines: &KBufferPipelines,
         frame_uniform: &wgpu::Buffer,
         shape: KBufferShape,
         batch_slots: u32,
@@ -127,7 +128,7 @@ impl KBufferTargets {
         });
         let composite_bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("composite k-buffer"),
-            layout: &pipelines.kbuffer_layout,
+            layout: &pipelines.composite_layout,
             entries: &[
                 wgpu::BindGroupEntry {
                     binding: 0,
@@ -203,6 +204,10 @@ pub(super) fn prepare<'a>(
         Some(t) if t.shape == shape && t.batch_slots >= batches => t,
         old => {
             let slots = batches.max(old.map_or(1, |t| t.batch_slots));
+            let pipelines = pipelines
+                .kbuffer
+                .as_ref()
+                .ok_or(GpuError::NoStorageBuffers)?;
             KBufferTargets::new(device, pipelines, frame_uniform, shape, slots)
         }
     };
@@ -272,6 +277,13 @@ pub(super) fn encode(
     visible: &[ScanId],
     mut clock: Option<&mut PhaseClock>,
 ) {
+    // `prepare` made the targets, so the device has the k-buffer's pipelines.
+    let (Some(KBufferPipelines { merge, .. }), Some(composite)) = (
+        frame.pipelines.kbuffer.as_ref(),
+        frame.outputs.composite_kbuffer.as_ref(),
+    ) else {
+        return;
+    };
     let mut checkpoint = |encoder: &mut wgpu::CommandEncoder, phase| {
         if let Some(clock) = clock.as_deref_mut() {
             clock.checkpoint(frame, encoder, phase);
@@ -332,17 +344,13 @@ pub(super) fn encode(
             occlusion_query_set: None,
             multiview_mask: None,
         });
-        pass.set_pipeline(&frame.pipelines.merge);
+        pass.set_pipeline(merge);
         pass.set_bind_group(0, &t.merge_bind_group, &[offset]);
         pass.draw(0..3, 0..1);
         drop(pass);
         checkpoint(encoder, Phase::Merge);
     }
     // 3. Composite into the target.
-    frame.encode_composite(
-        encoder,
-        &frame.outputs.composite_kbuffer,
-        &t.composite_bind_group,
-    );
+    frame.encode_composite(encoder, composite, &t.composite_bind_group);
     checkpoint(encoder, Phase::Composite);
 }
