@@ -17,3 +17,4 @@ pub mod replay_memory;
 pub mod tradeoffs;
 pub mod txl1_decode;
 pub mod viewer_bench;
+pub mod web_viewer;

@@ -46,6 +46,9 @@ enum Command {
     /// memory, the model's memory and budget, registration latency per 1,000 frames, a
     /// late joiner's time to the whole model, `/texel/pose` messages per frame.
     LongSession(texel_bench::long_session::Args),
+    /// The field display in headless Chromium (WebGPU and WebGL2) against the native
+    /// viewer: wasm size, page load to the full model, frame time, bytes per scan.
+    Web(texel_bench::web_viewer::Args),
     /// Peak resident memory of daemon binaries (this build or an older one) replaying
     /// captures as fast as they go.
     ReplayMemory(texel_bench::replay_memory::Args),
@@ -132,6 +135,7 @@ fn main() -> ExitCode {
         }
         Command::Viewer(args) => ("viewer", texel_bench::viewer_bench::run(&args)),
         Command::LongSession(args) => ("long-session", texel_bench::long_session::run(&args)),
+        Command::Web(args) => ("web", texel_bench::web_viewer::run(&args)),
         Command::ReplayMemory(args) => ("replay-memory", texel_bench::replay_memory::run(&args)),
         Command::Txl1(args) => ("txl1", texel_bench::txl1_decode::run(&args)),
         Command::CaptureRead(args) => ("capture-read", texel_bench::capture_read::run(&args)),

@@ -47,6 +47,8 @@ const report = { backend };
 const readyOf = (tab) => tab.evaluate(() => ({
   ready: Number(document.body.dataset.texelReady ?? 0),
   readyMs: Number(document.body.dataset.texelReadyMs ?? 0),
+  snapshotMs: Number(document.body.dataset.texelSnapshotMs ?? 0),
+  residentMs: Number(document.body.dataset.texelResidentMs ?? 0),
   path: document.body.dataset.texelPath ?? "",
   scans: Number(document.body.dataset.texelScans ?? 0),
   drawn: Number(document.body.dataset.texelDrawn ?? 0),
@@ -84,6 +86,14 @@ try {
   await tab.locator("#texel-panel").evaluate((p) => { p.style.display = "none"; });
   await tab.waitForTimeout(300);
   await tab.locator("#texel-canvas").screenshot({ path: outPng });
+  // The hand: a drag orbits, and the address bar follows the view.
+  report.beforeDrag = await tab.evaluate(() => location.search);
+  await tab.mouse.move(width / 2, height / 2);
+  await tab.mouse.down();
+  await tab.mouse.move(width / 2 + 80, height / 2 + 20, { steps: 8 });
+  await tab.mouse.up();
+  await tab.waitForTimeout(800);
+  report.afterDrag = await tab.evaluate(() => location.search);
 
   if (restartWaitMs > 0) {
     // Tell the caller the screenshot is taken and wait for it to restart the daemon

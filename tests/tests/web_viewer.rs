@@ -294,6 +294,21 @@ fn the_browser_draws_what_render_draws_and_reconnects_after_a_restart() {
     let report: serde_json::Value =
         serde_json::from_str(&last).unwrap_or_else(|e| panic!("web-view.mjs said {last:?}: {e}"));
     println!("web-view report: {report}");
+    // A drag orbited the view: the address bar's deep link has a new pose, same mode.
+    let (before, after) = (
+        report["beforeDrag"].as_str().unwrap_or(""),
+        report["afterDrag"].as_str().unwrap_or(""),
+    );
+    let pose_of = |q: &str| {
+        texel_viewer::deep_link::DeepLink::parse(q)
+            .ok()
+            .and_then(|l| l.pose)
+    };
+    let (p0, p1) = (pose_of(before).unwrap(), pose_of(after).unwrap());
+    assert!(
+        p0.rotation.angle_to(&p1.rotation) > 0.05 && after.contains("mode=blended"),
+        "a drag did not orbit the view: {before} -> {after}"
+    );
     let errors = report["errors"].as_array().cloned().unwrap_or_default();
     assert!(errors.is_empty(), "the page reported errors: {errors:?}");
     let after = &report["afterRestart"];

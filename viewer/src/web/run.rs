@@ -23,9 +23,16 @@ use crate::live::{COMMAND_QUEUE, EVENT_QUEUE, SourceCommand, ViewerEvent};
 
 /// Messages decoded per pump: below the event queue, so forwarding never blocks.
 const PUMP_BATCH: usize = 64;
-/// Frames drawn after the model is complete before the page says it is ready (the
-/// last uploads reach the screen).
-const READY_AFTER_FRAMES: u32 = 3;
+/// Frames drawn with the whole model before the page says it is ready: the first
+/// such frame is the first full view (its uploads precede its draw).
+const READY_AFTER_FRAMES: u32 = 1;
+/// Scans uploaded per frame. The window paces uploads at 8 so a frame stays short
+/// while a model streams in; a software-rendered page spends far more on each frame
+/// than on an upload, so it takes more at a time and reaches the whole model in
+/// fewer frames.
+const UPLOADS_PER_FRAME: usize = 32;
+/// Scans requested and not yet received.
+const FETCHES_IN_FLIGHT: usize = 16;
 
 #[wasm_bindgen(start)]
 pub fn start() {
@@ -59,10 +66,13 @@ struct Web {
     intervals_ms: Vec<f64>,
     last_frame_ms: f64,
     last_status_ms: f64,
-    last_query: String,
+    /// The mode and k of the last report, to see the controls change.
+    last_controls: Option<(crate::composite::Mode, u32)>,
     complete_frames: u32,
     /// The connection (its welcome count) whose model the page last said was ready.
     ready_connection: Option<u32>,
+    /// Whether the snapshot's end and full residency were marked on the page.
+    marks: (bool, bool),
 }
 
 async fn run() -> Result<(), String> {
@@ -138,7 +148,11 @@ async fn run() -> Result<(), String> {
     page.set_k(settings.composite.k);
     let (tx, rx) = sync_channel(EVENT_QUEUE);
     let (command_tx, commands) = sync_channel(COMMAND_QUEUE);
-    let residency = window_residency(WEB_GPU_BUDGET_BYTES, Some(command_tx));
+    let mut residency = window_residency(WEB_GPU_BUDGET_BYTES, Some(command_tx));
+    residency.max_uploads_per_step = UPLOADS_PER_FRAME;
+    // Requests answered a frame later: with long frames, more at a time (the daemon
+    // allows 64 by default).
+    residency.options.max_in_flight = FETCHES_IN_FLIGHT;
     let mut viewer = ViewerState::new(settings, deep.fov_deg, residency);
     if let Some(pose) = deep.pose {
         viewer.place_camera(pose, 3.0);
@@ -171,9 +185,10 @@ async fn run() -> Result<(), String> {
         intervals_ms: Vec::new(),
         last_frame_ms: now_ms(),
         last_status_ms: 0.0,
-        last_query: String::new(),
+        last_controls: None,
         complete_frames: 0,
         ready_connection: None,
+        marks: (false, false),
     }));
     animate(web);
     Ok(())
@@ -360,6 +375,16 @@ impl Web {
         } else {
             0
         };
+        // Where a load's time goes: the snapshot's end, then every scan of the view
+        // resident (once per page).
+        if v.snapshot_complete && !self.marks.0 {
+            self.marks.0 = true;
+            self.page.set_data("snapshot-ms", &format!("{now:.0}"));
+        }
+        if complete && !self.marks.1 {
+            self.marks.1 = true;
+            self.page.set_data("resident-ms", &format!("{now:.0}"));
+        }
         let wanted = self.deep.ready_scans.unwrap_or(1);
         let connection = self.link.welcomes;
         if self.ready_connection.is_some_and(|c| c != connection) {
@@ -412,12 +437,14 @@ impl Web {
             &v.controls.world_from_eo,
             v.fov_deg,
         );
+        // (Only the hand or the controls rewrite it: the link the page was opened
+        // with stays until the user changes the view.)
         let touched = std::mem::take(&mut self.gestures.borrow_mut().touched);
-        if touched || (self.last_query.is_empty() && !v.model.is_empty()) {
-            self.last_query.clone_from(&query);
-            if self.deep.ready_scans.is_none() {
-                self.page.set_query(&query);
-            }
+        let controls = (v.settings.composite.mode, v.settings.composite.k);
+        let controls_changed = self.last_controls.is_some_and(|c| c != controls);
+        self.last_controls = Some(controls);
+        if touched || controls_changed {
+            self.page.set_query(&query);
         }
     }
 }
