@@ -1,7 +1,8 @@
 //! Range-image pyramids of a scan: per lidar pixel, the point, its normal from the
-//! range grid and its EO intensity, at full resolution and at successive halvings
+//! range grid and its range noise, at full resolution and at successive halvings
 //! (KinectFusion, Newcombe et al. 2011, Sec. 3.2), with the scan's EO luminance
-//! pyramid for the photometric term. Built once per scan; used as the moving scan
+//! pyramid for the photometric term (which samples the EO images themselves, not the
+//! lidar pixels' colours). Built once per scan; used as the moving scan
 //! (source) and, later, as a model-side keyframe (target) that others are projected
 //! into.
 
@@ -21,7 +22,6 @@ const NOISE_ALLOWANCE_SIGMAS: f64 = 3.0;
 /// Flags of a pyramid pixel.
 pub const HAS_POINT: u8 = 1;
 pub const HAS_NORMAL: u8 = 2;
-pub const HAS_INTENSITY: u8 = 4;
 
 /// What a pyramid is built with.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -78,18 +78,15 @@ impl GridProjector {
     }
 }
 
-/// What association reads of one pyramid pixel, packed in 32 bytes so that a lookup
-/// touches one cache line: the point, its unit normal (facing the sensor; zero where
-/// there is none), its range-noise sigma and EO luminance. Coordinates are in the
-/// scan frame (the scan's EO optical frame).
+/// What association reads of one pyramid pixel, packed in 28 bytes: the point, its
+/// unit normal (facing the sensor; zero where there is none) and its range-noise
+/// sigma. Coordinates are in the scan frame (the scan's EO optical frame).
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct Surfel {
     pub point: [f32; 3],
     pub normal: [f32; 3],
     /// Range noise sigma at the point, metres.
     pub sigma_m: f32,
-    /// EO luminance in [0, 1].
-    pub intensity: f32,
 }
 
 /// One pyramid level. Arrays are row-major over `width x height`.
@@ -138,11 +135,6 @@ impl Level {
     #[inline]
     pub fn sigma_m(&self, index: usize) -> f32 {
         self.surfels[index].sigma_m
-    }
-
-    #[inline]
-    pub fn intensity(&self, index: usize) -> f32 {
-        self.surfels[index].intensity
     }
 
     /// Pixels with a point and a normal, every `stride`-th in each direction.
@@ -266,30 +258,6 @@ fn normal_radius(level: usize) -> usize {
     3usize.saturating_sub(level).max(1)
 }
 
-/// Luminance of an sRGB-coded colour in [0, 1] (Rec. 709 weights on the coded values:
-/// what matters is that both scans use the same rule).
-fn luminance(rgb: [u8; 3]) -> f32 {
-    (0.2126 * f32::from(rgb[0]) + 0.7152 * f32::from(rgb[1]) + 0.0722 * f32::from(rgb[2])) / 255.0
-}
-
-/// The luminance of a vertex's texel: `TexelScan::vertex_colour` (nearest EO pixel
-/// to the texture coordinate) written for this loop. Its `round(x - 0.5)` clamped at
-/// 0 is `floor(x)` for the coordinates that occur, and a float-to-integer cast
-/// floors non-negative values (and saturates negative and NaN ones to 0).
-#[inline]
-fn vertex_luminance(scan: &TexelScan, vertex: usize) -> Option<f32> {
-    if !*scan.vertex_textured.get(vertex)? {
-        return None;
-    }
-    let [u, v] = *scan.tex_coords.get(vertex)?;
-    let texture = &scan.texture;
-    let x = ((u * texture.width as f32) as u32).min(texture.width.saturating_sub(1));
-    let y = ((v * texture.height as f32) as u32).min(texture.height.saturating_sub(1));
-    let i = 3 * (y as usize * texture.width as usize + x as usize);
-    let rgb = texture.rgb.get(i..i + 3)?;
-    Some(luminance([rgb[0], rgb[1], rgb[2]]))
-}
-
 fn finest_level(scan: &TexelScan, projector: &GridProjector) -> Level {
     let (w, h) = (scan.grid_width as usize, scan.grid_height as usize);
     let mut level = Level::empty(w, h, 1.0);
@@ -308,10 +276,6 @@ fn finest_level(scan: &TexelScan, projector: &GridProjector) -> Level {
         let surfel = &mut level.surfels[pixel];
         surfel.point = *p;
         surfel.sigma_m = scan.range_noise.sigma_at(range) as f32;
-        if let Some(intensity) = vertex_luminance(scan, vertex as usize) {
-            surfel.intensity = intensity;
-            level.flags[pixel] |= HAS_INTENSITY;
-        }
     }
     level
 }
@@ -347,7 +311,6 @@ fn downsample(finer: &Level, pitch_rad: f64) -> Level {
             let Some(nearest) = nearest else { continue };
             let mut sum = Vector3::zeros();
             let (mut range, mut sigma, mut count) = (0.0f64, 0.0f64, 0.0f64);
-            let (mut intensity, mut intensity_count) = (0.0f64, 0.0f64);
             for &i in &block {
                 if !finer.has(i, HAS_POINT)
                     || !same_surface(
@@ -364,10 +327,6 @@ fn downsample(finer: &Level, pitch_rad: f64) -> Level {
                 range += f64::from(finer.ranges_m[i]);
                 sigma += f64::from(finer.sigma_m(i));
                 count += 1.0;
-                if finer.has(i, HAS_INTENSITY) {
-                    intensity += f64::from(finer.intensity(i));
-                    intensity_count += 1.0;
-                }
             }
             // count >= 1: the nearest point always passes its own test.
             let k = v * w + u;
@@ -377,10 +336,6 @@ fn downsample(finer: &Level, pitch_rad: f64) -> Level {
             let surfel = &mut out.surfels[k];
             surfel.point = [p.x as f32, p.y as f32, p.z as f32];
             surfel.sigma_m = (sigma / count) as f32;
-            if intensity_count > 0.0 {
-                surfel.intensity = (intensity / intensity_count) as f32;
-                out.flags[k] |= HAS_INTENSITY;
-            }
         }
     }
     out
