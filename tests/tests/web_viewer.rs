@@ -108,17 +108,20 @@ impl Drop for Daemon {
 }
 
 /// Share of pixels whose channels all lie within the tolerance, and the shares of
-/// pixels either image draws (not background).
+/// pixels either image draws (not background); the share of identical pixels is
+/// printed.
 fn agreement(a: &image::RgbaImage, b: &image::RgbaImage) -> (f64, f64, f64) {
     assert_eq!(a.dimensions(), b.dimensions());
-    let (mut agree, mut drawn_a, mut drawn_b) = (0usize, 0usize, 0usize);
+    let (mut agree, mut same, mut drawn_a, mut drawn_b) = (0usize, 0usize, 0usize, 0usize);
     for (p, q) in a.pixels().zip(b.pixels()) {
         let close = (0..3).all(|c| p[c].abs_diff(q[c]) <= CHANNEL_TOLERANCE);
         agree += usize::from(close);
+        same += usize::from((0..3).all(|c| p[c] == q[c]));
         drawn_a += usize::from(p[0].max(p[1]).max(p[2]) > 8);
         drawn_b += usize::from(q[0].max(q[1]).max(q[2]) > 8);
     }
     let n = (a.width() * a.height()) as f64;
+    println!("identical pixels: {:.2} %", 100.0 * same as f64 / n);
     (agree as f64 / n, drawn_a as f64 / n, drawn_b as f64 / n)
 }
 
