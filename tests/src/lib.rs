@@ -64,10 +64,8 @@ pub fn node_dir() -> PathBuf {
     std::env::var_os("TEXEL_NODE_DIR").map_or_else(|| texel_cache().join("node"), PathBuf::from)
 }
 
-/// Runs `scripts/node/<script>` with Node.js, its packages resolved from
-/// [`node_dir`]; panics with the set-up command when they are missing and with the
-/// script's stderr when it fails.
-pub fn run_node(script: &str, args: &[&std::ffi::OsStr]) -> Output {
+/// Panics with the set-up command when the Node.js packages are missing.
+fn assert_node_modules() {
     let modules = node_dir().join("node_modules");
     assert!(
         modules.exists(),
@@ -75,6 +73,13 @@ pub fn run_node(script: &str, args: &[&std::ffi::OsStr]) -> Output {
          test command does this)",
         modules.display()
     );
+}
+
+/// Runs `scripts/node/<script>` with Node.js, its packages resolved from
+/// [`node_dir`]; panics with the set-up command when they are missing and with the
+/// script's stderr when it fails.
+pub fn run_node(script: &str, args: &[&std::ffi::OsStr]) -> Output {
+    assert_node_modules();
     // An ES module resolves packages from its own folder upwards, so the script runs
     // from a copy beside the installed packages.
     // One copy per call, so tests running at once never read a half-written one.
@@ -112,13 +117,7 @@ impl Drop for NodeChild {
 
 /// Starts `node SCRIPT ARGS` like [`run_node`] but without waiting for it.
 pub fn spawn_node(script: &str, args: &[&std::ffi::OsStr]) -> NodeChild {
-    let modules = node_dir().join("node_modules");
-    assert!(
-        modules.exists(),
-        "the Node.js peer checks are missing at {}; run scripts/setup.sh (the README's \
-         test command does this)",
-        modules.display()
-    );
+    assert_node_modules();
     let source = repo_root().join("scripts").join("node").join(script);
     let copy = node_dir().join(format!(".{}-spawned-{script}", std::process::id()));
     std::fs::copy(&source, &copy)

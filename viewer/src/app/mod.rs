@@ -144,13 +144,7 @@ impl App {
             .context("creating the window surface")?;
         let gpu = GpuContext::with_instance(instance, Some(&surface))?;
         let caps = surface.get_capabilities(&gpu.adapter);
-        let format = caps
-            .formats
-            .iter()
-            .copied()
-            .find(|f| !f.is_srgb())
-            .or_else(|| caps.formats.first().copied())
-            .context("the surface offers no format")?;
+        let format = crate::gpu::surface_format(&caps).context("the surface offers no format")?;
         let mut usage = wgpu::TextureUsages::RENDER_ATTACHMENT;
         if caps.usages.contains(wgpu::TextureUsages::COPY_SRC) {
             usage |= wgpu::TextureUsages::COPY_SRC;

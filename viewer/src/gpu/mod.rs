@@ -83,6 +83,17 @@ pub enum GpuError {
     Readback(String),
 }
 
+/// The format a window or canvas is drawn in: a linear (not sRGB) one where offered,
+/// since the passes write display values themselves; else the first. `None`: the
+/// surface offers none.
+pub fn surface_format(caps: &wgpu::SurfaceCapabilities) -> Option<wgpu::TextureFormat> {
+    caps.formats
+        .iter()
+        .copied()
+        .find(|f| !f.is_srgb())
+        .or_else(|| caps.formats.first().copied())
+}
+
 /// A device and queue with the adapter they came from.
 #[derive(Debug, Clone)]
 pub struct GpuContext {

@@ -240,13 +240,7 @@ fn surface_config(
     canvas: &HtmlCanvasElement,
 ) -> Result<wgpu::SurfaceConfiguration, String> {
     let caps = surface.get_capabilities(&gpu.adapter);
-    let format = caps
-        .formats
-        .iter()
-        .copied()
-        .find(|f| !f.is_srgb())
-        .or_else(|| caps.formats.first().copied())
-        .ok_or("the canvas offers no format")?;
+    let format = crate::gpu::surface_format(&caps).ok_or("the canvas offers no format")?;
     Ok(wgpu::SurfaceConfiguration {
         usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
         format,
