@@ -71,6 +71,8 @@ struct Web {
     complete_frames: u32,
     /// The connection (its welcome count) whose model the page last said was ready.
     ready_connection: Option<u32>,
+    /// Why the last frame could not be drawn.
+    draw_error: Option<String>,
     /// Whether the snapshot's end and full residency were marked on the page.
     marks: (bool, bool),
 }
@@ -189,6 +191,7 @@ async fn run() -> Result<(), String> {
         complete_frames: 0,
         ready_connection: None,
         marks: (false, false),
+        draw_error: None,
     }));
     animate(web);
     Ok(())
@@ -348,10 +351,13 @@ impl Web {
             .renderer
             .render(&camera, &self.viewer.settings, &target)
         {
-            Ok(stats) => self.viewer.stats = stats,
-            Err(e) => self
-                .page
-                .show_status(&format!("cannot draw this frame: {e}")),
+            Ok(stats) => {
+                self.viewer.stats = stats;
+                self.draw_error = None;
+            }
+            // Kept in the status line until a frame draws again (too many scans in
+            // view for the naive layers, a target over the device's limits).
+            Err(e) => self.draw_error = Some(e.to_string()),
         }
         self.viewer.latency.drawn(web_time::Instant::now());
         self.gpu.queue.present(frame);
@@ -410,8 +416,12 @@ impl Web {
         let daemon = v.status.as_ref().map_or_else(String::new, |(s, _)| {
             format!(" · daemon up {:.0} s, {} viewers", s.uptime_s, s.clients)
         });
+        let error = self
+            .draw_error
+            .as_ref()
+            .map_or_else(String::new, |e| format!(" · cannot draw: {e}"));
         self.page.show_status(&format!(
-            "{connection}{daemon} · {} scans, {} drawn · {median_ms:.0} ms a frame · {}",
+            "{connection}{daemon} · {} scans, {} drawn · {median_ms:.0} ms a frame · {}{error}",
             v.model.len(),
             v.stats.drawn,
             v.residency_stats.describe()
