@@ -146,6 +146,9 @@ pub fn workspace_binary(name: &str) -> PathBuf {
 
 /// Small captures of an analytic scene, written with the project's own capture
 /// writer, for tests of the daemon's pipeline.
+mod texeld;
+pub use texeld::Texeld;
+
 pub mod captures {
     use std::path::Path;
 

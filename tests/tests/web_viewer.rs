@@ -10,11 +10,10 @@
 
 use std::io::{BufRead, BufReader, Write};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
-use std::sync::mpsc;
-use std::time::{Duration, Instant};
+use std::process::Command;
+use std::time::Duration;
 
-use texel_e2e::{repo_root, spawn_node, workspace_binary};
+use texel_e2e::{Texeld, repo_root, spawn_node, workspace_binary};
 
 /// Scans in the model: a short stretch of the `lab` orbit.
 const FRAMES: usize = 6;
@@ -47,64 +46,6 @@ fn session_file(dir: &Path, bind: &str) -> PathBuf {
     )
     .unwrap();
     path
-}
-
-/// `texeld run` on `session`, its log lines on a channel.
-struct Daemon {
-    child: Child,
-    lines: mpsc::Receiver<String>,
-    log: Vec<String>,
-}
-
-impl Daemon {
-    fn start(session: &Path) -> Self {
-        let mut child = Command::new(workspace_binary("texeld"))
-            .args(["run", "--config"])
-            .arg(session)
-            .env("NO_COLOR", "1")
-            .env("RUST_LOG", "info")
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped())
-            .spawn()
-            .expect("texeld (built by cargo test --workspace)");
-        let stderr = child.stderr.take().unwrap();
-        let (tx, lines) = mpsc::channel();
-        std::thread::spawn(move || {
-            for line in BufReader::new(stderr).lines() {
-                let Ok(line) = line else { break };
-                if tx.send(line).is_err() {
-                    break;
-                }
-            }
-        });
-        Self {
-            child,
-            lines,
-            log: Vec::new(),
-        }
-    }
-
-    /// The text after `needle` in the first log line holding it.
-    fn wait_for(&mut self, needle: &str) -> String {
-        let deadline = Instant::now() + Duration::from_secs(120);
-        loop {
-            let left = deadline.saturating_duration_since(Instant::now());
-            let line = self.lines.recv_timeout(left).unwrap_or_else(|_| {
-                panic!("no log line with {needle:?}; got:\n{}", self.log.join("\n"))
-            });
-            self.log.push(line.clone());
-            if let Some((_, rest)) = line.split_once(needle) {
-                return rest.trim().to_string();
-            }
-        }
-    }
-}
-
-impl Drop for Daemon {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
 }
 
 /// Share of pixels whose channels all lie within the tolerance, and the shares of
@@ -143,7 +84,7 @@ fn the_browser_draws_what_render_draws_and_reconnects_after_a_restart() {
         web.display()
     );
     let dir = tempfile::tempdir().unwrap();
-    let mut daemon = Daemon::start(&session_file(dir.path(), "127.0.0.1:0"));
+    let mut daemon = Texeld::start(&session_file(dir.path(), "127.0.0.1:0"));
     let addr = daemon.wait_for("serving viewers on ");
     let url = daemon.wait_for("field display: ");
     assert_eq!(
@@ -288,7 +229,7 @@ fn the_browser_draws_what_render_draws_and_reconnects_after_a_restart() {
     // The daemon goes away and comes back on the same port: the page reconnects.
     let session = session_file(dir.path(), &addr);
     drop(daemon);
-    let mut daemon = Daemon::start(&session);
+    let mut daemon = Texeld::start(&session);
     daemon.wait_for("serving viewers on ");
     let stdin = node.child.stdin.as_mut().unwrap();
     writeln!(stdin, "restarted").unwrap();
