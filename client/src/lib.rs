@@ -22,6 +22,8 @@ pub use texel::wire::{DEFAULT_MAX_IN_FLIGHT, FetchPlan, TileCatalog, TileEvent};
 mod async_client;
 #[cfg(feature = "tokio")]
 pub use async_client::Client;
+#[cfg(feature = "zenoh")]
+pub mod zenoh_gateway;
 
 /// A blocking connection, for a viewer's network thread.
 pub struct BlockingClient {

@@ -105,10 +105,19 @@ pub fn build_config(
     Ok(config)
 }
 
+/// Zenoh's own crates log their start-up at `info`; the daemon says what matters
+/// (where it publishes) itself. A `RUST_LOG` that names zenoh keeps its own levels.
+const QUIET_ZENOH: &str = "zenoh=warn,zenoh_transport=warn,zenoh_link_tcp=warn,zenoh_config=warn";
+
 /// Logs to stderr; `RUST_LOG` overrides the default `info`.
 pub fn init_logging() {
-    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    let directives = match std::env::var("RUST_LOG") {
+        Ok(v) if v.contains("zenoh") => v,
+        Ok(v) if !v.trim().is_empty() => format!("{v},{QUIET_ZENOH}"),
+        _ => format!("info,{QUIET_ZENOH}"),
+    };
+    let filter = tracing_subscriber::EnvFilter::try_new(&directives)
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(format!("info,{QUIET_ZENOH}")));
     let _ = tracing_subscriber::fmt()
         .with_env_filter(filter)
         .with_writer(std::io::stderr)

@@ -5,6 +5,8 @@
 pub mod cli;
 pub mod config;
 pub mod export;
+#[cfg(feature = "foxglove-live")]
+pub mod foxglove_live;
 pub mod hub;
 pub mod info;
 pub mod model_export;
@@ -21,3 +23,4 @@ pub mod status;
 pub mod store;
 pub mod texture;
 pub mod tiles_export;
+pub mod zenoh_publish;

@@ -22,8 +22,8 @@ use tokio::sync::mpsc;
 
 use crate::config::{Compression, RecordSection};
 
-/// One thing to record.
-#[derive(Debug)]
+/// One thing to record (cheap to clone: frames and models are shared).
+#[derive(Debug, Clone)]
 pub enum RecordItem {
     Sensor(Arc<SensorModel>),
     /// The frame the pipeline pairs and fuses, shared rather than copied; the

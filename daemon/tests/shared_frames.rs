@@ -1,5 +1,5 @@
-//! Frames travel by reference: ingest hands the recorder and the pair it forms the
-//! same range and EO frames (one allocation each, no copy), and fusion shares that EO
+//! Frames travel by reference: ingest hands the recorder, the live tap (Foxglove) and
+//! the pair it forms the same range and EO frames (one allocation each, no copy), and fusion shares that EO
 //! frame as the scan's texture whether or not the recorder has let go. The encode stage writes a
 //! scan's frame from the scan itself, byte for byte what the owned `WireScan` path
 //! writes, for every texture format.
@@ -28,6 +28,7 @@ async fn the_recorder_and_the_pair_share_one_frame() {
     let (events_tx, events) = mpsc::channel(8);
     let (record_tx, mut record_rx) = mpsc::channel(8);
     let (pairs, mut pairs_rx) = mpsc::channel(8);
+    let (tap, mut tapped) = texel_daemon::pipeline::tap::tap();
     let ingest = Ingest {
         events,
         record: Some(record_tx),
@@ -37,6 +38,7 @@ async fn the_recorder_and_the_pair_share_one_frame() {
         sensor: Some(Arc::clone(&model)),
         metrics: Metrics::new(),
         hub: texel_daemon::hub::Hub::new(8),
+        tap: Some(tap),
     };
     let task = tokio::spawn(ingest.run());
     for event in [
@@ -65,6 +67,23 @@ async fn the_recorder_and_the_pair_share_one_frame() {
     assert!(Arc::ptr_eq(recorded_eo, &eo));
     assert!(Arc::ptr_eq(&job.pair.range, &range));
     assert!(Arc::ptr_eq(&job.pair.eo, &eo));
+    // The live tap got the same records, sharing the same frames.
+    let tapped = tokio::task::spawn_blocking(move || {
+        std::iter::from_fn(|| tapped.blocking_recv()).collect::<Vec<_>>()
+    })
+    .await
+    .unwrap();
+    let [
+        RecordItem::Sensor(_),
+        RecordItem::Range(tapped_range),
+        RecordItem::Eo(tapped_eo),
+    ] = tapped.as_slice()
+    else {
+        panic!("tapped {tapped:?}");
+    };
+    assert!(Arc::ptr_eq(tapped_range, &range));
+    assert!(Arc::ptr_eq(tapped_eo, &eo));
+    drop(tapped);
 
     // The recorder has not let go yet: fusion still shares the very frame, pixels and
     // all, as the scan's texture (no copy whoever else holds it).

@@ -252,9 +252,16 @@ pub fn composite_pixel(fragments: &[Fragment], settings: &CompositeSettings) -> 
 }
 
 /// The unique colour of a scan: hues spaced by the golden angle, so neighbours in
-/// id differ strongly. Same formula as `scan_colour` in `common.wgsl`.
+/// id differ strongly. Scans merged from several cameras (ids `camera << 24 | id`,
+/// `texel_client::zenoh_gateway`) take their camera's colour instead, so each
+/// camera's model shows in its own. Same formula as `scan_colour` in `common.wgsl`.
 pub fn scan_colour(scan: u32) -> [f32; 3] {
-    let hue = (scan as f32 * 0.618_034).fract();
+    let camera = scan >> 24;
+    let hue = if camera != 0 {
+        (camera as f32 * 0.618_034 + 0.1).fract()
+    } else {
+        (scan as f32 * 0.618_034).fract()
+    };
     hsv_to_rgb(hue, 0.75, 0.95)
 }
 
@@ -364,5 +371,8 @@ mod tests {
         assert_eq!(heat(0.0), [0.0, 0.0, 1.0]);
         assert_eq!(heat(1.0), [1.0, 0.0, 0.0]);
         assert_ne!(scan_colour(0), scan_colour(1));
+        // Merged cameras: one colour per camera, different cameras apart.
+        assert_eq!(scan_colour(1 << 24), scan_colour((1 << 24) | 77));
+        assert_ne!(scan_colour(1 << 24), scan_colour(2 << 24));
     }
 }

@@ -20,3 +20,5 @@ pub mod tiles;
 pub mod tonemap;
 pub mod vdtm;
 pub mod web;
+#[cfg(not(target_arch = "wasm32"))]
+pub mod zenoh_source;

@@ -23,6 +23,7 @@ use texel_viewer::live;
 use texel_viewer::live::snapshots::SnapshotView;
 use texel_viewer::residency::Residency;
 use texel_viewer::vdtm::{LiveVdtm, VdtmChoice, VdtmSettings, VdtmViewConfig};
+use texel_viewer::zenoh_source::ZenohArgs;
 
 #[derive(Parser)]
 #[command(
@@ -43,15 +44,19 @@ struct Cli {
 #[derive(Args)]
 struct LiveArgs {
     /// The daemon to follow.
-    #[arg(long, value_name = "HOST:PORT")]
+    #[arg(long, value_name = "HOST:PORT", conflicts_with = "zenoh")]
     connect: Option<String>,
+    /// Or the cameras on Zenoh.
+    #[command(flatten)]
+    zenoh: ZenohArgs,
     /// The daemon's token (needed when it listens beyond loopback).
     #[arg(long, default_value = "")]
     token: String,
     /// Draw the daemon's level-of-detail tiles (protocol version 3, over a second
     /// connection) and, below the finest tiles the view still finds too coarse, its
-    /// scans; `L` in the window switches to the scans alone.
-    #[arg(long)]
+    /// scans; `L` in the window switches to the scans alone. Not over Zenoh (its
+    /// cameras publish the scans alone).
+    #[arg(long, conflicts_with = "zenoh")]
     lod: bool,
     /// With `--lod`: the tiles alone, no scans below the finest (a check box in the
     /// window's panel).
@@ -96,7 +101,7 @@ struct LiveArgs {
 #[derive(Subcommand)]
 enum Command {
     /// Render views of a capture's model to PNG files.
-    Render(RenderArgs),
+    Render(Box<RenderArgs>),
     /// Open a window on a capture's model.
     Open(OpenArgs),
     /// Tone-map a radiance image (OpenEXR) into a PNG.
@@ -105,14 +110,16 @@ enum Command {
 
 /// Where the model comes from: exactly one source.
 #[derive(Args)]
-#[group(required = true, multiple = false)]
 struct SourceArgs {
     /// A capture (MCAP): every texel frame fused and placed by /texel/pose, else /truth/pose.
-    #[arg(long, value_name = "RESULT.mcap")]
+    #[arg(long, value_name = "RESULT.mcap", conflicts_with_all = ["connect", "zenoh"])]
     capture: Option<PathBuf>,
     /// A running daemon: its model once the snapshot is complete.
-    #[arg(long, value_name = "HOST:PORT")]
+    #[arg(long, value_name = "HOST:PORT", conflicts_with = "zenoh")]
     connect: Option<String>,
+    /// Or the cameras on Zenoh, merged.
+    #[command(flatten)]
+    zenoh: ZenohArgs,
 }
 
 /// Options of a `render --connect`.
@@ -122,10 +129,10 @@ struct FetchArgs {
     #[arg(long, default_value = "", requires = "connect")]
     token: String,
     /// Wait until the model holds at least this many scans.
-    #[arg(long, default_value_t = 1, requires = "connect")]
+    #[arg(long, default_value_t = 1)]
     wait_scans: usize,
     /// Give up after this many seconds (connecting included).
-    #[arg(long, default_value_t = 60.0, requires = "connect")]
+    #[arg(long, default_value_t = 60.0)]
     timeout_s: f64,
 }
 
@@ -140,7 +147,17 @@ struct SourceModel {
 
 impl SourceArgs {
     fn load(&self, fetch: &FetchArgs) -> anyhow::Result<SourceModel> {
-        match (&self.capture, &self.connect) {
+        // Held while the model is fetched through it.
+        let gateway = if self.zenoh.zenoh {
+            Some(self.zenoh.start()?)
+        } else {
+            None
+        };
+        let connect = gateway
+            .as_ref()
+            .map(|g| g.addr.clone())
+            .or(self.connect.clone());
+        match (&self.capture, &connect) {
             (Some(path), _) => {
                 let loaded = load(path)?;
                 Ok(SourceModel {
@@ -170,7 +187,7 @@ impl SourceArgs {
                     eo_response,
                 })
             }
-            (None, None) => bail!("give a model source (--capture or --connect)"),
+            (None, None) => bail!("give a model source (--capture, --connect or --zenoh)"),
         }
     }
 }
@@ -818,12 +835,17 @@ fn connect_tiles(
 fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
     match cli.command {
-        Some(Command::Render(a)) => render(a),
+        Some(Command::Render(a)) => render(*a),
         Some(Command::Open(a)) => open(a),
         Some(Command::Tonemap(a)) => tonemap_cli::tonemap(a),
+        None if cli.live.zenoh.zenoh => {
+            let source = cli.live.zenoh.start()?;
+            let addr = source.addr.clone();
+            connect(cli.live, addr)
+        }
         None => match cli.live.connect.clone() {
             Some(addr) => connect(cli.live, addr),
-            None => bail!("give --connect HOST:PORT or a command (see --help)"),
+            None => bail!("give --connect HOST:PORT, --zenoh or a command (see --help)"),
         },
     }
 }

@@ -12,12 +12,16 @@ use texel::wire::TextureFormat;
 use texel_register::RegistrationConfig;
 use thiserror::Error;
 
+mod foxglove_section;
 mod model;
 #[cfg(feature = "sim")]
 mod sim;
+mod zenoh_section;
+pub use foxglove_section::{FoxgloveSection, MAX_FOXGLOVE_CLIENT_QUEUE};
 pub use model::{LodSection, ModelSection};
 #[cfg(feature = "sim")]
 pub use sim::{LatePolicy, SimConfig, SimSerialConfig, SimSetup};
+pub use zenoh_section::{ZenohAuth, ZenohMode, ZenohSection, endpoint_is_loopback};
 
 #[derive(Debug, Error)]
 pub enum ConfigError {
@@ -52,6 +56,10 @@ pub struct SessionConfig {
     pub status: StatusSection,
     /// The model over a long session: memory budget, on-disk store, retirement.
     pub model: ModelSection,
+    /// Publishing the model on Zenoh.
+    pub zenoh: ZenohSection,
+    /// The live session offered to the Foxglove app (`foxglove_live`).
+    pub foxglove: FoxgloveSection,
 }
 
 #[derive(Debug, Clone, Deserialize)]
@@ -654,6 +662,10 @@ impl SessionConfig {
         }
         validate_serve_limits(&self.serve).map_err(|(k, m)| invalid(k, m))?;
         self.model.validate().map_err(|(k, m)| invalid(k, m))?;
+        self.foxglove.validate().map_err(|(k, m)| invalid(k, m))?;
+        self.zenoh
+            .validate(&self.session.name)
+            .map_err(|(k, m)| invalid(k, m))?;
         if !(1..=100).contains(&self.serve.jpeg_quality) {
             return Err(invalid(
                 "serve.jpeg_quality",

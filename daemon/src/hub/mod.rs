@@ -542,6 +542,21 @@ impl Hub {
         self.apply_changes(&mut inner, &changes, None)
     }
 
+    /// A served scan's `ScanListed` frame as a late joiner's snapshot would hold it
+    /// (its current pose); `None` when it is not served.
+    pub fn listing_frame(&self, id: ScanId) -> Option<Bytes> {
+        let inner = self.lock();
+        let e = inner.entries.get(&id).filter(|e| !e.retired)?;
+        Message::ScanListed {
+            id,
+            listing: e.listing,
+            world_from_scan: e.world_from_scan,
+        }
+        .encode()
+        .ok()
+        .map(Bytes::from)
+    }
+
     /// Brings a withdrawn scan back into the served model: viewers are sent its
     /// listing.
     pub fn relist(&self, id: ScanId) -> Result<(), HubError> {

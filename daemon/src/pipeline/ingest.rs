@@ -85,6 +85,8 @@ pub struct Ingest {
     pub metrics: Arc<Metrics>,
     /// Told each sensor model's response curve, which it serves (version 4).
     pub hub: Arc<crate::hub::Hub>,
+    /// A live copy of every record, for the Foxglove server (never waits).
+    pub tap: Option<super::tap::Tap>,
 }
 
 impl Ingest {
@@ -98,6 +100,9 @@ impl Ingest {
     /// Records an item; waits while the recorder is busy (the disk sets the pace
     /// rather than anything being dropped).
     async fn record(&mut self, item: RecordItem) {
+        if let Some(tap) = &self.tap {
+            tap.offer(&item);
+        }
         if let Some(tx) = &self.record
             && tx.send(item).await.is_err()
         {

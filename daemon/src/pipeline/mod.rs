@@ -18,6 +18,7 @@ pub mod encode;
 pub mod ingest;
 pub mod lod;
 mod restore;
+pub mod tap;
 /// The registration stage lives with registration; the pipeline drives it.
 pub use texel_register::placement;
 pub mod worker;
@@ -56,6 +57,7 @@ use crate::source::v4l_convert::PixelFormat;
 use crate::source::{FrameSink, Source, SourceMetrics};
 use crate::status::{Metrics, QueueProbe, status_line};
 use crate::store::Store;
+use crate::zenoh_publish::ZenohPublisher;
 use encode::Encoder;
 use ingest::Ingest;
 use placement::{CapturePoses, RegistrarStage, Registration};
@@ -85,6 +87,11 @@ pub enum SessionError {
     Resume(#[from] ResumeError),
     #[error("a pipeline thread failed: {0}")]
     Thread(String),
+    #[error(transparent)]
+    Zenoh(#[from] crate::zenoh_publish::ZenohError),
+    #[cfg(feature = "foxglove-live")]
+    #[error(transparent)]
+    Foxglove(#[from] crate::foxglove_live::FoxgloveLiveError),
 }
 
 /// What a finished session did.
@@ -103,6 +110,14 @@ pub struct Session {
     pub local_addr: Option<SocketAddr>,
     /// Cancelled when every source has stopped.
     pub sources_done: CancellationToken,
+    /// Where this daemon listens for Zenoh, when it publishes there (`[zenoh]`).
+    pub zenoh_locators: Vec<String>,
+    zenoh: Option<ZenohPublisher>,
+    /// Where the Foxglove app connects, when the session offers itself there
+    /// (`[foxglove]`; the bound address, so port 0 becomes a real port).
+    pub foxglove_addr: Option<SocketAddr>,
+    #[cfg(feature = "foxglove-live")]
+    foxglove: Option<crate::foxglove_live::FoxgloveLive>,
     task: JoinHandle<Result<SessionSummary, SessionError>>,
 }
 
@@ -195,6 +210,32 @@ impl Session {
                 (source, m)
             })
             .collect();
+        let zenoh = if config.zenoh.enabled {
+            Some(ZenohPublisher::start(&config, Arc::clone(&hub), shutdown.clone()).await?)
+        } else {
+            None
+        };
+        // Last before the pipeline starts: nothing after it can fail.
+        #[cfg(feature = "foxglove-live")]
+        let foxglove = if config.foxglove.enabled {
+            let live = crate::foxglove_live::FoxgloveLive::start(
+                &config.foxglove,
+                &config.session.name,
+                Arc::clone(&hub),
+                &metrics,
+            )
+            .await?;
+            Some(live)
+        } else {
+            None
+        };
+        #[cfg(feature = "foxglove-live")]
+        let (tap, foxglove_addr) = (
+            foxglove.as_ref().and_then(|f| f.tap()),
+            foxglove.as_ref().map(|f| f.local_addr()),
+        );
+        #[cfg(not(feature = "foxglove-live"))]
+        let (tap, foxglove_addr) = (None, None);
         let sources_done = CancellationToken::new();
         let task = tokio::spawn(run(
             config,
@@ -208,21 +249,40 @@ impl Session {
             shutdown,
             sources_done.clone(),
             restored,
+            tap,
         ));
         Ok(Self {
             hub,
             metrics,
             local_addr,
             sources_done,
+            zenoh_locators: zenoh
+                .as_ref()
+                .map(|z| z.locators.clone())
+                .unwrap_or_default(),
+            zenoh,
+            foxglove_addr,
+            #[cfg(feature = "foxglove-live")]
+            foxglove,
             task,
         })
     }
 
-    /// Waits for the session to end.
+    /// Waits for the session to end (and its Zenoh publisher to leave, for at most
+    /// two seconds).
     pub async fn wait(self) -> Result<SessionSummary, SessionError> {
-        self.task
+        let summary = self
+            .task
             .await
-            .map_err(|e| SessionError::Thread(e.to_string()))?
+            .map_err(|e| SessionError::Thread(e.to_string()))?;
+        if let Some(zenoh) = self.zenoh {
+            let _ = tokio::time::timeout(Duration::from_secs(2), zenoh.wait()).await;
+        }
+        #[cfg(feature = "foxglove-live")]
+        if let Some(foxglove) = self.foxglove {
+            foxglove.wait(Duration::from_secs(2)).await;
+        }
+        summary
     }
 }
 
@@ -488,6 +548,7 @@ async fn run(
     shutdown: CancellationToken,
     sources_done: CancellationToken,
     restored: Restored,
+    tap: Option<tap::Tap>,
 ) -> Result<SessionSummary, SessionError> {
     let record_tx = recorder.as_ref().map(|r| r.tx.clone());
     if let Some(r) = &recorder {
@@ -532,6 +593,7 @@ async fn run(
         sensor,
         metrics: Arc::clone(&metrics),
         hub: Arc::clone(&hub),
+        tap: tap.clone(),
     };
     let ingest_task = tokio::spawn(ingest.run());
     let (publish_tx, publish_rx) = mpsc::channel(config.pipeline.encode_queue);
@@ -546,6 +608,7 @@ async fn run(
         timestamps: restored.timestamps,
         timestamp_pages: Some(word_pages(&config, "timestamps")?),
         hanging_pages: Some(word_pages(&config, "hanging")?),
+        tap,
     };
     // The level-of-detail tree, off the ingest path.
     let lod_status = Arc::new(std::sync::Mutex::new(texel::wire::LodStatus::default()));

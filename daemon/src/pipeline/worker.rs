@@ -40,6 +40,8 @@ pub struct Worker {
     pub timestamp_pages: Option<Box<dyn PageStore>>,
     /// Where the pages of the set of hanging scans beyond a few go.
     pub hanging_pages: Option<Box<dyn PageStore>>,
+    /// A live copy of every pose recorded, for the Foxglove server (never waits).
+    pub tap: Option<super::tap::Tap>,
 }
 
 /// Pages of timestamps (1,024 scans, 8 bytes each, a page) kept in memory.
@@ -81,6 +83,9 @@ impl Worker {
     }
 
     fn record(&self, item: RecordItem) {
+        if let Some(tap) = &self.tap {
+            tap.offer(&item);
+        }
         if let Some(tx) = &self.record
             && tx.blocking_send(item).is_err()
         {

@@ -8,6 +8,7 @@ mod exposure;
 mod frames;
 mod fused;
 mod images;
+pub mod messages;
 mod reader;
 mod records;
 mod summary;

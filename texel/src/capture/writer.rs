@@ -9,14 +9,14 @@ use std::path::Path;
 use std::time::{Duration, Instant};
 
 use foxglove::Encode;
-use foxglove::messages::{CompressedImage, RawImage};
+use foxglove::messages::CompressedImage;
 
-use super::convert::{calibration_from_camera, timestamp_from_nanos, transform_from_pose};
-use super::images::{EoEncoding, RangeEncoding, encode_eo, encode_intensity, encode_range};
+use super::convert::{calibration_from_camera, timestamp_from_nanos};
+use super::images::{EoEncoding, RangeEncoding};
 use super::{
     ANCHOR_JSON_SCHEMA, ANCHOR_SCHEMA_NAME, CameraRole, CaptureError, EXPOSURE_JSON_SCHEMA,
     EXPOSURE_SCHEMA_NAME, ExposureRecord, PoseAnchor, PoseTopic, SENSOR_JSON_SCHEMA,
-    SENSOR_SCHEMA_NAME, frame_ids, topics,
+    SENSOR_SCHEMA_NAME, frame_ids, messages, topics,
 };
 use crate::camera::PinholeCamera;
 use crate::frames::{EoFrame, RangeFrame};
@@ -235,7 +235,7 @@ impl<W: Write + Seek> CaptureWriter<W> {
         eo_from_lidar: &Pose,
         timestamp_ns: u64,
     ) -> Result<(), CaptureError> {
-        let msg = transform_from_pose(frame_ids::EO, frame_ids::LIDAR, eo_from_lidar, timestamp_ns);
+        let msg = messages::eo_from_lidar(eo_from_lidar, timestamp_ns);
         self.write_foxglove(topics::TF_STATIC, timestamp_ns, &msg)
     }
 
@@ -263,70 +263,24 @@ impl<W: Write + Seek> CaptureWriter<W> {
         frame: &RangeFrame,
         encoding: RangeEncoding,
     ) -> Result<(), CaptureError> {
-        if !frame.is_consistent() {
-            return Err(self.write_error(format!(
-                "range frame {} has {} values for {}x{} pixels",
-                frame.seq,
-                frame.ranges_m.len(),
-                frame.width,
-                frame.height
-            )));
-        }
-        let (step, data) = encode_range(&frame.ranges_m, frame.width, encoding);
-        let msg = RawImage {
-            timestamp: Some(timestamp_from_nanos(frame.timestamp_ns)),
-            frame_id: frame_ids::LIDAR.to_string(),
-            width: frame.width,
-            height: frame.height,
-            encoding: encoding.name().to_string(),
-            step,
-            data: data.into(),
-        };
-        self.write_foxglove(topics::LIDAR_RANGE, frame.timestamp_ns, &msg)?;
-        if let Some(intensity) = &frame.intensity {
-            let (encoding, step, data) = encode_intensity(intensity, frame.width);
-            let msg = RawImage {
-                timestamp: Some(timestamp_from_nanos(frame.timestamp_ns)),
-                frame_id: frame_ids::LIDAR.to_string(),
-                width: frame.width,
-                height: frame.height,
-                encoding: encoding.to_string(),
-                step,
-                data: data.into(),
-            };
-            self.write_foxglove(topics::LIDAR_INTENSITY, frame.timestamp_ns, &msg)?;
+        let (range, intensity) =
+            messages::range_images(frame, encoding).map_err(|e| self.write_error(e))?;
+        self.write_foxglove(topics::LIDAR_RANGE, frame.timestamp_ns, &range)?;
+        if let Some(intensity) = intensity {
+            self.write_foxglove(topics::LIDAR_INTENSITY, frame.timestamp_ns, &intensity)?;
         }
         Ok(())
     }
 
     /// `/eo/image` in one of the raw encodings.
     pub fn write_eo(&mut self, frame: &EoFrame, encoding: EoEncoding) -> Result<(), CaptureError> {
-        if !frame.is_consistent() {
-            return Err(self.write_error(format!(
-                "EO frame at {} ns has {} bytes for {}x{} RGB pixels",
-                frame.timestamp_ns,
-                frame.rgb.len(),
-                frame.width,
-                frame.height
-            )));
-        }
-        let (step, data) = encode_eo(&frame.rgb, frame.width, frame.height, encoding)
-            .map_err(|e| self.write_error(e))?;
+        let msg = messages::eo_image(frame, encoding).map_err(|e| self.write_error(e))?;
         if let Some(exposure) = frame.exposure {
             self.write_exposure(&ExposureRecord {
                 timestamp_ns: frame.timestamp_ns,
                 exposure,
             })?;
         }
-        let msg = RawImage {
-            timestamp: Some(timestamp_from_nanos(frame.timestamp_ns)),
-            frame_id: frame_ids::EO.to_string(),
-            width: frame.width,
-            height: frame.height,
-            encoding: encoding.name().to_string(),
-            step,
-            data: data.into(),
-        };
         self.write_foxglove(topics::EO_IMAGE, frame.timestamp_ns, &msg)
     }
 
@@ -371,7 +325,7 @@ impl<W: Write + Seek> CaptureWriter<W> {
         timestamp_ns: u64,
         world_from_eo: &Pose,
     ) -> Result<(), CaptureError> {
-        let msg = transform_from_pose(frame_ids::WORLD, frame_ids::EO, world_from_eo, timestamp_ns);
+        let msg = messages::world_from_eo(world_from_eo, timestamp_ns);
         self.write_foxglove(topic.topic(), timestamp_ns, &msg)
     }
 

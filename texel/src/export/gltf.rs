@@ -9,7 +9,8 @@ use serde_json::{Value, json};
 
 use super::{ExportError, ExportScan, check_frames, io_error, usable_triangles};
 use crate::capture::encode_compressed;
-use crate::pose::pose_to_parts;
+use crate::pose::{Pose, pose_to_parts};
+use crate::scan::TexelScan;
 
 const FLOAT: u32 = 5126;
 const UNSIGNED_INT: u32 = 5125;
@@ -87,20 +88,47 @@ fn base64(bytes: &[u8]) -> String {
     out
 }
 
-/// Writes the scans to a glTF 2.0 file (`.glb` binary, otherwise embedded JSON).
-pub fn write_gltf(scans: &[ExportScan<'_>], path: &Path) -> Result<(), ExportError> {
-    check_frames(scans)?;
-    let mut b = Builder::default();
-    let (mut nodes, mut meshes, mut materials, mut textures, mut images) =
-        (vec![], vec![], vec![], vec![], vec![]);
-    for s in scans {
-        let scan = s.scan;
+/// A scan's texture as glTF embeds it.
+#[derive(Debug, Clone, Copy)]
+pub enum GltfTexture<'a> {
+    /// The scan's own EO pixels, compressed to PNG here (the costly part of a glTF).
+    Png,
+    /// An image already compressed in a format glTF takes (`image/jpeg` or
+    /// `image/png`), embedded as it is: a texture that travelled compressed (the
+    /// viewer stream's JPEG) costs no decoding or encoding.
+    Encoded {
+        mime_type: &'static str,
+        data: &'a [u8],
+    },
+}
+
+/// The glTF document being built: one mesh, material, texture and image per scan.
+#[derive(Default)]
+struct Document {
+    b: Builder,
+    nodes: Vec<Value>,
+    meshes: Vec<Value>,
+    materials: Vec<Value>,
+    textures: Vec<Value>,
+    images: Vec<Value>,
+}
+
+impl Document {
+    /// Adds a scan's usable triangles under a node carrying `node_pose`; false when
+    /// it has none (nothing is added).
+    fn add_scan(
+        &mut self,
+        scan: &TexelScan,
+        texture: GltfTexture<'_>,
+        node_pose: Option<Pose>,
+    ) -> Result<bool, ExportError> {
+        let b = &mut self.b;
         let indices: Vec<u8> = usable_triangles(scan)
             .flatten()
             .flat_map(u32::to_le_bytes)
             .collect();
         if indices.is_empty() {
-            continue;
+            return Ok(false);
         }
         let positions: Vec<u8> = scan
             .vertices
@@ -127,24 +155,33 @@ pub fn write_gltf(scans: &[ExportScan<'_>], path: &Path) -> Result<(), ExportErr
         let ua = b.accessor(uv, FLOAT, scan.vertex_count(), "VEC2", json!({}));
         let iv = b.view(&indices, Some(ELEMENT_ARRAY_BUFFER));
         let ia = b.accessor(iv, UNSIGNED_INT, indices.len() / 4, "SCALAR", json!({}));
-        let png = encode_compressed(
-            &scan.texture.rgb,
-            scan.texture.width,
-            scan.texture.height,
-            "png",
-            90,
-        )
-        .map_err(|e| ExportError::Texture {
-            seq: scan.seq,
-            message: e.to_string(),
-        })?;
-        let image_view = b.view(&png, None);
-        images.push(json!({"bufferView": image_view, "mimeType": "image/png"}));
-        textures.push(json!({"source": images.len() - 1, "sampler": 0}));
-        materials.push(json!({
+        let png;
+        let (mime_type, image) = match texture {
+            GltfTexture::Png => {
+                png = encode_compressed(
+                    &scan.texture.rgb,
+                    scan.texture.width,
+                    scan.texture.height,
+                    "png",
+                    90,
+                )
+                .map_err(|e| ExportError::Texture {
+                    seq: scan.seq,
+                    message: e.to_string(),
+                })?;
+                ("image/png", png.as_slice())
+            }
+            GltfTexture::Encoded { mime_type, data } => (mime_type, data),
+        };
+        let image_view = b.view(image, None);
+        self.images
+            .push(json!({"bufferView": image_view, "mimeType": mime_type}));
+        self.textures
+            .push(json!({"source": self.images.len() - 1, "sampler": 0}));
+        self.materials.push(json!({
             "name": format!("scan {}", scan.seq),
             "pbrMetallicRoughness": {
-                "baseColorTexture": {"index": textures.len() - 1},
+                "baseColorTexture": {"index": self.textures.len() - 1},
                 "metallicFactor": 0.0,
                 "roughnessFactor": 1.0
             },
@@ -152,57 +189,92 @@ pub fn write_gltf(scans: &[ExportScan<'_>], path: &Path) -> Result<(), ExportErr
             // The texture is what the camera saw: shown as is, not relit.
             "extensions": {"KHR_materials_unlit": {}}
         }));
-        meshes.push(json!({
+        self.meshes.push(json!({
             "name": format!("scan {}", scan.seq),
             "primitives": [{
                 "attributes": {"POSITION": pa, "TEXCOORD_0": ua},
                 "indices": ia,
-                "material": materials.len() - 1
+                "material": self.materials.len() - 1
             }]
         }));
-        let mut node = json!({"name": format!("scan {} at {} ns", scan.seq, scan.timestamp_ns), "mesh": meshes.len() - 1});
-        if let Some(pose) = s.world_from_scan {
+        let mut node = json!({"name": format!("scan {} at {} ns", scan.seq, scan.timestamp_ns), "mesh": self.meshes.len() - 1});
+        if let Some(pose) = node_pose {
             let (t, q) = pose_to_parts(&pose);
             node["translation"] = json!(t);
             node["rotation"] = json!(q);
         }
-        nodes.push(node);
+        self.nodes.push(node);
+        Ok(true)
     }
-    if meshes.is_empty() {
+
+    /// The document's bytes: a GLB container, or JSON with the buffer embedded as a
+    /// data URI.
+    fn finish(self, glb: bool) -> Vec<u8> {
+        let mut buffer = json!({"byteLength": self.b.bin.len()});
+        if !glb {
+            buffer["uri"] = json!(format!(
+                "data:application/octet-stream;base64,{}",
+                base64(&self.b.bin)
+            ));
+        }
+        let document = json!({
+            "asset": {"version": "2.0", "generator": concat!("texel ", env!("CARGO_PKG_VERSION"))},
+            "extensionsUsed": ["KHR_materials_unlit"],
+            "scene": 0,
+            "scenes": [{"nodes": (0..self.nodes.len()).collect::<Vec<_>>()}],
+            "nodes": self.nodes,
+            "meshes": self.meshes,
+            "materials": self.materials,
+            "textures": self.textures,
+            "samplers": [{"magFilter": LINEAR, "minFilter": LINEAR, "wrapS": CLAMP_TO_EDGE, "wrapT": CLAMP_TO_EDGE}],
+            "images": self.images,
+            "accessors": self.b.accessors,
+            "bufferViews": self.b.buffer_views,
+            "buffers": [buffer],
+        });
+        let text = document.to_string();
+        if glb {
+            glb_container(text.into_bytes(), self.b.bin)
+        } else {
+            text.into_bytes()
+        }
+    }
+}
+
+/// Writes the scans to a glTF 2.0 file (`.glb` binary, otherwise embedded JSON).
+pub fn write_gltf(scans: &[ExportScan<'_>], path: &Path) -> Result<(), ExportError> {
+    check_frames(scans)?;
+    let mut doc = Document::default();
+    for s in scans {
+        doc.add_scan(s.scan, GltfTexture::Png, s.world_from_scan)?;
+    }
+    if doc.meshes.is_empty() {
         return Err(ExportError::Empty("no scan has a usable triangle".into()));
     }
     let glb = path
         .extension()
         .is_some_and(|e| e.eq_ignore_ascii_case("glb"));
-    let mut buffer = json!({"byteLength": b.bin.len()});
-    if !glb {
-        buffer["uri"] = json!(format!(
-            "data:application/octet-stream;base64,{}",
-            base64(&b.bin)
-        ));
+    std::fs::write(path, doc.finish(glb)).map_err(io_error(path))
+}
+
+/// One scan as a binary glTF (GLB) in memory: its usable triangles in the scan's own
+/// frame (f32, relative to its origin), its texture as `texture` says, under one
+/// node carrying `root` (none: the identity). For a model placed by someone else, as
+/// a Foxglove model primitive is by its pose. A scan without a usable triangle is
+/// [`ExportError::Empty`].
+pub fn scan_glb(
+    scan: &TexelScan,
+    texture: GltfTexture<'_>,
+    root: Option<Pose>,
+) -> Result<Vec<u8>, ExportError> {
+    let mut doc = Document::default();
+    if !doc.add_scan(scan, texture, root)? {
+        return Err(ExportError::Empty(format!(
+            "scan {} has no usable triangle",
+            scan.seq
+        )));
     }
-    let document = json!({
-        "asset": {"version": "2.0", "generator": concat!("texel ", env!("CARGO_PKG_VERSION"))},
-        "extensionsUsed": ["KHR_materials_unlit"],
-        "scene": 0,
-        "scenes": [{"nodes": (0..nodes.len()).collect::<Vec<_>>()}],
-        "nodes": nodes,
-        "meshes": meshes,
-        "materials": materials,
-        "textures": textures,
-        "samplers": [{"magFilter": LINEAR, "minFilter": LINEAR, "wrapS": CLAMP_TO_EDGE, "wrapT": CLAMP_TO_EDGE}],
-        "images": images,
-        "accessors": b.accessors,
-        "bufferViews": b.buffer_views,
-        "buffers": [buffer],
-    });
-    let text = document.to_string();
-    let bytes = if glb {
-        glb_container(text.into_bytes(), b.bin)
-    } else {
-        text.into_bytes()
-    };
-    std::fs::write(path, bytes).map_err(io_error(path))
+    Ok(doc.finish(true))
 }
 
 /// The GLB container: a 12-byte header, a JSON chunk padded with spaces and a BIN

@@ -10,7 +10,7 @@
 mod gltf;
 mod ply;
 
-pub use gltf::{glb_container, write_gltf};
+pub use gltf::{GltfTexture, glb_container, scan_glb, write_gltf};
 pub use ply::write_ply;
 
 use std::path::Path;

@@ -16,6 +16,7 @@ mod scan;
 mod status;
 mod tile_catalog;
 mod tiles;
+pub mod zenoh_keys;
 
 pub use fetch::{DEFAULT_MAX_IN_FLIGHT, FetchPlan};
 pub use listing::LISTING_LEN;
@@ -80,7 +81,7 @@ impl Limits {
 }
 
 /// Message kinds on the wire.
-mod kind {
+pub mod kind {
     pub const CLIENT_HELLO: u8 = 0x01;
     pub const SERVER_HELLO: u8 = 0x02;
     pub const REFUSED: u8 = 0x03;

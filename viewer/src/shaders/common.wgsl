@@ -130,7 +130,12 @@ fn hsv_to_rgb(h: f32, s: f32, v: f32) -> vec3<f32> {
 }
 
 // Same as `composite::scan_colour`.
+// Scans merged from several cameras (ids camera << 24 | id) take their camera's.
 fn scan_colour(scan: u32) -> vec3<f32> {
+    let camera = scan >> 24u;
+    if camera != 0u {
+        return hsv_to_rgb(fract(f32(camera) * 0.618034 + 0.1), 0.75, 0.95);
+    }
     return hsv_to_rgb(fract(f32(scan) * 0.618034), 0.75, 0.95);
 }
 
