@@ -39,6 +39,9 @@ struct Camera {
     held: Vec<(Topic, Vec<u8>)>,
     /// Own id -> (listing, pose).
     scans: BTreeMap<ScanId, (ScanListing, Pose)>,
+    /// The camera's listing order (coarse first), then new scans as they came; may
+    /// name scans since withdrawn (skipped).
+    order: Vec<ScanId>,
 }
 
 pub(crate) struct Cameras {
@@ -92,6 +95,7 @@ impl Cameras {
             listing_received: false,
             held: Vec::new(),
             scans: BTreeMap::new(),
+            order: Vec::new(),
         });
         Some(self.cameras.len())
     }
@@ -145,6 +149,7 @@ impl Cameras {
             return;
         };
         let mut listed = BTreeMap::new();
+        let mut order = Vec::new();
         for frame in frames {
             if let Ok(Some((
                 Message::ScanListed {
@@ -156,14 +161,24 @@ impl Cameras {
             ))) = decode_frame(frame, &Limits::FROM_SERVER)
             {
                 listed.insert(id, (listing, world_from_scan));
+                order.push(id);
             }
         }
-        let old = std::mem::take(&mut self.cameras[n - 1].scans);
-        for id in old.keys().filter(|id| !listed.contains_key(id)) {
-            self.withdraw(n, *id);
+        let stale: Vec<ScanId> = self.cameras[n - 1]
+            .scans
+            .keys()
+            .filter(|id| !listed.contains_key(id))
+            .copied()
+            .collect();
+        for id in stale {
+            self.withdraw(n, id);
         }
-        for (id, (listing, pose)) in listed {
-            self.list(n, id, listing, pose);
+        self.cameras[n - 1].scans.clear();
+        self.cameras[n - 1].order.clear();
+        for id in order {
+            if let Some(&(listing, pose)) = listed.get(&id) {
+                self.list(n, id, listing, pose);
+            }
         }
         let c = &mut self.cameras[n - 1];
         c.listing_received = true;
@@ -230,7 +245,10 @@ impl Cameras {
             tracing::warn!("zenoh: scan {id} of camera {n} is past the ids a gateway merges");
             return;
         };
-        self.cameras[n - 1].scans.insert(id, (listing, pose));
+        let c = &mut self.cameras[n - 1];
+        if c.scans.insert(id, (listing, pose)).is_none() {
+            c.order.push(id);
+        }
         if let Ok(frame) = (Message::ScanListed {
             id: g,
             listing,
@@ -243,9 +261,11 @@ impl Cameras {
     }
 
     fn withdraw(&mut self, n: usize, id: ScanId) {
-        if self.cameras[n - 1].scans.remove(&id).is_none() {
+        let c = &mut self.cameras[n - 1];
+        if c.scans.remove(&id).is_none() {
             return;
         }
+        c.order.retain(|&x| x != id);
         let Some(g) = global_id(n, id) else { return };
         self.drop_data(g);
         if let Ok(frame) = (Message::ScanWithdrawn { id: g }).encode() {
@@ -323,7 +343,9 @@ impl Cameras {
         self.cache.get(&g).cloned()
     }
 
-    /// What a viewer learns first: every listed scan of every camera.
+    /// What a viewer learns first: every listed scan of every camera, each camera's
+    /// in its own order (coarse first), the cameras taken in turn so that every
+    /// camera's coarse scans come early.
     pub fn snapshot_frames(&self) -> Vec<Bytes> {
         let count: u64 = self.cameras.iter().map(|c| c.scans.len() as u64).sum();
         let mut out = Vec::with_capacity(count as usize + 2);
@@ -333,9 +355,17 @@ impl Cameras {
             }
         };
         push(Message::ModelReset { scan_count: count });
-        for (i, c) in self.cameras.iter().enumerate() {
-            for (&id, &(listing, pose)) in &c.scans {
-                if let Some(g) = global_id(i + 1, id) {
+        let longest = self
+            .cameras
+            .iter()
+            .map(|c| c.order.len())
+            .max()
+            .unwrap_or(0);
+        for k in 0..longest {
+            for (i, c) in self.cameras.iter().enumerate() {
+                let Some(&id) = c.order.get(k) else { continue };
+                if let (Some(&(listing, pose)), Some(g)) = (c.scans.get(&id), global_id(i + 1, id))
+                {
                     push(Message::ScanListed {
                         id: g,
                         listing,
@@ -352,5 +382,173 @@ impl Cameras {
     /// connection closes, and the viewer reconnects to a fresh snapshot).
     fn broadcast(&mut self, frame: Bytes) {
         self.viewers.retain(|tx| tx.try_send(frame.clone()).is_ok());
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use texel::pose::pose_from_parts;
+
+    fn listing() -> ScanListing {
+        ScanListing {
+            timestamp_ns: 1,
+            bounds_min_m: [0.0; 3],
+            bounds_max_m: [1.0; 3],
+            cop_m: [0.0; 3],
+            priority: 0.5,
+            encoded_bytes: 10,
+        }
+    }
+
+    fn pose(x: f64) -> Pose {
+        pose_from_parts([x, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]).unwrap()
+    }
+
+    fn frame(m: Message) -> Vec<u8> {
+        m.encode().unwrap()
+    }
+
+    fn listed(id: ScanId, x: f64) -> Vec<u8> {
+        frame(Message::ScanListed {
+            id,
+            listing: listing(),
+            world_from_scan: pose(x),
+        })
+    }
+
+    fn snapshot(ids: &[ScanId]) -> Vec<u8> {
+        let mut out = frame(Message::ModelReset {
+            scan_count: ids.len() as u64,
+        });
+        for &id in ids {
+            out.extend(listed(id, id as f64));
+        }
+        out.extend(frame(Message::SnapshotComplete {
+            scan_count: ids.len() as u64,
+        }));
+        out
+    }
+
+    /// Every frame a viewer subscribed now would be sent, decoded.
+    fn drain(rx: &mut mpsc::Receiver<Bytes>) -> Vec<Message> {
+        let mut out = Vec::new();
+        while let Ok(f) = rx.try_recv() {
+            out.push(decode_frame(&f, &Limits::FROM_SERVER).unwrap().unwrap().0);
+        }
+        out
+    }
+
+    #[test]
+    fn live_changes_wait_for_the_listing_and_ids_are_merged() {
+        let mut c = Cameras::new(1 << 20);
+        let (tx, mut rx) = mpsc::channel(64);
+        c.viewers.push(tx);
+        assert_eq!(c.joined("texel/s/a"), Some(1));
+        assert_eq!(c.joined("texel/s/b"), Some(2));
+        // Camera b: a revision of scan 1 arrives before its listing, then scan 2.
+        c.live(
+            "texel/s/b",
+            Topic::Pose(1),
+            frame(Message::PoseRevised {
+                id: 1,
+                world_from_scan: pose(9.0),
+            }),
+        );
+        c.live("texel/s/b", Topic::Listing(2), listed(2, 2.0));
+        assert!(drain(&mut rx).is_empty(), "held back until the listing");
+        c.snapshot("texel/s/b", &snapshot(&[1, 0]));
+        let got = drain(&mut rx);
+        let b = |i| global_id(2, i).unwrap();
+        assert_eq!(
+            got.iter()
+                .map(|m| match m {
+                    Message::ScanListed { id, .. } => ("listed", *id),
+                    Message::PoseRevised { id, .. } => ("revised", *id),
+                    other => panic!("{other:?}"),
+                })
+                .collect::<Vec<_>>(),
+            vec![
+                ("listed", b(1)),
+                ("listed", b(0)),
+                ("revised", b(1)),
+                ("listed", b(2))
+            ]
+        );
+        // Camera a lists its own scan 0: a different merged id.
+        c.snapshot("texel/s/a", &snapshot(&[0]));
+        assert!(c.is_listed(global_id(1, 0).unwrap()) && c.is_listed(b(0)));
+        // A newcomer's snapshot: both cameras, coarse first in turn, current poses.
+        let snap: Vec<Message> = c
+            .snapshot_frames()
+            .iter()
+            .map(|f| decode_frame(f, &Limits::FROM_SERVER).unwrap().unwrap().0)
+            .collect();
+        assert_eq!(snap.first(), Some(&Message::ModelReset { scan_count: 4 }));
+        let ids: Vec<ScanId> = snap
+            .iter()
+            .filter_map(|m| match m {
+                Message::ScanListed { id, .. } => Some(*id),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(ids, vec![global_id(1, 0).unwrap(), b(1), b(0), b(2)]);
+        assert!(snap.contains(&Message::ScanListed {
+            id: b(1),
+            listing: listing(),
+            world_from_scan: pose(9.0)
+        }));
+        // A new listing from camera b (after it restarted) withdraws what it lost.
+        c.snapshot("texel/s/b", &snapshot(&[0]));
+        let got = drain(&mut rx);
+        assert!(
+            got.contains(&Message::ScanWithdrawn { id: b(1) }),
+            "{got:?}"
+        );
+        assert!(
+            got.contains(&Message::ScanWithdrawn { id: b(2) }),
+            "{got:?}"
+        );
+        assert!(!c.is_listed(b(1)) && c.is_listed(b(0)));
+    }
+
+    #[test]
+    fn scan_data_are_remapped_and_kept_within_the_budget() {
+        let data = |id| {
+            let mut f = frame(Message::ScanWithdrawn { id });
+            // A ScanAdded-shaped frame: the kind byte and the id are all the cache reads.
+            f[crate::zenoh_gateway::tests_support::KIND_AT] = kind::SCAN_ADDED;
+            f
+        };
+        let mut c = Cameras::new(2 * data(0).len());
+        c.joined("texel/s/a");
+        c.snapshot("texel/s/a", &snapshot(&[0, 1, 2]));
+        for id in 0..3 {
+            c.live("texel/s/a", Topic::Scan(id), data(id));
+        }
+        let g = |i| global_id(1, i).unwrap();
+        assert!(c.cached(g(0)).is_none(), "the oldest left the budget");
+        let kept = c.cached(g(2)).unwrap();
+        assert_eq!(frame_head(&kept), Some((kind::SCAN_ADDED, Some(g(2)))));
+        // Not a scan's data: not kept.
+        c.live(
+            "texel/s/a",
+            Topic::Scan(1),
+            frame(Message::ScanUnavailable {
+                id: 1,
+                reason: "x".into(),
+            }),
+        );
+        assert_eq!(c.cached(g(1)).map(|f| f.len()), Some(data(1).len()));
+        // A ScanUnavailable answer is remapped all the same.
+        let answer = frame(Message::ScanUnavailable {
+            id: 7,
+            reason: "gone".into(),
+        });
+        let remapped = Cameras::remap_data(3, &answer).unwrap();
+        assert_eq!(
+            frame_head(&remapped),
+            Some((kind::SCAN_UNAVAILABLE, Some(global_id(3, 7).unwrap())))
+        );
     }
 }

@@ -13,6 +13,11 @@
 
 mod cameras;
 mod serve;
+#[cfg(test)]
+mod tests_support {
+    /// Where a frame's kind byte is (after its length).
+    pub const KIND_AT: usize = texel::wire::LENGTH_PREFIX;
+}
 
 use std::net::SocketAddr;
 use std::sync::{Arc, Mutex, MutexGuard};
