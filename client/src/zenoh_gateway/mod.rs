@@ -25,7 +25,7 @@ use std::time::Duration;
 
 use thiserror::Error;
 use tokio::net::TcpListener;
-use tokio_util_shim::CancelOnDrop;
+use tokio_util::sync::{CancellationToken, DropGuard};
 
 use texel::model::ScanId;
 use texel::wire::zenoh_keys::{self, KeyError, Topic, parse_key};
@@ -95,7 +95,8 @@ impl GatewayOptions {
 pub struct Gateway {
     pub addr: SocketAddr,
     shared: Arc<Shared>,
-    _stop: CancelOnDrop,
+    /// Cancels the gateway's tasks when the gateway is dropped.
+    _stop: DropGuard,
 }
 
 impl Gateway {
@@ -114,7 +115,7 @@ impl Gateway {
             state: Mutex::new(Cameras::new(options.data_cache_bytes)),
             query_timeout: options.query_timeout,
         });
-        let stop = tokio_util_shim::Cancel::default();
+        let stop = CancellationToken::new();
         let declare = |what: &str, e: zenoh::Error| GatewayError::Declare {
             what: format!("{what} {selector}"),
             message: e.to_string(),
@@ -163,7 +164,7 @@ impl Gateway {
         Ok(Self {
             addr,
             shared,
-            _stop: stop.on_drop(),
+            _stop: stop.drop_guard(),
         })
     }
 
@@ -242,45 +243,5 @@ impl Shared {
             }
         }
         None
-    }
-}
-
-/// A cancellation token without the tokio-util dependency: a watch channel.
-mod tokio_util_shim {
-    use tokio::sync::watch;
-
-    #[derive(Clone)]
-    pub struct Cancel {
-        tx: std::sync::Arc<watch::Sender<bool>>,
-    }
-
-    impl Default for Cancel {
-        fn default() -> Self {
-            Self {
-                tx: std::sync::Arc::new(watch::channel(false).0),
-            }
-        }
-    }
-
-    impl Cancel {
-        pub async fn cancelled(&self) {
-            let mut rx = self.tx.subscribe();
-            let _ = rx.wait_for(|&c| c).await;
-        }
-        pub fn cancel(&self) {
-            let _ = self.tx.send(true);
-        }
-        pub fn on_drop(&self) -> CancelOnDrop {
-            CancelOnDrop(self.clone())
-        }
-    }
-
-    /// Cancels when dropped (the gateway's tasks end with it).
-    pub struct CancelOnDrop(Cancel);
-
-    impl Drop for CancelOnDrop {
-        fn drop(&mut self) {
-            self.0.cancel();
-        }
     }
 }

@@ -10,10 +10,10 @@ use texel::wire::{Limits, MIN_PROTOCOL_VERSION, Message, decode_frame};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::mpsc;
+use tokio_util::sync::CancellationToken;
 
 use super::Shared;
 use super::cameras::Cameras;
-use super::tokio_util_shim::Cancel;
 
 /// The version the gateway speaks (what the cameras publish).
 const VERSION: u16 = 2;
@@ -24,7 +24,7 @@ const MAX_VIEWERS: usize = 8;
 /// How long a viewer has to say hello.
 const HELLO_TIMEOUT: Duration = Duration::from_secs(5);
 
-pub(crate) async fn run(listener: TcpListener, shared: Arc<Shared>, stop: Cancel) {
+pub(crate) async fn run(listener: TcpListener, shared: Arc<Shared>, stop: CancellationToken) {
     let slots = Arc::new(tokio::sync::Semaphore::new(MAX_VIEWERS));
     loop {
         let accepted = tokio::select! {
@@ -46,7 +46,11 @@ pub(crate) async fn run(listener: TcpListener, shared: Arc<Shared>, stop: Cancel
     }
 }
 
-async fn viewer(mut stream: TcpStream, shared: Arc<Shared>, stop: Cancel) -> std::io::Result<()> {
+async fn viewer(
+    mut stream: TcpStream,
+    shared: Arc<Shared>,
+    stop: CancellationToken,
+) -> std::io::Result<()> {
     let _ = stream.set_nodelay(true);
     let mut buf = BytesMut::with_capacity(4096);
     let hello = tokio::time::timeout(HELLO_TIMEOUT, next_message(&mut stream, &mut buf))

@@ -235,27 +235,34 @@ impl Forward {
         true
     }
 
+    /// Listings, revisions, withdrawals, statuses: Zenoh holds them until the link
+    /// takes them.
     async fn put_reliable(&self, key: String, payload: Bytes) {
+        self.put(key, payload, CongestionControl::Block, Priority::Data)
+            .await;
+    }
+
+    /// Scans' data: dropped first on a congested link (subscribers ask again by id).
+    async fn put_droppable(&self, key: String, payload: Bytes) {
+        self.put(key, payload, CongestionControl::Drop, Priority::DataLow)
+            .await;
+    }
+
+    async fn put(
+        &self,
+        key: String,
+        payload: Bytes,
+        congestion: CongestionControl,
+        priority: Priority,
+    ) {
         let put = self
             .session
             .put(&key, payload.to_vec())
-            .congestion_control(CongestionControl::Block)
-            .priority(Priority::Data)
+            .congestion_control(congestion)
+            .priority(priority)
             .await;
         if let Err(e) = put {
             tracing::warn!("zenoh: put {key}: {e}");
-        }
-    }
-
-    async fn put_droppable(&self, key: String, payload: Bytes) {
-        let put = self
-            .session
-            .put(&key, payload.to_vec())
-            .congestion_control(CongestionControl::Drop)
-            .priority(Priority::DataLow)
-            .await;
-        if let Err(e) = put {
-            tracing::debug!("zenoh: put {key}: {e}");
         }
     }
 
