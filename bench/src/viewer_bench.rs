@@ -2,7 +2,10 @@
 //! with about 10 in view, k-buffer against the naive layers, all measured in one run
 //! (ratios are against baselines from the same run: the machine is shared and noisy);
 //! then residency: the frame time with every scan resident against only those the
-//! view needs, and what planning residency costs per frame for large models.
+//! view needs, and what planning residency costs per frame for large models; with
+//! `--adaptive`, the window's adaptive quality (`viewer_bench/adaptive.rs`).
+
+mod adaptive;
 
 use std::time::Instant;
 
@@ -28,6 +31,21 @@ pub struct BenchArgs {
     /// Measure residency only (skip the strategy tables).
     #[arg(long)]
     pub residency_only: bool,
+    /// Measure adaptive quality only: frame time while orbiting before and after,
+    /// release to full quality, PSNR of the interactive frames (use --width 1280
+    /// --height 800 for the window's default size).
+    #[arg(long, conflicts_with = "residency_only")]
+    pub adaptive: bool,
+    /// With --adaptive: a capture to orbit in, NAME=PATH (repeatable); the synthetic
+    /// 100-scan corridor is always measured.
+    #[arg(long, value_name = "NAME=PATH", requires = "adaptive")]
+    pub capture: Vec<String>,
+    /// With --adaptive: the interactive frame's budget, ms.
+    #[arg(long, default_value_t = texel_viewer::adaptive::DEFAULT_INTERACTIVE_MS)]
+    pub interactive_ms: f64,
+    /// With --adaptive: the scripted orbit's length, seconds.
+    #[arg(long, default_value_t = 5.0)]
+    pub orbit_s: f64,
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -90,6 +108,9 @@ pub(crate) fn measure(
 pub fn run(args: &BenchArgs) -> anyhow::Result<()> {
     let gpu = GpuContext::headless()?;
     println!("adapter: {}", gpu.adapter_name());
+    if args.adaptive {
+        return adaptive::run(&gpu, args);
+    }
     println!(
         "target {}x{}, blended mode, k = 4, {} timed frames per row; scans: 64x48 lidar, 320x240 EO",
         args.width, args.height, args.frames

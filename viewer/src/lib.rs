@@ -2,6 +2,7 @@
 //! its CPU reference, capture loading, headless rendering, the window and the browser
 //! page (`web`, built for wasm32).
 
+pub mod adaptive;
 pub mod app;
 pub mod camera;
 pub mod capture_load;

@@ -96,6 +96,46 @@ struct LiveArgs {
     /// Window: scans the model must hold before the screenshot (waits at most 60 s).
     #[arg(long, default_value_t = 1)]
     min_scans: usize,
+    #[command(flatten)]
+    pacing: PacingArgs,
+}
+
+/// How the window answers the hand: cheap frames within a budget while the view
+/// moves, the full-quality frame once it is still.
+#[derive(Args)]
+struct PacingArgs {
+    /// Budget of a frame while the view moves, ms: drawn at a reduced resolution
+    /// (steered by the measured frame time) in a cheap mode; 0: every frame at full
+    /// quality.
+    #[arg(long, default_value_t = texel_viewer::adaptive::DEFAULT_INTERACTIVE_MS)]
+    interactive_ms: f64,
+    /// Once the full-quality frame is shown and nothing changes, stay this many
+    /// seconds, print the GPU submissions made meanwhile (none when idle), and exit.
+    #[arg(long, value_name = "SECONDS")]
+    exit_when_idle: Option<f64>,
+}
+
+impl PacingArgs {
+    /// The budget (`None`: adaptive quality off) and the idle exit.
+    fn options(&self) -> anyhow::Result<(Option<f64>, Option<std::time::Duration>)> {
+        if !(self.interactive_ms.is_finite() && self.interactive_ms >= 0.0) {
+            bail!(
+                "--interactive-ms {} must be finite and not negative",
+                self.interactive_ms
+            );
+        }
+        let idle = match self.exit_when_idle {
+            Some(s) if s.is_finite() && (0.0..=86400.0).contains(&s) => {
+                Some(std::time::Duration::from_secs_f64(s))
+            }
+            Some(s) => bail!("--exit-when-idle {s} must be within 0..=86400 seconds"),
+            None => None,
+        };
+        Ok((
+            (self.interactive_ms > 0.0).then_some(self.interactive_ms),
+            idle,
+        ))
+    }
 }
 
 #[derive(Subcommand)]
@@ -388,6 +428,8 @@ struct OpenArgs {
     /// Scans the model must hold before the screenshot (waits at most 60 s).
     #[arg(long, default_value_t = 1)]
     min_scans: usize,
+    #[command(flatten)]
+    pacing: PacingArgs,
 }
 
 fn load(path: &std::path::Path) -> anyhow::Result<LoadedCapture> {
@@ -642,6 +684,7 @@ fn render_lod(
 
 fn open(args: OpenArgs) -> anyhow::Result<()> {
     let settings = args.display.settings()?;
+    let (interactive_ms, exit_when_idle) = args.pacing.options()?;
     let budget_bytes = args.display.budget_bytes()?;
     let mut eo_camera = None;
     let mut eo_response = None;
@@ -685,6 +728,8 @@ fn open(args: OpenArgs) -> anyhow::Result<()> {
         scans_below_tiles: true,
         vdtm: args.display.vdtm(eo_camera)?,
         eo_response,
+        interactive_ms,
+        exit_when_idle,
     });
     drop(keep_alive);
     result
@@ -733,6 +778,7 @@ fn stop_on_signal() -> Arc<AtomicBool> {
 
 fn connect(args: LiveArgs, addr: String) -> anyhow::Result<()> {
     let settings = args.display.settings()?;
+    let (interactive_ms, exit_when_idle) = args.pacing.options()?;
     let budget_bytes = args.display.budget_bytes()?;
     let (tx, rx) = std::sync::mpsc::sync_channel(live::EVENT_QUEUE);
     let (commands, command_rx) = std::sync::mpsc::sync_channel(live::COMMAND_QUEUE);
@@ -807,6 +853,8 @@ fn connect(args: LiveArgs, addr: String) -> anyhow::Result<()> {
             scans_below_tiles: !args.lod_tiles_only,
             vdtm: args.display.vdtm(None)?,
             eo_response: None,
+            interactive_ms,
+            exit_when_idle,
         }),
     };
     connection.stop();
@@ -832,7 +880,25 @@ fn connect_tiles(
     .with_context(|| format!("the level-of-detail tiles of {addr}"))
 }
 
+/// Mesa's device-selection Vulkan layer connects to Wayland to find the display's
+/// GPU and, without a runtime directory, prints "XDG_RUNTIME_DIR is invalid or not
+/// set" (twice) to a newcomer's terminal; wgpu chooses the adapter itself, so the
+/// layer is switched off there (its own switch, `NODEVICE_SELECT`).
+fn quiet_platform_layers() {
+    let runtime_dir =
+        std::env::var_os("XDG_RUNTIME_DIR").is_some_and(|d| std::path::Path::new(&d).is_dir());
+    if !runtime_dir && std::env::var_os("NODEVICE_SELECT").is_none() {
+        // SAFETY: the first thing `main` does, before any thread exists, so nothing
+        // reads the environment concurrently.
+        #[allow(unsafe_code)]
+        unsafe {
+            std::env::set_var("NODEVICE_SELECT", "1");
+        }
+    }
+}
+
 fn main() -> anyhow::Result<()> {
+    quiet_platform_layers();
     let cli = Cli::parse();
     match cli.command {
         Some(Command::Render(a)) => render(*a),

@@ -84,3 +84,44 @@ fn window_draws_the_model_as_the_point_proxy() {
     let model = model_pixels(&img);
     assert!(model > 1000, "{model} wall pixels");
 }
+
+/// Frame pacing: once the full-quality frame is on screen and nothing changes, the
+/// window submits nothing to the GPU (counted over 2 s by `--exit-when-idle`; a window
+/// that kept drawing would count its frames there), and it starts quietly: one line
+/// on stderr per thing worth saying, no warnings from the platform layers.
+#[test]
+fn an_idle_window_submits_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let capture = dir.path().join("box.mcap");
+    write_box_capture(&capture, PoseTopic::Texel);
+    let (_xvfb, display) = start_xvfb();
+    let out = Command::new(viewer_binary())
+        .args([
+            "open",
+            capture.to_str().unwrap(),
+            "--load",
+            "--width",
+            "320",
+            "--height",
+            "240",
+            "--exit-when-idle",
+            "2",
+        ])
+        .env("DISPLAY", &display)
+        .env_remove("WAYLAND_DISPLAY")
+        .env_remove("XDG_RUNTIME_DIR")
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{}: {stderr}{stdout}", out.status);
+    let line = stdout
+        .lines()
+        .find(|l| l.starts_with("idle "))
+        .unwrap_or_else(|| panic!("no idle report in {stdout:?}"));
+    assert!(
+        line.contains(": 0 GPU submissions, 0 frames drawn"),
+        "{line}"
+    );
+    assert!(!stderr.contains("XDG_RUNTIME_DIR"), "{stderr}");
+}

@@ -3,9 +3,13 @@
 //! replay, or a loaded capture); what the view needs is uploaded within the GPU budget
 //! (`state.rs`, `crate::residency`); the overlay shows the connection, the daemon's
 //! status, the stream latency and the residency, and controls mode, blending,
-//! visibility and the camera.
+//! visibility and the camera. Frames are paced (`pacing.rs`): drawn only when
+//! something changed, cheap while the view moves, full quality once it is still
+//! (`crate::adaptive`).
 
 mod controls;
+mod events;
+mod pacing;
 mod state;
 mod ui;
 
@@ -16,17 +20,17 @@ use std::sync::mpsc::{Receiver, SyncSender};
 use web_time::{Duration, Instant};
 
 use anyhow::Context;
-use winit::application::ApplicationHandler;
-use winit::event::{ElementState, MouseButton, MouseScrollDelta, WindowEvent};
+use winit::event::MouseButton;
 use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
-use winit::keyboard::{KeyCode, PhysicalKey};
-use winit::window::{Window, WindowId};
+use winit::keyboard::KeyCode;
+use winit::window::Window;
 
 pub use controls::CameraControls;
 pub use state::ViewerState;
 
 pub(crate) use state::window_residency;
 
+use crate::adaptive::{Decision, Quality};
 use crate::gpu::{GpuContext, RenderSettings, RenderTarget, Renderer};
 use crate::live::{SourceCommand, ViewerEvent};
 use crate::tiles::net::NetTileSource;
@@ -63,6 +67,12 @@ pub struct AppOptions {
     /// The response curve that makes exposed EO frames radiance for the `points`
     /// mode's HDR rendering (sRGB when the source gives none).
     pub eo_response: Option<texel::radiance::EoResponse>,
+    /// The interactive frame's budget, milliseconds, while the view moves; `None`:
+    /// every frame at full quality.
+    pub interactive_ms: Option<f64>,
+    /// Once the full-quality frame is shown and nothing is pending, stay idle this
+    /// long, print what the window submitted to the GPU meanwhile, and exit.
+    pub exit_when_idle: Option<Duration>,
 }
 
 /// How often the window reads its tile depth back for the coverage feedback.
@@ -83,6 +93,7 @@ struct WindowState {
     /// When the tile depth was last read back for the coverage feedback.
     last_feedback: Option<Instant>,
     vdtm: Option<crate::vdtm::LiveVdtm>,
+    adaptive: crate::adaptive::AdaptiveRenderer,
 }
 
 struct App {
@@ -96,15 +107,18 @@ struct App {
     drag: Option<(MouseButton, (f64, f64))>,
     cursor: (f64, f64),
     keys: std::collections::HashSet<KeyCode>,
+    pacing: pacing::Pacing,
 }
 
 /// Opens the window and runs until it is closed (or the screenshot is taken).
 pub fn run(options: AppOptions) -> anyhow::Result<()> {
     let event_loop = EventLoop::new().context("cannot open a window (is there a display?)")?;
-    event_loop.set_control_flow(ControlFlow::Poll);
+    // Woken by input, by `about_to_wait`'s deadlines, or by a redraw it requests.
+    event_loop.set_control_flow(ControlFlow::Wait);
     let residency = window_residency(options.budget_bytes, options.commands.clone());
     let mut viewer = ViewerState::new(options.settings.clone(), options.fov_deg, residency);
     viewer.follow_newest = options.follow_newest;
+    let pacing = pacing::Pacing::new(options.interactive_ms.is_some(), options.exit_when_idle);
     let mut app = App {
         options,
         viewer,
@@ -116,6 +130,7 @@ pub fn run(options: AppOptions) -> anyhow::Result<()> {
         drag: None,
         cursor: (0.0, 0.0),
         keys: Default::default(),
+        pacing,
     };
     event_loop.run_app(&mut app).context("window event loop")?;
     match app.error {
@@ -143,6 +158,20 @@ impl App {
             .create_surface(Arc::clone(&window))
             .context("creating the window surface")?;
         let gpu = GpuContext::with_instance(instance, Some(&surface))?;
+        if gpu.adapter.get_info().device_type == wgpu::DeviceType::Cpu {
+            // Said once: why the picture is coarse while it moves.
+            eprintln!(
+                "texel-viewer: no GPU found, drawing on the CPU with {}; {}",
+                gpu.adapter_name(),
+                match self.options.interactive_ms {
+                    Some(ms) => format!(
+                        "while the view moves, frames are drawn at a lower resolution \
+                         within {ms:.0} ms, then in full once it is still"
+                    ),
+                    None => "every frame in full (--interactive-ms 0)".into(),
+                }
+            );
+        }
         let caps = surface.get_capabilities(&gpu.adapter);
         let format = crate::gpu::surface_format(&caps).context("the surface offers no format")?;
         let mut usage = wgpu::TextureUsages::RENDER_ATTACHMENT;
@@ -191,6 +220,12 @@ impl App {
             .vdtm
             .take()
             .map(|choice| crate::vdtm::LiveVdtm::new(&gpu, choice));
+        let adaptive = crate::adaptive::AdaptiveRenderer::new(
+            &gpu.device,
+            self.options
+                .interactive_ms
+                .unwrap_or(crate::adaptive::DEFAULT_INTERACTIVE_MS),
+        );
         Ok(WindowState {
             window,
             surface,
@@ -204,6 +239,7 @@ impl App {
             tile_depth: None,
             last_feedback: None,
             vdtm,
+            adaptive,
         })
     }
 
@@ -231,9 +267,6 @@ impl App {
         let now = Instant::now();
         let dt = now.duration_since(self.last_frame).as_secs_f64();
         self.last_frame = now;
-        if dt > 0.0 {
-            self.viewer.fps = 0.9 * self.viewer.fps + 0.1 / dt;
-        }
         self.fly(dt.min(0.1));
         let Some(w) = self.window.as_mut() else {
             return Ok(());
@@ -254,6 +287,8 @@ impl App {
             .texture
             .create_view(&wgpu::TextureViewDescriptor::default());
         let (width, height) = (w.config.width, w.config.height);
+        let mut drawn = None;
+        let mut through_adaptive = false;
         if let Some(camera) = self.viewer.camera(width, height) {
             let target = RenderTarget {
                 view: &view,
@@ -281,7 +316,7 @@ impl App {
                     };
                     let drawn = vdtm.encode(&mut encoder, &pass_target, &camera);
                     if drawn {
-                        w.gpu.queue.submit(Some(encoder.finish()));
+                        crate::gpu::submit(&w.gpu.queue, Some(encoder.finish()));
                     }
                     drawn
                 }
@@ -351,12 +386,34 @@ impl App {
                             .then_some(&*response);
                         w.renderer.prepare_points(&self.viewer.model, radiance);
                     }
-                    self.viewer.stats =
-                        w.renderer.render(&camera, &self.viewer.settings, &target)?;
+                    // Through the adaptive pictures: drawn only when the view changed
+                    // (cheap while it moves, full once still), shown every redraw.
+                    let key = (
+                        camera,
+                        self.viewer.settings.clone(),
+                        self.viewer.model.events_applied(),
+                    );
+                    let changed = self.pacing.view_changed(&key);
+                    if let Decision::Draw(quality) = self.pacing.pacer.decide(changed, now) {
+                        self.viewer.stats = w.adaptive.render(
+                            &mut w.renderer,
+                            &camera,
+                            &self.viewer.settings,
+                            quality,
+                        )?;
+                        self.pacing.drawn(quality, key);
+                        drawn = Some(quality);
+                    }
+                    through_adaptive = true;
                 }
             }
         }
         self.viewer.latency.drawn(Instant::now());
+        self.viewer.quality = w
+            .adaptive
+            .shown()
+            .filter(|_| through_adaptive)
+            .map(|shown| (shown, self.pacing.last_frame_ms));
         // The overlay, drawn over the frame.
         let raw_input = w.egui_state.take_egui_input(&w.window);
         let viewer = &mut self.viewer;
@@ -366,6 +423,10 @@ impl App {
             .run_pass(raw_input, |ctx| ui::panel(ctx, viewer, roomy));
         w.egui_state
             .handle_platform_output(&w.window, output.platform_output);
+        self.pacing.overlay_at = output
+            .viewport_output
+            .get(&egui::ViewportId::ROOT)
+            .and_then(|v| now.checked_add(v.repaint_delay));
         let jobs = w
             .egui_ctx
             .tessellate(output.shapes, output.pixels_per_point);
@@ -386,6 +447,15 @@ impl App {
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("overlay"),
             });
+        if through_adaptive {
+            let target = RenderTarget {
+                view: &view,
+                format: w.config.format,
+                width,
+                height,
+            };
+            w.adaptive.present(&mut encoder, &target);
+        }
         let extra = w.egui_renderer.update_buffers(
             &w.gpu.device,
             &w.gpu.queue,
@@ -413,18 +483,22 @@ impl App {
             let mut pass = pass.forget_lifetime();
             w.egui_renderer.render(&mut pass, &jobs, &screen);
         }
-        w.gpu
-            .queue
-            .submit(extra.into_iter().chain(Some(encoder.finish())));
+        crate::gpu::submit(
+            &w.gpu.queue,
+            extra.into_iter().chain(Some(encoder.finish())),
+        );
         for id in &textures_delta.free {
             w.egui_renderer.free_texture(id);
         }
         // Every delta is applied above.
         textures_delta.clear();
         self.frames += 1;
+        // The screenshot is of the full-quality frame, never an interactive one.
+        let refined = !through_adaptive || self.pacing.pacer.settled();
         if let Some((path, after, min_scans)) = &self.options.screenshot
             && self.frames >= *after
-            && ((self.viewer.model.len() >= *min_scans
+            && ((refined
+                && self.viewer.model.len() >= *min_scans
                 && self.viewer.residency_stats.in_flight == 0
                 && self.viewer.residency_stats.pending == 0
                 && w.vdtm.as_ref().is_none_or(|v| {
@@ -450,7 +524,22 @@ impl App {
             return Ok(());
         }
         w.gpu.queue.present(frame);
-        w.window.request_redraw();
+        self.pacing.dirty = false;
+        if let Some(quality) = drawn {
+            // The frame time the controller steers: everything from the start of
+            // this redraw to the picture being done (the GPU waited for).
+            w.gpu.wait_idle()?;
+            let ms = now.elapsed().as_secs_f64() * 1e3;
+            self.pacing.last_frame_ms = ms;
+            // Frames are drawn only when something changed: the rate the scene
+            // could be drawn at, not how often it was.
+            if ms > 0.0 {
+                self.viewer.fps = 1000.0 / ms;
+            }
+            if quality == Quality::Interactive {
+                w.adaptive.controller.observe(ms);
+            }
+        }
         Ok(())
     }
 }
@@ -501,84 +590,4 @@ fn read_frame(gpu: &GpuContext, texture: &wgpu::Texture) -> anyhow::Result<image
         p[3] = 255;
     }
     Ok(image)
-}
-
-impl ApplicationHandler for App {
-    fn resumed(&mut self, event_loop: &ActiveEventLoop) {
-        if self.window.is_some() {
-            return;
-        }
-        match self.create_window(event_loop) {
-            Ok(w) => {
-                w.window.request_redraw();
-                self.window = Some(w);
-            }
-            Err(e) => {
-                self.error = Some(e);
-                event_loop.exit();
-            }
-        }
-    }
-
-    fn window_event(&mut self, event_loop: &ActiveEventLoop, _id: WindowId, event: WindowEvent) {
-        let consumed = match self.window.as_mut() {
-            Some(w) => w.egui_state.on_window_event(&w.window, &event).consumed,
-            None => false,
-        };
-        match event {
-            WindowEvent::CloseRequested => event_loop.exit(),
-            WindowEvent::Resized(size) => {
-                if let Some(w) = self.window.as_mut() {
-                    w.config.width = size.width.max(1);
-                    w.config.height = size.height.max(1);
-                    w.surface.configure(&w.gpu.device, &w.config);
-                }
-            }
-            WindowEvent::RedrawRequested => {
-                if let Err(e) = self.redraw(event_loop) {
-                    self.error = Some(e);
-                    event_loop.exit();
-                }
-            }
-            WindowEvent::KeyboardInput { event, .. } if !consumed => {
-                if let PhysicalKey::Code(code) = event.physical_key {
-                    if event.state == ElementState::Pressed {
-                        if code == KeyCode::KeyL && !event.repeat {
-                            self.viewer.show_tiles = !self.viewer.show_tiles;
-                        }
-                        self.keys.insert(code);
-                    } else {
-                        self.keys.remove(&code);
-                    }
-                }
-            }
-            WindowEvent::MouseInput { state, button, .. } => {
-                self.drag =
-                    (state == ElementState::Pressed && !consumed).then_some((button, self.cursor));
-            }
-            WindowEvent::CursorMoved { position, .. } => {
-                self.cursor = (position.x, position.y);
-                if let (Some((button, last)), Some(w)) = (self.drag, self.window.as_ref()) {
-                    let (dx, dy) = (position.x - last.0, position.y - last.1);
-                    let focal = self
-                        .viewer
-                        .camera(w.config.width, w.config.height)
-                        .map_or(1000.0, |c| c.focal_px());
-                    match button {
-                        MouseButton::Left => self.viewer.controls.orbit(dx, dy),
-                        _ => self.viewer.controls.pan(dx, dy, focal),
-                    }
-                    self.drag = Some((button, self.cursor));
-                }
-            }
-            WindowEvent::MouseWheel { delta, .. } if !consumed => {
-                let steps = match delta {
-                    MouseScrollDelta::LineDelta(_, y) => f64::from(y),
-                    MouseScrollDelta::PixelDelta(p) => p.y / 40.0,
-                };
-                self.viewer.controls.zoom(steps);
-            }
-            _ => {}
-        }
-    }
 }

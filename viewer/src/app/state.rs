@@ -53,6 +53,9 @@ pub struct ViewerState {
     pub vdtm_settings: Option<crate::vdtm::VdtmSettings>,
     /// The response curve the source sent (a daemon of protocol version 4).
     pub eo_response: Option<texel::radiance::EoResponse>,
+    /// The picture on screen (its quality) and the last drawn frame's time, ms,
+    /// when the scans are drawn through adaptive quality.
+    pub quality: Option<(crate::adaptive::Shown, f64)>,
     camera_placed: bool,
     fov_known: bool,
 }
@@ -81,6 +84,7 @@ impl ViewerState {
             residency_stats: residency.stats(),
             residency,
             planned: None,
+            quality: None,
             camera_placed: false,
             fov_known: fov_deg.is_some(),
         }
@@ -88,13 +92,20 @@ impl ViewerState {
 
     /// Applies the events waiting (at most a bounded batch per frame, so the window
     /// stays responsive while a large snapshot arrives) and uploads what they bring;
-    /// a bad event is reported and skipped, never fatal.
-    pub fn apply_events(&mut self, events: &Receiver<ViewerEvent>, renderer: &mut Renderer) {
+    /// a bad event is reported and skipped, never fatal. Returns the events taken
+    /// (a window with none has nothing new to show).
+    pub fn apply_events(
+        &mut self,
+        events: &Receiver<ViewerEvent>,
+        renderer: &mut Renderer,
+    ) -> usize {
         const MAX_PER_FRAME: usize = 64;
+        let mut taken = 0;
         for _ in 0..MAX_PER_FRAME {
             let Ok(event) = events.try_recv() else {
                 break;
             };
+            taken += 1;
             let (event, received) = match event {
                 ViewerEvent::Model { event, received } => (event, received),
                 ViewerEvent::Reset => {
@@ -186,6 +197,7 @@ impl ViewerState {
             let pose = s.world_from_scan;
             self.jump(pose, pivot);
         }
+        taken
     }
 
     /// Carries out residency for `camera`: evicts, uploads, fetches.

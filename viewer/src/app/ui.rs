@@ -11,6 +11,7 @@ use crate::tonemap::{ToneMapSettings, ToneOperator};
 /// `roomy`: the window is wide enough to show the panel open at first (in a small
 /// window it starts folded, so the model stays visible).
 pub(super) fn panel(ctx: &egui::Context, v: &mut ViewerState, roomy: bool) {
+    quality_badge(ctx, v);
     egui::Window::new("texel")
         .default_width(240.0)
         .default_pos([8.0, 8.0])
@@ -121,6 +122,26 @@ pub(super) fn panel(ctx: &egui::Context, v: &mut ViewerState, roomy: bool) {
                         });
                     }
                 });
+        });
+}
+
+/// Which quality is on screen, in the bottom-right corner: the interactive frame
+/// (its resolution and mode) while the view moves, then the full-quality one.
+fn quality_badge(ctx: &egui::Context, v: &ViewerState) {
+    let Some((shown, ms)) = v.quality else {
+        return;
+    };
+    let colour = match shown.quality {
+        crate::adaptive::Quality::Interactive => egui::Color32::from_rgb(230, 170, 80),
+        crate::adaptive::Quality::Full => egui::Color32::from_rgb(90, 200, 90),
+    };
+    egui::Area::new(egui::Id::unique("quality"))
+        .anchor(egui::Align2::RIGHT_BOTTOM, [-8.0, -8.0])
+        .interactable(false)
+        .show(ctx, |ui| {
+            egui::Frame::popup(ui.style()).show(ui, |ui| {
+                ui.colored_label(colour, format!("{} ({ms:.0} ms)", shown.describe()));
+            });
         });
 }
 

@@ -3,6 +3,7 @@
 //! the renderer that records every pass into a given target, one file per compositing
 //! strategy (window and headless share all of it).
 
+mod coarse;
 mod pipelines;
 pub mod points;
 mod readback;
@@ -81,6 +82,25 @@ pub enum GpuError {
     NoStorageBuffers,
     #[error("reading back from the GPU failed: {0}")]
     Readback(String),
+}
+
+/// Command buffers handed to the GPU by this process, counted so a test can see that
+/// an idle window submits nothing (every submission of the viewer goes through
+/// [`submit`]).
+static SUBMISSIONS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+
+/// Submits `buffers` to `queue` and counts the submission.
+pub fn submit<I>(queue: &wgpu::Queue, buffers: I) -> wgpu::SubmissionIndex
+where
+    I: IntoIterator<Item = wgpu::CommandBuffer>,
+{
+    SUBMISSIONS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    queue.submit(buffers)
+}
+
+/// The submissions made so far (see [`submit`]).
+pub fn submissions() -> u64 {
+    SUBMISSIONS.load(std::sync::atomic::Ordering::Relaxed)
 }
 
 /// The format a window or canvas is drawn in: a linear (not sRGB) one where offered,

@@ -140,7 +140,7 @@ pub fn read_rgba_texture(
         label: Some("read-back"),
     });
     let (buffer, row) = copy_texture(device, &mut encoder, texture, 1, 4);
-    queue.submit(Some(encoder.finish()));
+    crate::gpu::submit(queue, Some(encoder.finish()));
     let mut rows = map_rows(device, &buffer, row, size.width * 4, size.height, 1)?;
     let mut pixels = rows.pop().unwrap_or_default();
     if matches!(
@@ -177,7 +177,7 @@ pub fn read_depth_texture(
         label: Some("depth read-back"),
     });
     let (buffer, row) = copy_texture(device, &mut encoder, texture, 1, 4);
-    queue.submit(Some(encoder.finish()));
+    crate::gpu::submit(queue, Some(encoder.finish()));
     let rows = map_rows(device, &buffer, row, size.width * 4, size.height, 1)?;
     let bytes = rows.into_iter().next().unwrap_or_default();
     Ok(bytes
@@ -203,7 +203,7 @@ pub fn read_radiance_texture(
         label: Some("radiance read-back"),
     });
     let (buffer, row) = copy_texture(device, &mut encoder, texture, 1, 8);
-    queue.submit(Some(encoder.finish()));
+    crate::gpu::submit(queue, Some(encoder.finish()));
     let rows = map_rows(device, &buffer, row, size.width * 8, size.height, 1)?;
     let bytes = rows.into_iter().next().unwrap_or_default();
     Ok(bytes
@@ -288,7 +288,7 @@ impl Renderer {
             layers,
             16,
         );
-        self.queue.submit(Some(encoder.finish()));
+        crate::gpu::submit(&self.queue, Some(encoder.finish()));
         let (w, h) = (camera.width, camera.height);
         let colour = map_rows(&self.device, &colour_buf, colour_row, w * 4, h, layers)?;
         let data = map_rows(&self.device, &data_buf, data_row, w * 16, h, layers)?

@@ -1,6 +1,6 @@
 //! One scan's GPU data, uploaded once when the view needs the scan and held until it
-//! is evicted: vertices (scan frame, f32, small), two index buffers (usable
-//! triangles; with stretched ones), the EO texture and a uniform that a pose or camera
+//! is evicted: vertices (scan frame, f32, small), three index buffers (usable
+//! triangles; with stretched ones; the coarse list of interactive frames), the EO texture and a uniform that a pose or camera
 //! change rewrites; and its exact size in bytes, known before uploading.
 
 use bytemuck::{Pod, Zeroable};
@@ -45,6 +45,9 @@ pub(crate) struct GpuScan {
     pub usable_count: u32,
     pub with_stretched: wgpu::Buffer,
     pub with_stretched_count: u32,
+    /// The interactive frame's triangles (`super::coarse`).
+    pub coarse: wgpu::Buffer,
+    pub coarse_count: u32,
     pub uniform: wgpu::Buffer,
     pub bind_group: wgpu::BindGroup,
     pub bounds: Option<ScanBounds>,
@@ -87,6 +90,7 @@ impl GpuScan {
         let vertices = vertex_data(scan);
         let usable = drawn_indices(scan, false);
         let with_stretched = drawn_indices(scan, true);
+        let coarse = super::coarse::coarse_indices(scan);
         let vertex_buffer = buffer(
             device,
             queue,
@@ -106,6 +110,13 @@ impl GpuScan {
             queue,
             "scan triangles with stretched",
             bytemuck::cast_slice(&with_stretched),
+            wgpu::BufferUsages::INDEX,
+        );
+        let coarse_buffer = buffer(
+            device,
+            queue,
+            "scan coarse triangles",
+            bytemuck::cast_slice(&coarse),
             wgpu::BufferUsages::INDEX,
         );
         let uniform = device.create_buffer(&wgpu::BufferDescriptor {
@@ -157,6 +168,7 @@ impl GpuScan {
         let bytes = vertex_buffer.size()
             + usable_buffer.size()
             + stretched_buffer.size()
+            + coarse_buffer.size()
             + uniform.size()
             + texture_bytes(tex.width, tex.height);
         Ok(Self {
@@ -165,6 +177,8 @@ impl GpuScan {
             usable_count: usable.len() as u32,
             with_stretched: stretched_buffer,
             with_stretched_count: with_stretched.len() as u32,
+            coarse: coarse_buffer,
+            coarse_count: coarse.len() as u32,
             uniform,
             bind_group,
             bounds: ScanBounds::of(scan),
@@ -175,10 +189,14 @@ impl GpuScan {
         })
     }
 
-    /// The index buffer and its length for the stretched-triangle toggle.
-    pub fn indices(&self, keep_stretched: bool) -> (&wgpu::Buffer, u32) {
+    /// The index buffer and its length for the stretched-triangle toggle and the
+    /// interactive frame's coarse triangles (not with stretched ones: those are shown
+    /// to be seen).
+    pub fn indices(&self, keep_stretched: bool, coarse: bool) -> (&wgpu::Buffer, u32) {
         if keep_stretched {
             (&self.with_stretched, self.with_stretched_count)
+        } else if coarse {
+            (&self.coarse, self.coarse_count)
         } else {
             (&self.usable, self.usable_count)
         }
@@ -209,6 +227,7 @@ pub fn scan_gpu_bytes(scan: &TexelScan) -> u64 {
     padded(scan.vertices.len() as u64 * std::mem::size_of::<Vertex>() as u64)
         + indices(false)
         + indices(true)
+        + padded(super::coarse::coarse_indices(scan).len() as u64 * 4)
         + std::mem::size_of::<ScanUniform>() as u64
         + texture_bytes(scan.texture.width, scan.texture.height)
 }

@@ -18,9 +18,10 @@ pub const POINTS: &str = concat!(
 );
 pub const POINTS_FILL: &str = include_str!("../shaders/points_fill.wgsl");
 pub const TONEMAP: &str = include_str!("../shaders/tonemap.wgsl");
+pub const PRESENT: &str = include_str!("../shaders/present.wgsl");
 
 /// Every shader module as (name, full source).
-pub fn modules() -> [(&'static str, String); 9] {
+pub fn modules() -> [(&'static str, String); 10] {
     [
         ("scan", source(SCAN)),
         ("merge", source(MERGE)),
@@ -31,6 +32,7 @@ pub fn modules() -> [(&'static str, String); 9] {
         ("tonemap", source(TONEMAP)),
         ("points", source(POINTS)),
         ("points_fill", source(POINTS_FILL)),
+        ("present", source(PRESENT)),
     ]
 }
 

@@ -454,7 +454,7 @@ pub fn tone_map_headless(
         super::IMAGE_FORMAT,
     );
     encoder.copy_buffer_to_buffer(pass.adaptation_buffer(), 0, &readback, 0, 16);
-    gpu.queue.submit(Some(encoder.finish()));
+    crate::gpu::submit(&gpu.queue, Some(encoder.finish()));
     let image = super::read_rgba_texture(&gpu.device, &gpu.queue, &target)?;
     let slice = readback.slice(..);
     let (tx, rx) = std::sync::mpsc::channel();

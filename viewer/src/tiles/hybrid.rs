@@ -192,7 +192,7 @@ impl<S: TileSource> TileRenderer<S> {
             scans: nearest,
         };
         self.encode(&mut encoder, &pass_target, camera);
-        self.gpu.queue.submit(Some(encoder.finish()));
+        crate::gpu::submit(&self.gpu.queue, Some(encoder.finish()));
         Ok(stats)
     }
 

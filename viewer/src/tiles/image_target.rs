@@ -124,6 +124,6 @@ pub fn render_tiles_to_image(
         &[1.0; MAX_CUTS],
         &draws,
     );
-    gpu.queue.submit(Some(encoder.finish()));
+    crate::gpu::submit(&gpu.queue, Some(encoder.finish()));
     Ok((target.read(gpu)?, counts))
 }

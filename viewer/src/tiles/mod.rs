@@ -556,7 +556,7 @@ impl<S: TileSource> TileRenderer<S> {
             scans: None,
         };
         self.encode(&mut encoder, &target, camera);
-        self.gpu.queue.submit(Some(encoder.finish()));
+        crate::gpu::submit(&self.gpu.queue, Some(encoder.finish()));
         let read = image.read(&self.gpu);
         self.image = Some(image);
         Ok(read?)

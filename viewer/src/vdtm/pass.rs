@@ -332,6 +332,6 @@ pub fn render_vdtm_to_image(
         prepared,
         model,
     );
-    gpu.queue.submit(Some(encoder.finish()));
+    crate::gpu::submit(&gpu.queue, Some(encoder.finish()));
     target.read(gpu)
 }

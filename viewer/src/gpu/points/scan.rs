@@ -282,6 +282,6 @@ impl GpuPoints {
             false,
             &self.acquisition_depth.view,
         );
-        queue.submit(Some(encoder.finish()));
+        crate::gpu::submit(queue, Some(encoder.finish()));
     }
 }

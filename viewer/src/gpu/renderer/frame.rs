@@ -46,7 +46,9 @@ impl<'a> Frame<'a> {
             let Some(placed) = self.scans.get(id) else {
                 continue;
             };
-            let (indices, count) = placed.gpu.indices(self.settings.keep_stretched);
+            let (indices, count) = placed
+                .gpu
+                .indices(self.settings.keep_stretched, self.settings.coarse);
             if count == 0 {
                 continue;
             }

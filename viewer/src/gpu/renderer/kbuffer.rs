@@ -264,7 +264,7 @@ fn submit_and_wait(frame: &Frame<'_>, encoder: &mut wgpu::CommandEncoder) {
                 label: Some("profiled frame"),
             }),
     );
-    frame.queue.submit(Some(done.finish()));
+    crate::gpu::submit(frame.queue, Some(done.finish()));
     // A failed wait only spoils the timing, not the frame.
     let _ = frame.device.poll(wgpu::PollType::wait_indefinitely());
 }

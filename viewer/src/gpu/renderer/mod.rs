@@ -71,6 +71,9 @@ pub struct RenderSettings {
     /// the response given to [`Renderer::prepare_points`]; scans without an exposure
     /// colour nothing) and tone-map it with these settings. `None`: display values.
     pub tone_map: Option<crate::tonemap::ToneMapSettings>,
+    /// Draw each scan's coarse triangles (a 2 x 2 block of lidar cells as two
+    /// triangles where it is smooth): the interactive frame of adaptive quality.
+    pub coarse: bool,
 }
 
 impl Default for RenderSettings {
@@ -85,6 +88,7 @@ impl Default for RenderSettings {
             fill_enclosed_holes: false,
             points: false,
             tone_map: None,
+            coarse: false,
         }
     }
 }
@@ -518,7 +522,7 @@ impl Renderer {
                 stats.target_memory = targets.memory(depth_bytes);
             }
         }
-        self.queue.submit(Some(encoder.finish()));
+        crate::gpu::submit(&self.queue, Some(encoder.finish()));
         Ok(stats)
     }
 

@@ -297,7 +297,7 @@ impl Renderer {
                 pass.draw(0..3, 0..1);
             }
         }
-        self.queue.submit(Some(encoder.finish()));
+        crate::gpu::submit(&self.queue, Some(encoder.finish()));
         stats.target_memory = TargetMemory {
             layers: view.bytes(),
             ..Default::default()

@@ -1,0 +1,428 @@
+//! `texel-bench viewer --adaptive`: the window's frame while the camera orbits, before
+//! (every frame at full quality) and after adaptive quality (the interactive frame
+//! sized by the controller to the budget, upscaled), in one run per model; the time
+//! from release to the full-quality frame; and the PSNR of the interactive frames
+//! against the full-quality frame at the same poses, for each cheap mode.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::Context;
+use texel_viewer::adaptive::{AdaptiveRenderer, DEFAULT_SETTLE, Quality};
+use texel_viewer::app::CameraControls;
+use texel_viewer::camera::VirtualCamera;
+use texel_viewer::composite::Mode;
+use texel_viewer::gpu::{
+    GpuContext, IMAGE_FORMAT, RenderSettings, RenderTarget, Renderer, read_rgba_texture,
+};
+use texel_viewer::scenes;
+
+use super::BenchArgs;
+
+/// Radians of orbit per pixel of drag (the window's).
+const ORBIT_RAD_PER_PX: f64 = 0.005;
+/// The orbit swings this far either side of the start, once per orbit.
+const ORBIT_HALF_DEG: f64 = 20.0;
+/// Poses along the orbit where interactive frames are scored against full ones.
+const PSNR_POSES: usize = 4;
+
+/// A model and where its orbit starts.
+struct Subject {
+    name: String,
+    model: texel::model::Model,
+    start: CameraControls,
+    fov_deg: f64,
+}
+
+/// The window's target: a texture of the window's size that a frame is shown in.
+struct Window {
+    texture: wgpu::Texture,
+    view: wgpu::TextureView,
+    width: u32,
+    height: u32,
+}
+
+impl Window {
+    fn new(gpu: &GpuContext, width: u32, height: u32) -> Self {
+        let texture = gpu.device.create_texture(&wgpu::TextureDescriptor {
+            label: Some("bench window"),
+            size: wgpu::Extent3d {
+                width,
+                height,
+                depth_or_array_layers: 1,
+            },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: IMAGE_FORMAT,
+            usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
+            view_formats: &[],
+        });
+        let view = texture.create_view(&wgpu::TextureViewDescriptor::default());
+        Self {
+            texture,
+            view,
+            width,
+            height,
+        }
+    }
+
+    fn target(&self) -> RenderTarget<'_> {
+        RenderTarget {
+            view: &self.view,
+            format: IMAGE_FORMAT,
+            width: self.width,
+            height: self.height,
+        }
+    }
+}
+
+pub fn run(gpu: &GpuContext, args: &BenchArgs) -> anyhow::Result<()> {
+    let (w, h) = (args.width, args.height);
+    println!(
+        "adaptive quality: {w}x{h}, blended k = 4 at full quality, budget {} ms, orbit {:.1} s \
+         (±{ORBIT_HALF_DEG}° about the pivot); frame = render + show in the window's target + \
+         wait for the GPU (no overlay)",
+        args.interactive_ms, args.orbit_s
+    );
+    let mut subjects = Vec::new();
+    for spec in &args.capture {
+        subjects.push(load(spec)?);
+    }
+    let sensor = scenes::sensor(64, 48, 320, 240);
+    subjects.push(Subject {
+        name: "corridor-100".into(),
+        model: scenes::corridor(&sensor, 100),
+        start: CameraControls::new(scenes::look_at([4.5, 0.0, -1.0], [4.5, 0.0, 5.05]), 6.05),
+        fov_deg: 50.0,
+    });
+    let full = RenderSettings::with_mode(Mode::Blended);
+    let window = Window::new(gpu, w, h);
+    for s in &subjects {
+        let mut renderer = Renderer::new(gpu);
+        renderer.sync_model(&s.model)?;
+        println!(
+            "{}: {} scans, {} drawn at the start",
+            s.name,
+            s.model.len(),
+            renderer
+                .cull(&camera_at(s, 0.0, w, h, args.orbit_s)?, &full)
+                .1
+                .drawn
+        );
+        println!(
+            "{:>26} {:>7} {:>9} {:>9} {:>8} {:>8} {:>10} {:>10}",
+            "frames while orbiting",
+            "frames",
+            "p50 ms",
+            "p95 ms",
+            "p50 x",
+            "p95 x",
+            "scale",
+            "PSNR dB"
+        );
+        let before = orbit_full(gpu, &mut renderer, s, &full, &window, args)?;
+        print_row("before: full quality", &before, &before, None, None);
+        // Each change against the one before it: the resolution alone (painter, every
+        // triangle), then the coarse triangles, then blended k = 1 instead of painter.
+        for (cheap, coarse) in [
+            (Mode::Painter, false),
+            (Mode::Painter, true),
+            (Mode::Blended, true),
+        ] {
+            let mut adaptive = AdaptiveRenderer::new(&gpu.device, args.interactive_ms);
+            adaptive.cheap = cheap;
+            adaptive.coarse = coarse;
+            let after = orbit_adaptive(gpu, &mut renderer, s, &full, &window, &mut adaptive, args)?;
+            let psnr =
+                psnr_along_orbit(gpu, &mut renderer, s, &full, &window, &mut adaptive, args)?;
+            let label = format!(
+                "after: {} k=1{}",
+                cheap.name(),
+                if coarse { ", coarse" } else { "" }
+            );
+            print_row(
+                &label,
+                &after,
+                &before,
+                Some(adaptive.controller.scale()),
+                Some(psnr),
+            );
+            if cheap == Mode::Painter && coarse {
+                let release =
+                    release_to_full(gpu, &mut renderer, s, &full, &window, &mut adaptive, args)?;
+                println!(
+                    "{:>26} settle {:.0} ms + full frame {:.0} ms = {:.0} ms (target <= 1500)",
+                    "release -> full quality:",
+                    DEFAULT_SETTLE.as_secs_f64() * 1e3,
+                    release - DEFAULT_SETTLE.as_secs_f64() * 1e3,
+                    release
+                );
+            }
+        }
+    }
+    Ok(())
+}
+
+fn print_row(label: &str, times: &[f64], base: &[f64], scale: Option<f64>, psnr: Option<f64>) {
+    let (p50, p95) = (percentile(times, 0.5), percentile(times, 0.95));
+    let (b50, b95) = (percentile(base, 0.5), percentile(base, 0.95));
+    println!(
+        "{label:>26} {:>7} {p50:>9.1} {p95:>9.1} {:>8.3} {:>8.3} {:>10} {:>10}",
+        times.len(),
+        p50 / b50.max(1e-9),
+        p95 / b95.max(1e-9),
+        scale.map_or("1.00".into(), |s| format!("{s:.2}")),
+        psnr.map_or("-".into(), |p| format!("{p:.2}")),
+    );
+}
+
+/// `NAME=PATH`: a capture, loaded and fused; the orbit starts at its middle scan's
+/// acquisition pose, pivoting at that scan's median range.
+fn load(spec: &str) -> anyhow::Result<Subject> {
+    let (name, path) = spec
+        .split_once('=')
+        .with_context(|| format!("--capture {spec}: expected NAME=PATH"))?;
+    let path = PathBuf::from(path);
+    let loaded = texel_viewer::capture_load::load_capture(&path)
+        .with_context(|| format!("loading {}", path.display()))?;
+    let model = loaded.model;
+    let scans: Vec<_> = model.resident().collect();
+    let (listed, scan) = scans
+        .get(scans.len() / 2)
+        .copied()
+        .with_context(|| format!("{}: no scan placed", path.display()))?;
+    let mut ranges: Vec<f32> = scan
+        .vertices
+        .iter()
+        .map(|v| v[2])
+        .filter(|z| z.is_finite() && *z > 0.0)
+        .collect();
+    ranges.sort_by(f32::total_cmp);
+    let pivot = f64::from(ranges.get(ranges.len() / 2).copied().unwrap_or(3.0));
+    let start = CameraControls::new(listed.world_from_scan, pivot);
+    let fov_deg = VirtualCamera::fov_y_deg_of(&loaded.eo_camera);
+    Ok(Subject {
+        name: name.to_string(),
+        model,
+        start,
+        fov_deg,
+    })
+}
+
+/// The camera `t` seconds into the orbit.
+fn camera_at(s: &Subject, t: f64, w: u32, h: u32, orbit_s: f64) -> anyhow::Result<VirtualCamera> {
+    let mut c = s.start;
+    let phase = std::f64::consts::TAU * t / orbit_s.max(1e-3);
+    c.orbit(
+        ORBIT_HALF_DEG.to_radians() * phase.sin() / ORBIT_RAD_PER_PX,
+        0.0,
+    );
+    Ok(VirtualCamera::new(c.world_from_eo, s.fov_deg, w, h)?)
+}
+
+/// Before: every frame of the orbit at full quality straight into the window (as the
+/// window drew before), timed to the GPU's end. At least 3 frames.
+fn orbit_full(
+    gpu: &GpuContext,
+    renderer: &mut Renderer,
+    s: &Subject,
+    settings: &RenderSettings,
+    window: &Window,
+    args: &BenchArgs,
+) -> anyhow::Result<Vec<f64>> {
+    let mut times = Vec::new();
+    let start = Instant::now();
+    while start.elapsed().as_secs_f64() < args.orbit_s || times.len() < 3 {
+        let t0 = Instant::now();
+        let camera = camera_at(
+            s,
+            start.elapsed().as_secs_f64(),
+            window.width,
+            window.height,
+            args.orbit_s,
+        )?;
+        renderer.render(&camera, settings, &window.target())?;
+        gpu.wait_idle()?;
+        times.push(t0.elapsed().as_secs_f64() * 1e3);
+    }
+    Ok(times)
+}
+
+/// After: the window's interactive frames along the orbit (the controller steering the
+/// scale by each frame's time, as the window does). The controller's first second is
+/// its warm-up and is timed too.
+fn orbit_adaptive(
+    gpu: &GpuContext,
+    renderer: &mut Renderer,
+    s: &Subject,
+    settings: &RenderSettings,
+    window: &Window,
+    adaptive: &mut AdaptiveRenderer,
+    args: &BenchArgs,
+) -> anyhow::Result<Vec<f64>> {
+    let mut times = Vec::new();
+    let start = Instant::now();
+    while start.elapsed().as_secs_f64() < args.orbit_s || times.len() < 3 {
+        let t0 = Instant::now();
+        let camera = camera_at(
+            s,
+            start.elapsed().as_secs_f64(),
+            window.width,
+            window.height,
+            args.orbit_s,
+        )?;
+        frame(
+            gpu,
+            renderer,
+            &camera,
+            settings,
+            window,
+            adaptive,
+            Quality::Interactive,
+        )?;
+        let ms = t0.elapsed().as_secs_f64() * 1e3;
+        adaptive.controller.observe(ms);
+        times.push(ms);
+    }
+    Ok(times)
+}
+
+/// One window frame: render at `quality`, show it in the window, wait for the GPU.
+fn frame(
+    gpu: &GpuContext,
+    renderer: &mut Renderer,
+    camera: &VirtualCamera,
+    settings: &RenderSettings,
+    window: &Window,
+    adaptive: &mut AdaptiveRenderer,
+    quality: Quality,
+) -> anyhow::Result<()> {
+    adaptive.render(renderer, camera, settings, quality)?;
+    let mut encoder = gpu
+        .device
+        .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("show"),
+        });
+    adaptive.present(&mut encoder, &window.target());
+    texel_viewer::gpu::submit(&gpu.queue, Some(encoder.finish()));
+    gpu.wait_idle()?;
+    Ok(())
+}
+
+/// From the release of the mouse to the full-quality frame shown: the settle time the
+/// window waits, then the full frame (rendered, shown, the GPU waited for), ms.
+fn release_to_full(
+    gpu: &GpuContext,
+    renderer: &mut Renderer,
+    s: &Subject,
+    settings: &RenderSettings,
+    window: &Window,
+    adaptive: &mut AdaptiveRenderer,
+    args: &BenchArgs,
+) -> anyhow::Result<f64> {
+    let camera = camera_at(s, args.orbit_s, window.width, window.height, args.orbit_s)?;
+    let t0 = Instant::now();
+    frame(
+        gpu,
+        renderer,
+        &camera,
+        settings,
+        window,
+        adaptive,
+        Quality::Full,
+    )?;
+    Ok((t0.elapsed() + DEFAULT_SETTLE).as_secs_f64() * 1e3)
+}
+
+/// The mean PSNR of the interactive frames (at the scale the controller settled on,
+/// shown in the window) against the full-quality frames at the same poses, over
+/// poses spread along the orbit.
+fn psnr_along_orbit(
+    gpu: &GpuContext,
+    renderer: &mut Renderer,
+    s: &Subject,
+    settings: &RenderSettings,
+    window: &Window,
+    adaptive: &mut AdaptiveRenderer,
+    args: &BenchArgs,
+) -> anyhow::Result<f64> {
+    let mut sum = 0.0;
+    for i in 0..PSNR_POSES {
+        let t = args.orbit_s * (i as f64 + 0.5) / PSNR_POSES as f64;
+        let camera = camera_at(s, t, window.width, window.height, args.orbit_s)?;
+        frame(
+            gpu,
+            renderer,
+            &camera,
+            settings,
+            window,
+            adaptive,
+            Quality::Interactive,
+        )?;
+        let cheap = read_rgba_texture(&gpu.device, &gpu.queue, &window.texture)?;
+        frame(
+            gpu,
+            renderer,
+            &camera,
+            settings,
+            window,
+            adaptive,
+            Quality::Full,
+        )?;
+        let full = read_rgba_texture(&gpu.device, &gpu.queue, &window.texture)?;
+        sum += psnr(&cheap, &full);
+    }
+    Ok(sum / PSNR_POSES as f64)
+}
+
+/// PSNR of `a` against `b` over RGB, dB; identical images give 99 dB (no infinity).
+pub fn psnr(a: &image::RgbaImage, b: &image::RgbaImage) -> f64 {
+    let mut se = 0.0;
+    let mut n = 0usize;
+    for (p, q) in a.pixels().zip(b.pixels()) {
+        for k in 0..3 {
+            let d = f64::from(p[k]) - f64::from(q[k]);
+            se += d * d;
+            n += 1;
+        }
+    }
+    let mse = se / n.max(1) as f64;
+    if mse <= 0.0 {
+        return 99.0;
+    }
+    (10.0 * (255.0 * 255.0 / mse).log10()).min(99.0)
+}
+
+/// The `q` quantile (nearest rank) of `v`; 0 for none.
+fn percentile(v: &[f64], q: f64) -> f64 {
+    let mut s = v.to_vec();
+    s.sort_by(f64::total_cmp);
+    if s.is_empty() {
+        return 0.0;
+    }
+    let i = ((q * s.len() as f64).ceil() as usize).clamp(1, s.len()) - 1;
+    s[i]
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn psnr_is_finite_and_falls_with_error() {
+        let a = image::RgbaImage::from_pixel(4, 4, image::Rgba([10, 20, 30, 255]));
+        let mut b = a.clone();
+        assert_eq!(super::psnr(&a, &b), 99.0);
+        b.put_pixel(0, 0, image::Rgba([40, 20, 30, 255]));
+        let one = super::psnr(&a, &b);
+        b.put_pixel(1, 0, image::Rgba([40, 20, 30, 255]));
+        assert!(one.is_finite() && super::psnr(&a, &b) < one);
+    }
+
+    #[test]
+    fn percentiles_take_the_nearest_rank() {
+        let v = [5.0, 1.0, 3.0, 2.0, 4.0];
+        assert_eq!(super::percentile(&v, 0.5), 3.0);
+        assert_eq!(super::percentile(&v, 0.95), 5.0);
+        assert_eq!(super::percentile(&[], 0.5), 0.0);
+    }
+}
