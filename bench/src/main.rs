@@ -9,6 +9,8 @@ use clap::{Parser, Subcommand};
 use texel_bench::calibration::commands::CalibCommand;
 use texel_bench::tradeoffs;
 
+mod zenoh_link;
+
 #[derive(Parser)]
 #[command(
     name = "texel-bench",
@@ -52,6 +54,10 @@ enum Command {
     /// Peak resident memory of daemon binaries (this build or an older one) replaying
     /// captures as fast as they go.
     ReplayMemory(texel_bench::replay_memory::Args),
+    /// The model through Zenoh against the TCP stream on the same simulated camera
+    /// (loopback, interleaved: scans and bytes per second, latency p50/p99), and
+    /// through a rate-limited link in a network namespace.
+    Zenoh(zenoh_link::Args),
     /// Measure the TXL1 decoder on a hostile stream against a clean one.
     Txl1(texel_bench::txl1_decode::Args),
     /// Measure the capture reader against the mcap crate's own reader.
@@ -137,6 +143,7 @@ fn main() -> ExitCode {
         Command::LongSession(args) => ("long-session", texel_bench::long_session::run(&args)),
         Command::Web(args) => ("web", texel_bench::web_viewer::run(&args)),
         Command::ReplayMemory(args) => ("replay-memory", texel_bench::replay_memory::run(&args)),
+        Command::Zenoh(args) => ("zenoh", zenoh_link::run(&args)),
         Command::Txl1(args) => ("txl1", texel_bench::txl1_decode::run(&args)),
         Command::CaptureRead(args) => ("capture-read", texel_bench::capture_read::run(&args)),
         Command::Tradeoffs(TradeoffsCommand::Registration {

@@ -283,6 +283,15 @@ impl Cameras {
                 .is_some_and(|c| c.scans.contains_key(&id))
     }
 
+    /// The size of merged scan `g`'s data as its listing gives it (0 when unknown).
+    pub fn encoded_bytes(&self, g: ScanId) -> u64 {
+        let (n, id) = super::split_id(g);
+        n.checked_sub(1)
+            .and_then(|i| self.cameras.get(i))
+            .and_then(|c| c.scans.get(&id))
+            .map_or(0, |(listing, _)| listing.encoded_bytes)
+    }
+
     /// The camera prefix and own id of merged scan `g`.
     pub fn source_of(&self, g: ScanId) -> Option<(String, ScanId)> {
         let (n, id) = super::split_id(g);

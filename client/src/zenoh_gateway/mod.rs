@@ -9,9 +9,11 @@
 //! its liveliness token; the gateway then asks it for its model (the listing, coarse
 //! first) while holding back what arrives live meanwhile, and applies that after the
 //! listing. Scans' data come from what the cameras put live (kept within a byte
-//! budget) or, when missed or evicted, from a query by id.
+//! budget) or, when missed or evicted, from a query by id (`fetch`: paced to each
+//! camera's link).
 
 mod cameras;
+mod fetch;
 mod serve;
 #[cfg(test)]
 mod tests_support {
@@ -26,12 +28,14 @@ use std::time::Duration;
 use thiserror::Error;
 use tokio::net::TcpListener;
 use tokio_util::sync::{CancellationToken, DropGuard};
+use zenoh::qos::Priority;
 
 use texel::model::ScanId;
 use texel::wire::zenoh_keys::{self, KeyError, Topic, parse_key};
 
 pub use cameras::CameraView;
 use cameras::Cameras;
+use fetch::Links;
 
 /// Camera numbers take the top 8 bits of a 32-bit scan id.
 pub const CAMERA_SHIFT: u32 = 24;
@@ -75,7 +79,9 @@ pub struct GatewayOptions {
     /// Scans' data kept from live puts, in bytes; beyond it the oldest are dropped
     /// (and asked for again if a viewer wants them).
     pub data_cache_bytes: usize,
-    /// How long a query (a model, a scan) may take.
+    /// How long a query (a model, a scan) may take at least; a scan's query is given
+    /// longer when the camera's measured link rate says it needs it, and is asked
+    /// again (`fetch`) before the scan is reported unavailable.
     pub query_timeout: Duration,
 }
 
@@ -103,7 +109,14 @@ impl Gateway {
     /// Opens Zenoh, subscribes to the cameras and starts serving on `127.0.0.1:0`.
     pub async fn start(options: GatewayOptions) -> Result<Self, GatewayError> {
         let selector = zenoh_keys::cameras_selector(&options.site, &options.camera)?;
-        let session = zenoh::open(options.zenoh)
+        let mut config = options.zenoh;
+        // Zenoh's open waits up to the scouting delay (500 ms) for the peers named in
+        // `connect` to be up; the gateway follows cameras whenever their tokens
+        // appear, so it needs no such wait (a late joiner sees the model sooner).
+        config
+            .insert_json5("open/return_conditions/connect_scouted", "false")
+            .map_err(|e| GatewayError::Open(e.to_string()))?;
+        let session = zenoh::open(config)
             .await
             .map_err(|e| GatewayError::Open(e.to_string()))?;
         let listener = TcpListener::bind(("127.0.0.1", 0))
@@ -113,6 +126,7 @@ impl Gateway {
         let shared = Arc::new(Shared {
             session: session.clone(),
             state: Mutex::new(Cameras::new(options.data_cache_bytes)),
+            links: Links::default(),
             query_timeout: options.query_timeout,
         });
         let stop = CancellationToken::new();
@@ -172,12 +186,19 @@ impl Gateway {
     pub fn cameras(&self) -> Vec<CameraView> {
         self.shared.lock().views()
     }
+
+    /// The measured rate of camera `prefix`'s link (`texel/<site>/<camera>`), in bytes
+    /// per second, from the scans' data seen arriving; `None` before any.
+    pub fn link_bytes_per_s(&self, prefix: &str) -> Option<f64> {
+        self.shared.links.rate(prefix)
+    }
 }
 
 /// What the gateway's tasks share.
 pub(crate) struct Shared {
     session: zenoh::Session,
     state: Mutex<Cameras>,
+    links: Links,
     query_timeout: Duration,
 }
 
@@ -209,32 +230,62 @@ impl Shared {
             return;
         };
         let prefix = format!("{}/{site}/{camera}", zenoh_keys::ROOT);
-        let mut state = self.lock();
+        let data_bytes = payload.len();
+        {
+            let mut state = self.lock();
+            match topic {
+                Topic::Model => state.snapshot(&prefix, &payload),
+                Topic::Alive | Topic::Info => {}
+                _ => state.live(&prefix, topic, payload),
+            }
+        }
         match topic {
-            Topic::Model => state.snapshot(&prefix, &payload),
-            Topic::Alive | Topic::Info => {}
-            _ => state.live(&prefix, topic, payload),
+            Topic::Listing(id) => self.links.listed(&prefix, id),
+            Topic::Scan(id) => self.links.data_arrived(&prefix, id, data_bytes),
+            _ => {}
         }
     }
 
     /// Asks camera `index` for its info and model and applies them.
     async fn fetch_model(&self, index: usize, prefix: String) {
-        let info = self.query_one(&format!("{prefix}/info")).await;
+        let info = self
+            .query_one(
+                &format!("{prefix}/info"),
+                self.query_timeout,
+                Priority::Data,
+            )
+            .await;
         if let Some(info) = info {
             self.lock().set_info(index, &info);
         }
-        match self.query_one(&format!("{prefix}/model")).await {
+        match self
+            .query_one(
+                &format!("{prefix}/model"),
+                self.query_timeout,
+                Priority::Data,
+            )
+            .await
+        {
             Some(model) => self.lock().snapshot(&prefix, &model),
             None => tracing::warn!("zenoh: {prefix} did not answer for its model"),
         }
     }
 
     /// The first reply's payload to a query, or `None` (no answer, an error reply).
-    pub(crate) async fn query_one(&self, selector: &str) -> Option<Vec<u8>> {
+    /// The camera replies at the query's priority: scans' data are asked for at
+    /// `DataLow`, as the camera puts them, so that on a slow link its listings,
+    /// revisions and statuses (at `Data`) are not queued behind them.
+    pub(crate) async fn query_one(
+        &self,
+        selector: &str,
+        timeout: Duration,
+        priority: Priority,
+    ) -> Option<Vec<u8>> {
         let replies = self
             .session
             .get(selector)
-            .timeout(self.query_timeout)
+            .priority(priority)
+            .timeout(timeout)
             .await
             .ok()?;
         while let Ok(reply) = replies.recv_async().await {

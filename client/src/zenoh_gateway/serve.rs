@@ -3,7 +3,7 @@
 //! Zenoh query to the camera that has the scan.
 
 use std::sync::Arc;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use bytes::{Bytes, BytesMut};
 use texel::wire::{Limits, MIN_PROTOCOL_VERSION, Message, decode_frame};
@@ -21,6 +21,8 @@ const VERSION: u16 = 2;
 const VIEWER_QUEUE: usize = 1024;
 /// Viewers at once (they are on this machine).
 const MAX_VIEWERS: usize = 8;
+/// The longest pause before asking again after a query ended without an answer.
+const RETRY_PAUSE_MAX: Duration = Duration::from_secs(5);
 /// How long a viewer has to say hello.
 const HELLO_TIMEOUT: Duration = Duration::from_secs(5);
 
@@ -117,9 +119,11 @@ async fn viewer(
     }
 }
 
-/// The frames answering a request for merged scan `id`.
+/// The frames answering a request for merged scan `id`: from the cache; else, for a
+/// scan just listed live, its data when they arrive; else by asking its camera
+/// (`fetch`: in turn, with timeouts from the link's rate, and again on no answer).
 async fn answer(shared: &Shared, id: u64) -> Bytes {
-    let source = {
+    let (prefix, own, bytes) = {
         let state = shared.lock();
         if let Some(data) = state.cached(id) {
             return data;
@@ -127,18 +131,80 @@ async fn answer(shared: &Shared, id: u64) -> Bytes {
         if !state.is_listed(id) {
             return unavailable(id, "not listed by any camera followed");
         }
-        state.source_of(id)
+        let Some((prefix, own)) = state.source_of(id) else {
+            return unavailable(id, "no camera has this id");
+        };
+        (prefix, own, state.encoded_bytes(id))
     };
-    let Some((prefix, own)) = source else {
-        return unavailable(id, "no camera has this id");
+    if let Some(data) = wait_for_live_data(shared, id, &prefix, own, bytes).await {
+        return data;
+    }
+    let Some(plan) = shared
+        .links
+        .plan_query(&prefix, bytes, shared.query_timeout)
+        .await
+    else {
+        return unavailable(id, "the gateway is stopping");
     };
-    let Some(payload) = shared.query_one(&format!("{prefix}/scan/{own}")).await else {
-        return unavailable(id, &format!("{prefix} did not answer for scan {own}"));
-    };
-    let (n, _) = super::split_id(id);
-    match Cameras::remap_data(n, &payload) {
-        Some(frames) => Bytes::from(frames),
-        None => unavailable(id, &format!("{prefix}: an answer that is not whole frames")),
+    let selector = format!("{prefix}/scan/{own}");
+    for timeout in plan.timeouts {
+        // Arrived live (or asked by another viewer) while this one waited its turn.
+        if let Some(data) = shared.lock().cached(id) {
+            return data;
+        }
+        let asked = Instant::now();
+        let Some(payload) = shared
+            .query_one(&selector, timeout, zenoh::qos::Priority::DataLow)
+            .await
+        else {
+            tracing::debug!("zenoh gateway: no answer for {selector} within {timeout:?}");
+            // No answer well before the timeout: the session to the camera went
+            // (it reconnects by itself); give it time rather than spend the attempts.
+            let left = timeout.saturating_sub(asked.elapsed());
+            tokio::time::sleep(left.min(RETRY_PAUSE_MAX)).await;
+            continue;
+        };
+        shared
+            .links
+            .query_answered(&prefix, payload.len(), asked.elapsed());
+        let (n, _) = super::split_id(id);
+        return match Cameras::remap_data(n, &payload) {
+            Some(frames) => Bytes::from(frames),
+            None => unavailable(id, &format!("{prefix}: an answer that is not whole frames")),
+        };
+    }
+    drop(plan.permit);
+    unavailable(
+        id,
+        &format!(
+            "{prefix} did not answer for scan {own} ({} attempts)",
+            super::fetch::QUERY_ATTEMPTS
+        ),
+    )
+}
+
+/// Scan `id`'s data when the camera's live put of them arrives before the wait its
+/// link's rate allows; `None` when not just listed live, or not in time.
+async fn wait_for_live_data(
+    shared: &Shared,
+    id: u64,
+    prefix: &str,
+    own: texel::model::ScanId,
+    bytes: u64,
+) -> Option<Bytes> {
+    let until = shared.links.live_wait_until(prefix, own, bytes)?;
+    loop {
+        // Registered before looking, so an arrival in between still wakes us.
+        let arrived = shared.links.data_arrived.notified();
+        tokio::pin!(arrived);
+        arrived.as_mut().enable();
+        if let Some(data) = shared.lock().cached(id) {
+            return Some(data);
+        }
+        let deadline = tokio::time::Instant::from_std(until);
+        if tokio::time::timeout_at(deadline, arrived).await.is_err() {
+            return shared.lock().cached(id);
+        }
     }
 }
 

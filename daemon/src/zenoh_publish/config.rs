@@ -6,6 +6,10 @@ use crate::config::{ZenohMode, ZenohSection};
 
 use super::ZenohError;
 
+/// How long (µs) a blocking put may wait for the link before Zenoh closes the
+/// session to that peer (see `zenoh_config`).
+pub const BLOCK_WAIT_BEFORE_CLOSE_US: u64 = 60_000_000;
+
 /// Zenoh's config for this section. Reads the password, dictionary and
 /// access-control files (so a missing one is named here, at start).
 pub fn zenoh_config(section: &ZenohSection) -> Result<zenoh::Config, ZenohError> {
@@ -27,6 +31,15 @@ pub fn zenoh_config(section: &ZenohSection) -> Result<zenoh::Config, ZenohError>
     )?;
     // Timestamps on every sample, so subscribers can order and measure them.
     set("timestamping/enabled", "true".into())?;
+    // A reliable put or a reply that finds its priority's queue full waits this long
+    // for the link before Zenoh closes the whole session to that peer. Zenoh's 5 s
+    // is shorter than a few scans take on a radio link (a 1 MB scan is 4 s at
+    // 2 Mbit/s), and a closed session loses every answer in flight; the puts wait on
+    // blocking threads, so a long wait holds up no one else.
+    set(
+        "transport/link/tx/queue/congestion_control/block/wait_before_close",
+        BLOCK_WAIT_BEFORE_CLOSE_US.to_string(),
+    )?;
     if section.mode == ZenohMode::Client {
         // A client that loses its router keeps trying rather than giving up.
         set("connect/timeout_ms", "-1".into())?;

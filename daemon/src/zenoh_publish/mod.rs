@@ -9,8 +9,9 @@
 //! blocking (Zenoh holds them until the link takes them; the hub cuts this publisher
 //! off and it republishes the snapshot if that takes too long), scans' data are put
 //! with congestion control `Drop` at a lower priority: a subscriber that misses one
-//! asks for it by id. The camera's pipeline never waits for any of it: the hub's
-//! queue to this publisher is bounded like a viewer's.
+//! asks for it by id. The camera's pipeline never waits for any of it: every put
+//! and every reply runs on a blocking thread (Zenoh completes them in the calling
+//! thread), and the hub's queue to this publisher is bounded like a viewer's.
 
 mod config;
 mod queries;
@@ -248,6 +249,11 @@ impl Forward {
             .await;
     }
 
+    /// One put, on a blocking thread: Zenoh's put runs to completion in the calling
+    /// thread (its `Block` waits there for the link), which on a tokio worker would
+    /// stall every other task of the daemon, the camera's pipeline included. Awaiting
+    /// the blocking thread keeps the puts in order and lets this publisher's bounded
+    /// queue at the hub fill instead.
     async fn put(
         &self,
         key: String,
@@ -255,14 +261,20 @@ impl Forward {
         congestion: CongestionControl,
         priority: Priority,
     ) {
-        let put = self
-            .session
-            .put(&key, payload.to_vec())
-            .congestion_control(congestion)
-            .priority(priority)
-            .await;
-        if let Err(e) = put {
-            tracing::warn!("zenoh: put {key}: {e}");
+        let session = self.session.clone();
+        let put = tokio::task::spawn_blocking(move || {
+            session
+                .put(&key, payload.to_vec())
+                .congestion_control(congestion)
+                .priority(priority)
+                .wait()
+                .map_err(|e| format!("put {key}: {e}"))
+        })
+        .await;
+        match put {
+            Ok(Ok(())) => {}
+            Ok(Err(e)) => tracing::warn!("zenoh: {e}"),
+            Err(e) => tracing::warn!("zenoh: a put's thread failed: {e}"),
         }
     }
 

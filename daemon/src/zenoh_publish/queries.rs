@@ -9,10 +9,10 @@ use bytes::Bytes;
 use texel::wire::Message;
 use texel::wire::zenoh_keys::{CameraKeys, Topic, parse_key};
 use tokio::sync::Semaphore;
-use zenoh::Session;
 use zenoh::handlers::FifoChannelHandler;
 use zenoh::liveliness::LivelinessToken;
 use zenoh::query::{Query, Queryable};
+use zenoh::{Session, Wait};
 
 use super::{CameraInfo, PUBLISHED_VERSION, ZenohError};
 use crate::hub::Hub;
@@ -64,7 +64,7 @@ pub async fn declare(
     tasks.push(tokio::spawn(async move {
         while let Ok(query) = info_q.recv_async().await {
             let key = query.key_expr().to_string();
-            let _ = query.reply(key, info_json.to_vec()).await;
+            reply(query, key, info_json.to_vec()).await;
         }
     }));
     let model_hub = Arc::clone(hub);
@@ -78,7 +78,7 @@ pub async fn declare(
             };
             model_hub.unsubscribe(subscription.client_id);
             let payload = subscription.snapshot.concat();
-            let _ = query.reply(model_key.clone(), payload).await;
+            reply(query, model_key.clone(), payload).await;
         }
     }));
     let scan_hub = Arc::clone(hub);
@@ -115,17 +115,28 @@ async fn answer_scan(query: Query, hub: Arc<Hub>) {
             .await;
         return;
     };
-    let read = tokio::task::spawn_blocking(move || {
-        hub.fetch_scan(id)
+    // Read and reply on one blocking thread: the store may be read from disk, and
+    // Zenoh sends a reply to completion in the calling thread, waiting for a slow
+    // link there.
+    let replied = tokio::task::spawn_blocking(move || {
+        let payload: Vec<u8> = match hub
+            .fetch_scan(id)
             .and_then(|frame| hub.finish_fetch(id, frame))
+        {
+            Ok(frames) => frames.concat(),
+            Err(e) => unavailable(id, &e.to_string()),
+        };
+        query.reply(key, payload).wait()
     })
     .await;
-    let payload: Vec<u8> = match read {
-        Ok(Ok(frames)) => frames.concat(),
-        Ok(Err(e)) => unavailable(id, &e.to_string()),
-        Err(e) => unavailable(id, &format!("read failed: {e}")),
-    };
-    let _ = query.reply(key, payload).await;
+    if let Ok(Err(e)) = replied {
+        tracing::debug!("zenoh: reply for scan {id}: {e}");
+    }
+}
+
+/// Replies on a blocking thread (see [`answer_scan`]).
+async fn reply(query: Query, key: String, payload: Vec<u8>) {
+    let _ = tokio::task::spawn_blocking(move || query.reply(key, payload).wait()).await;
 }
 
 fn unavailable(id: texel::model::ScanId, reason: &str) -> Vec<u8> {
