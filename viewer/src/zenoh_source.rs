@@ -81,6 +81,7 @@ impl ZenohArgs {
 
     /// Starts the gateway on a runtime of its own.
     pub fn start(&self) -> anyhow::Result<ZenohSource> {
+        init_gateway_logging();
         let runtime = tokio::runtime::Builder::new_multi_thread()
             .worker_threads(2)
             .enable_all()
@@ -108,4 +109,26 @@ impl ZenohArgs {
             _runtime: runtime,
         })
     }
+}
+
+/// Zenoh's own crates, quieted below errors unless `RUST_LOG` names them: their
+/// warnings (a scouting delay, a query timing out and asked again) are the gateway's
+/// business, not the user's.
+const QUIET_ZENOH: &str =
+    "zenoh=error,zenoh_transport=error,zenoh_link_tcp=error,zenoh_config=error";
+
+/// Shows the gateway's warnings on stderr (a camera in another world frame, a camera
+/// that does not answer); `RUST_LOG` overrides the default `warn`.
+fn init_gateway_logging() {
+    let directives = match std::env::var("RUST_LOG") {
+        Ok(v) if v.contains("zenoh") => v,
+        Ok(v) if !v.trim().is_empty() => format!("{v},{QUIET_ZENOH}"),
+        _ => format!("warn,{QUIET_ZENOH}"),
+    };
+    let filter = tracing_subscriber::EnvFilter::try_new(&directives)
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(format!("warn,{QUIET_ZENOH}")));
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .try_init();
 }
