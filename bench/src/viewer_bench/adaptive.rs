@@ -2,7 +2,9 @@
 //! (every frame at full quality) and after adaptive quality (the interactive frame
 //! sized by the controller to the budget, upscaled), in one run per model; the time
 //! from release to the full-quality frame; and the PSNR of the interactive frames
-//! against the full-quality frame at the same poses, for each cheap mode.
+//! against the full-quality frame at the same poses, for each cheap mode. For a
+//! capture of a simulated scene, also both frames against the scene's ground truth at
+//! those poses (`adaptive_truth.rs`).
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -19,6 +21,10 @@ use texel_viewer::scenes;
 
 use super::BenchArgs;
 
+mod truth;
+
+use truth::{PoseTruth, TruthScore};
+
 /// Radians of orbit per pixel of drag (the window's).
 const ORBIT_RAD_PER_PX: f64 = 0.005;
 /// The orbit swings this far either side of the start, once per orbit.
@@ -32,6 +38,9 @@ struct Subject {
     model: texel::model::Model,
     start: CameraControls,
     fov_deg: f64,
+    /// The scene file of the simulated scene the model was captured in, if any: its
+    /// ground truth.
+    scene: Option<PathBuf>,
 }
 
 /// The window's target: a texture of the window's size that a frame is shown in.
@@ -95,6 +104,7 @@ pub fn run(gpu: &GpuContext, args: &BenchArgs) -> anyhow::Result<()> {
         model: scenes::corridor(&sensor, 100),
         start: CameraControls::new(scenes::look_at([4.5, 0.0, -1.0], [4.5, 0.0, 5.05]), 6.05),
         fov_deg: 50.0,
+        scene: None,
     });
     let full = RenderSettings::with_mode(Mode::Blended);
     let window = Window::new(gpu, w, h);
@@ -123,6 +133,15 @@ pub fn run(gpu: &GpuContext, args: &BenchArgs) -> anyhow::Result<()> {
         );
         let before = orbit_full(gpu, &mut renderer, s, &full, &window, args)?;
         print_row("before: full quality", &before, &before, None, None);
+        // The full-quality frames at the scored poses (the same for every cheap mode),
+        // and with a truth, the truth there.
+        let scored = full_along_orbit(gpu, &mut renderer, s, &full, &window, args)?;
+        let mut truth_rows: Vec<(String, TruthScore)> = Vec::new();
+        if let Some(poses) = &scored.truths {
+            let mut score = TruthScore::default();
+            poses.iter().for_each(|p| score.add_full(p));
+            truth_rows.push(("before: full quality".into(), score));
+        }
         // Each change against the one before it: the resolution alone (painter, every
         // triangle), then the coarse triangles, then blended k = 1 instead of painter.
         for (cheap, coarse) in [
@@ -134,13 +153,24 @@ pub fn run(gpu: &GpuContext, args: &BenchArgs) -> anyhow::Result<()> {
             adaptive.cheap = cheap;
             adaptive.coarse = coarse;
             let after = orbit_adaptive(gpu, &mut renderer, s, &full, &window, &mut adaptive, args)?;
-            let psnr =
-                psnr_along_orbit(gpu, &mut renderer, s, &full, &window, &mut adaptive, args)?;
+            let (psnr, against_truth) = psnr_along_orbit(
+                gpu,
+                &mut renderer,
+                s,
+                &full,
+                &window,
+                &mut adaptive,
+                &scored,
+                args,
+            )?;
             let label = format!(
                 "after: {} k=1{}",
                 cheap.name(),
                 if coarse { ", coarse" } else { "" }
             );
+            if let Some(score) = against_truth {
+                truth_rows.push((label.clone(), score));
+            }
             print_row(
                 &label,
                 &after,
@@ -159,6 +189,19 @@ pub fn run(gpu: &GpuContext, args: &BenchArgs) -> anyhow::Result<()> {
                     release
                 );
             }
+        }
+        match &s.scene {
+            Some(scene) => {
+                truth::print_header(&s.name, scene, PSNR_POSES, w, h);
+                for (i, (label, score)) in truth_rows.iter().enumerate() {
+                    truth::print_row(label, score, i > 0);
+                }
+            }
+            None => println!(
+                "{}: no ground truth (not a capture of a simulated scene: no \
+                 configs/scenes/{}.toml); PSNR against the full-quality frame only",
+                s.name, s.name
+            ),
         }
     }
     Ok(())
@@ -207,6 +250,7 @@ fn load(spec: &str) -> anyhow::Result<Subject> {
         model,
         start,
         fov_deg,
+        scene: truth::scene_file(name),
     })
 }
 
@@ -335,9 +379,85 @@ fn release_to_full(
     Ok((t0.elapsed() + DEFAULT_SETTLE).as_secs_f64() * 1e3)
 }
 
+/// The camera at the `i`-th of the poses where frames are scored.
+fn scored_camera(
+    s: &Subject,
+    i: usize,
+    window: &Window,
+    orbit_s: f64,
+) -> anyhow::Result<VirtualCamera> {
+    let t = orbit_s * (i as f64 + 0.5) / PSNR_POSES as f64;
+    camera_at(s, t, window.width, window.height, orbit_s)
+}
+
+/// `settings` with uncovered pixels in the colour that finds them.
+fn masked(settings: &RenderSettings) -> RenderSettings {
+    let mut m = settings.clone();
+    m.composite.background = truth::MASK_BACKGROUND;
+    m
+}
+
+/// The full-quality frames at the scored poses, as shown in the window; with a
+/// scene's truth, the truth there and the full frames' coverage.
+struct Scored {
+    fulls: Vec<image::RgbaImage>,
+    truths: Option<Vec<PoseTruth>>,
+}
+
+fn full_along_orbit(
+    gpu: &GpuContext,
+    renderer: &mut Renderer,
+    s: &Subject,
+    settings: &RenderSettings,
+    window: &Window,
+    args: &BenchArgs,
+) -> anyhow::Result<Scored> {
+    let scene = match &s.scene {
+        Some(path) => {
+            Some(sims::Scene::load(path).with_context(|| format!("loading {}", path.display()))?)
+        }
+        None => None,
+    };
+    let mut adaptive = AdaptiveRenderer::new(&gpu.device, args.interactive_ms);
+    let mut fulls = Vec::with_capacity(PSNR_POSES);
+    let mut truths = Vec::with_capacity(PSNR_POSES);
+    for i in 0..PSNR_POSES {
+        let camera = scored_camera(s, i, window, args.orbit_s)?;
+        let mut shown = |settings: &RenderSettings| -> anyhow::Result<image::RgbaImage> {
+            frame(
+                gpu,
+                renderer,
+                &camera,
+                settings,
+                window,
+                &mut adaptive,
+                Quality::Full,
+            )?;
+            Ok(read_rgba_texture(&gpu.device, &gpu.queue, &window.texture)?)
+        };
+        let full = shown(settings)?;
+        if let Some(scene) = &scene {
+            let full_masked = shown(&masked(settings))?;
+            truths.push(truth::timed(
+                &format!(
+                    "{}: ground truth of pose {i} ({}x{})",
+                    s.name, window.width, window.height
+                ),
+                || PoseTruth::new(scene, &camera, &full, &full_masked),
+            )?);
+        }
+        fulls.push(full);
+    }
+    Ok(Scored {
+        fulls,
+        truths: scene.map(|_| truths),
+    })
+}
+
 /// The mean PSNR of the interactive frames (at the scale the controller settled on,
 /// shown in the window) against the full-quality frames at the same poses, over
-/// poses spread along the orbit.
+/// poses spread along the orbit; with a truth, both against it.
+#[allow(clippy::too_many_arguments)]
 fn psnr_along_orbit(
     gpu: &GpuContext,
     renderer: &mut Renderer,
@@ -345,35 +465,33 @@ fn psnr_along_orbit(
     settings: &RenderSettings,
     window: &Window,
     adaptive: &mut AdaptiveRenderer,
+    scored: &Scored,
     args: &BenchArgs,
-) -> anyhow::Result<f64> {
+) -> anyhow::Result<(f64, Option<TruthScore>)> {
     let mut sum = 0.0;
-    for i in 0..PSNR_POSES {
-        let t = args.orbit_s * (i as f64 + 0.5) / PSNR_POSES as f64;
-        let camera = camera_at(s, t, window.width, window.height, args.orbit_s)?;
-        frame(
-            gpu,
-            renderer,
-            &camera,
-            settings,
-            window,
-            adaptive,
-            Quality::Interactive,
-        )?;
-        let cheap = read_rgba_texture(&gpu.device, &gpu.queue, &window.texture)?;
-        frame(
-            gpu,
-            renderer,
-            &camera,
-            settings,
-            window,
-            adaptive,
-            Quality::Full,
-        )?;
-        let full = read_rgba_texture(&gpu.device, &gpu.queue, &window.texture)?;
-        sum += psnr(&cheap, &full);
+    let mut against_truth = scored.truths.as_ref().map(|_| TruthScore::default());
+    for (i, full) in scored.fulls.iter().enumerate() {
+        let camera = scored_camera(s, i, window, args.orbit_s)?;
+        let mut shown = |settings: &RenderSettings| -> anyhow::Result<image::RgbaImage> {
+            frame(
+                gpu,
+                renderer,
+                &camera,
+                settings,
+                window,
+                adaptive,
+                Quality::Interactive,
+            )?;
+            Ok(read_rgba_texture(&gpu.device, &gpu.queue, &window.texture)?)
+        };
+        let cheap = shown(settings)?;
+        sum += psnr(&cheap, full);
+        if let (Some(score), Some(truths)) = (against_truth.as_mut(), scored.truths.as_ref()) {
+            let cheap_masked = shown(&masked(settings))?;
+            score.add(&cheap, &truth::covered(&cheap_masked), &truths[i]);
+        }
     }
-    Ok(sum / PSNR_POSES as f64)
+    Ok((sum / scored.fulls.len().max(1) as f64, against_truth))
 }
 
 /// PSNR of `a` against `b` over RGB, dB; identical images give 99 dB (no infinity).
