@@ -84,6 +84,31 @@ pub enum GpuError {
     Readback(String),
 }
 
+/// A single-mip 2D texture in [`IMAGE_FORMAT`] (the headless target's, and what the
+/// window's adaptive pictures are drawn into).
+pub fn image_texture(
+    device: &wgpu::Device,
+    label: &str,
+    width: u32,
+    height: u32,
+    usage: wgpu::TextureUsages,
+) -> wgpu::Texture {
+    device.create_texture(&wgpu::TextureDescriptor {
+        label: Some(label),
+        size: wgpu::Extent3d {
+            width,
+            height,
+            depth_or_array_layers: 1,
+        },
+        mip_level_count: 1,
+        sample_count: 1,
+        dimension: wgpu::TextureDimension::D2,
+        format: IMAGE_FORMAT,
+        usage,
+        view_formats: &[],
+    })
+}
+
 /// Command buffers handed to the GPU by this process, counted so a test can see that
 /// an idle window submits nothing (every submission of the viewer goes through
 /// [`submit`]).

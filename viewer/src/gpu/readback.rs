@@ -225,20 +225,13 @@ impl Renderer {
         settings: &RenderSettings,
     ) -> Result<(image::RgbaImage, super::FrameStats), GpuError> {
         let (width, height) = (camera.width, camera.height);
-        let texture = self.device.create_texture(&wgpu::TextureDescriptor {
-            label: Some("headless target"),
-            size: wgpu::Extent3d {
-                width,
-                height,
-                depth_or_array_layers: 1,
-            },
-            mip_level_count: 1,
-            sample_count: 1,
-            dimension: wgpu::TextureDimension::D2,
-            format: IMAGE_FORMAT,
-            usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
-            view_formats: &[],
-        });
+        let texture = super::image_texture(
+            &self.device,
+            "headless target",
+            width,
+            height,
+            wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
+        );
         let view = texture.create_view(&wgpu::TextureViewDescriptor::default());
         let stats = self.render(
             camera,
