@@ -6,6 +6,7 @@
 //! `--adaptive`, the window's adaptive quality (`viewer_bench/adaptive.rs`).
 
 mod adaptive;
+mod full_frame;
 
 use std::time::Instant;
 
@@ -36,9 +37,14 @@ pub struct BenchArgs {
     /// --height 800 for the window's default size).
     #[arg(long, conflicts_with = "residency_only")]
     pub adaptive: bool,
-    /// With --adaptive: a capture to orbit in, NAME=PATH (repeatable); the synthetic
-    /// 100-scan corridor is always measured.
-    #[arg(long, value_name = "NAME=PATH", requires = "adaptive")]
+    /// Measure the full-quality frame only: ways of drawing it against each other in
+    /// one interleaved run, phase by phase, and their images against the baseline's
+    /// (--frames rounds; use --width 1280 --height 800 for the window's default size).
+    #[arg(long, conflicts_with_all = ["residency_only", "adaptive"])]
+    pub full_frame: bool,
+    /// With --adaptive or --full-frame: a capture to orbit in, NAME=PATH (repeatable);
+    /// the synthetic 100-scan corridor is always measured.
+    #[arg(long, value_name = "NAME=PATH")]
     pub capture: Vec<String>,
     /// With --adaptive: the interactive frame's budget, ms.
     #[arg(long, default_value_t = texel_viewer::adaptive::DEFAULT_INTERACTIVE_MS)]
@@ -110,6 +116,9 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<()> {
     println!("adapter: {}", gpu.adapter_name());
     if args.adaptive {
         return adaptive::run(&gpu, args);
+    }
+    if args.full_frame {
+        return full_frame::run(&gpu, args);
     }
     println!(
         "target {}x{}, blended mode, k = 4, {} timed frames per row; scans: 64x48 lidar, 320x240 EO",

@@ -10,6 +10,7 @@ pub mod composite;
 pub mod cull;
 pub mod deep_link;
 pub mod display_mode;
+pub mod footprint;
 pub mod gpu;
 pub mod headless;
 pub mod live;

@@ -33,9 +33,9 @@ const ORBIT_HALF_DEG: f64 = 20.0;
 const PSNR_POSES: usize = 4;
 
 /// A model and where its orbit starts.
-struct Subject {
-    name: String,
-    model: texel::model::Model,
+pub(super) struct Subject {
+    pub name: String,
+    pub model: texel::model::Model,
     start: CameraControls,
     fov_deg: f64,
     /// The scene file of the simulated scene the model was captured in, if any: its
@@ -91,14 +91,7 @@ pub fn run(gpu: &GpuContext, args: &BenchArgs) -> anyhow::Result<()> {
     for spec in &args.capture {
         subjects.push(load(spec)?);
     }
-    let sensor = scenes::sensor(64, 48, 320, 240);
-    subjects.push(Subject {
-        name: "corridor-100".into(),
-        model: scenes::corridor(&sensor, 100),
-        start: CameraControls::new(scenes::look_at([4.5, 0.0, -1.0], [4.5, 0.0, 5.05]), 6.05),
-        fov_deg: 50.0,
-        scene: None,
-    });
+    subjects.push(corridor_subject());
     let full = RenderSettings::with_mode(Mode::Blended);
     let window = Window::new(gpu, w, h);
     for s in &subjects {
@@ -213,9 +206,21 @@ fn print_row(label: &str, times: &[f64], base: &[f64], scale: Option<f64>, psnr:
     );
 }
 
+/// The synthetic corridor of 100 scans, seen from outside along it.
+pub(super) fn corridor_subject() -> Subject {
+    let sensor = scenes::sensor(64, 48, 320, 240);
+    Subject {
+        name: "corridor-100".into(),
+        model: scenes::corridor(&sensor, 100),
+        start: CameraControls::new(scenes::look_at([4.5, 0.0, -1.0], [4.5, 0.0, 5.05]), 6.05),
+        fov_deg: 50.0,
+        scene: None,
+    }
+}
+
 /// `NAME=PATH`: a capture, loaded and fused; the orbit starts at its middle scan's
 /// acquisition pose, pivoting at that scan's median range.
-fn load(spec: &str) -> anyhow::Result<Subject> {
+pub(super) fn load(spec: &str) -> anyhow::Result<Subject> {
     let (name, path) = spec
         .split_once('=')
         .with_context(|| format!("--capture {spec}: expected NAME=PATH"))?;
@@ -248,7 +253,8 @@ fn load(spec: &str) -> anyhow::Result<Subject> {
 }
 
 /// The camera `t` seconds into the orbit.
-fn camera_at(s: &Subject, t: f64, w: u32, h: u32, orbit_s: f64) -> anyhow::Result<VirtualCamera> {
+pub(super) fn camera_at(
+    s: &Subject, t: f64, w: u32, h: u32, orbit_s: f64) -> anyhow::Result<VirtualCamera> {
     let mut c = s.start;
     let phase = std::f64::consts::TAU * t / orbit_s.max(1e-3);
     c.orbit(
@@ -506,7 +512,7 @@ pub fn psnr(a: &image::RgbaImage, b: &image::RgbaImage) -> f64 {
 }
 
 /// The `q` quantile (nearest rank) of `v`; 0 for none.
-fn percentile(v: &[f64], q: f64) -> f64 {
+pub(super) fn percentile(v: &[f64], q: f64) -> f64 {
     let mut s = v.to_vec();
     s.sort_by(f64::total_cmp);
     if s.is_empty() {

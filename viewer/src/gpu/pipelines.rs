@@ -21,6 +21,11 @@ pub(crate) struct KBufferPipelines {
     module: wgpu::ShaderModule,
     pipeline_layout: wgpu::PipelineLayout,
     pub merge: wgpu::RenderPipeline,
+    /// One scan into one packed layer (`fs_layer_packed`).
+    pub layer: wgpu::RenderPipeline,
+    /// Zeroes a layer and the depth buffer inside the scissor rectangle (the
+    /// part of a layer a scan wrote, or is about to).
+    pub clear_layer: wgpu::RenderPipeline,
 }
 
 pub(crate) struct Pipelines {
@@ -204,7 +209,7 @@ impl Pipelines {
             &[replace(LAYER_COLOUR_FORMAT), replace(LAYER_DATA_FORMAT)],
         );
         let kbuffer = (device.limits().max_storage_buffers_per_shader_stage > 0)
-            .then(|| KBufferPipelines::new(device));
+            .then(|| KBufferPipelines::new(device, &scan_pipeline_layout, &scan_module));
         Self {
             frame_layout,
             scan_layout,
@@ -222,7 +227,11 @@ impl Pipelines {
 }
 
 impl KBufferPipelines {
-    fn new(device: &wgpu::Device) -> Self {
+    fn new(
+        device: &wgpu::Device,
+        scan_pipeline_layout: &wgpu::PipelineLayout,
+        scan_module: &wgpu::ShaderModule,
+    ) -> Self {
         let fs = wgpu::ShaderStages::FRAGMENT;
         let mf = fs;
         let merge_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
@@ -230,10 +239,9 @@ impl KBufferPipelines {
             entries: &[
                 uniform_entry(0, mf, false),
                 texture_entry(1, mf, UINT, D2),
-                texture_entry(2, mf, UNFILTERED, D2_ARRAY),
-                texture_entry(3, mf, UINT, D2_ARRAY),
-                storage_entry(4, mf, false),
-                uniform_entry(5, mf, true),
+                texture_entry(2, mf, UINT, D2_ARRAY),
+                storage_entry(3, mf, false),
+                uniform_entry(4, mf, true),
             ],
         });
         let composite_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
@@ -284,12 +292,55 @@ impl KBufferPipelines {
             multiview_mask: None,
             cache: None,
         });
+        let clear_layer = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+            label: Some("clear layer"),
+            layout: Some(&device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+                label: Some("clear layer"),
+                bind_group_layouts: &[],
+                immediate_size: 0,
+            })),
+            vertex: wgpu::VertexState {
+                module: &merge_module,
+                entry_point: Some("vs_fullscreen"),
+                compilation_options: Default::default(),
+                buffers: &[],
+            },
+            primitive: wgpu::PrimitiveState::default(),
+            // The full-screen triangle lies at depth 0: reverse z's far plane, what a
+            // cleared depth buffer holds.
+            depth_stencil: Some(wgpu::DepthStencilState {
+                format: DEPTH_FORMAT,
+                depth_write_enabled: Some(true),
+                depth_compare: Some(wgpu::CompareFunction::Always),
+                stencil: wgpu::StencilState::default(),
+                bias: wgpu::DepthBiasState::default(),
+            }),
+            multisample: wgpu::MultisampleState::default(),
+            fragment: Some(wgpu::FragmentState {
+                module: &merge_module,
+                entry_point: Some("fs_clear_layer"),
+                compilation_options: Default::default(),
+                targets: &[replace(LAYER_DATA_FORMAT)],
+            }),
+            multiview_mask: None,
+            cache: None,
+        });
+        let layer = scan_render_pipeline(
+            device,
+            scan_pipeline_layout,
+            scan_module,
+            "packed layer",
+            "fs_layer_packed",
+            &[replace(LAYER_DATA_FORMAT)],
+        );
         Self {
             merge_layout,
             composite_layout,
             module,
             pipeline_layout,
             merge,
+            layer,
+            clear_layer,
         }
     }
 }

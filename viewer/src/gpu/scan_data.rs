@@ -10,6 +10,7 @@ use wgpu::util::DeviceExt;
 
 use super::{EO_FORMAT, GpuError};
 use crate::cull::ScanBounds;
+use crate::footprint::Footprint;
 use crate::reliability::{triangle_drawn, vertex_accuracy, vertex_acquisition_range};
 
 /// Vertex layout: position (scan frame), texture coordinate, interpolated normal
@@ -51,6 +52,8 @@ pub(crate) struct GpuScan {
     pub uniform: wgpu::Buffer,
     pub bind_group: wgpu::BindGroup,
     pub bounds: Option<ScanBounds>,
+    /// Where on screen the scan can draw (`crate::footprint`).
+    pub footprint: Footprint,
     /// The acquisition centre of projection, scan frame.
     pub cop_scan: DVec3,
     pub noise: RangeNoise,
@@ -182,6 +185,7 @@ impl GpuScan {
             uniform,
             bind_group,
             bounds: ScanBounds::of(scan),
+            footprint: Footprint::of(scan),
             cop_scan: DVec3::from_array(scan.cop_m),
             noise: scan.range_noise,
             bytes,

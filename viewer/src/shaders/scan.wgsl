@@ -2,7 +2,9 @@
 // evaluates the accumulated reliability (Sec. 3): interpolated normal accuracy x
 // point-of-view confidence x range confidence. Entry points: painter (plain
 // textured), prepass (nearest valid distance and its sigma), layer (colour +
-// reliability, distance, sigma, scan id).
+// reliability, distance, sigma, scan id; the naive layers), layer_packed (reliability,
+// distance, sigma and packed colour in one target; the k-buffer, which knows each
+// layer's scan).
 
 struct Scan {
     view_from_scan: mat4x4<f32>,
@@ -98,4 +100,16 @@ fn fs_layer(in: VsOut) -> LayerOut {
     out.colour = vec4<f32>(colour.rgb, 1.0);
     out.data = vec4<u32>(bitcast<u32>(e.x), bitcast<u32>(e.y), bitcast<u32>(e.z), scan.ids.x);
     return out;
+}
+
+// The k-buffer's layer: one 16-byte target (the colour packed as the k-buffer keeps
+// it), so a layer pass writes one attachment and a merge reads one texel per layer.
+@fragment
+fn fs_layer_packed(in: VsOut) -> @location(0) vec4<u32> {
+    let colour = textureSample(eo_texture, eo_sampler, in.uv);
+    let e = evaluate(in);
+    if e.x <= 0.0 {
+        discard;
+    }
+    return vec4<u32>(bitcast<u32>(e.x), bitcast<u32>(e.y), bitcast<u32>(e.z), pack_rgba8(vec4<f32>(colour.rgb, 1.0)));
 }

@@ -39,6 +39,22 @@ impl<'a> Frame<'a> {
         })
     }
 
+    /// The depth buffer kept after the pass, starting from `load`: the k-buffer's
+    /// layer passes clear it only where their scan draws.
+    pub fn depth_kept(
+        &self,
+        load: wgpu::LoadOp<f32>,
+    ) -> Option<wgpu::RenderPassDepthStencilAttachment<'a>> {
+        Some(wgpu::RenderPassDepthStencilAttachment {
+            view: &self.depth.depth.view,
+            depth_ops: Some(wgpu::Operations {
+                load,
+                store: wgpu::StoreOp::Store,
+            }),
+            stencil_ops: None,
+        })
+    }
+
     /// Draws `ids` with the pass's pipeline, in the order given.
     pub fn draw_scans(&self, pass: &mut wgpu::RenderPass<'_>, ids: &[ScanId]) {
         pass.set_bind_group(0, self.frame_bind_group, &[]);
@@ -130,6 +146,19 @@ impl<'a> Frame<'a> {
         pass.set_bind_group(0, bind_group, &[]);
         pass.draw(0..3, 0..1);
     }
+}
+
+/// A layer attachment kept as it is (the k-buffer clears only the part a scan wrote).
+pub(super) fn kept(view: &wgpu::TextureView) -> Option<wgpu::RenderPassColorAttachment<'_>> {
+    Some(wgpu::RenderPassColorAttachment {
+        view,
+        depth_slice: None,
+        resolve_target: None,
+        ops: wgpu::Operations {
+            load: wgpu::LoadOp::Load,
+            store: wgpu::StoreOp::Store,
+        },
+    })
 }
 
 /// A layer attachment cleared to "no fragment" (transparent, all zero).

@@ -1,23 +1,37 @@
 //! The k-buffer strategy (bounded memory): its size-dependent targets (a pre-pass
-//! target with the nearest valid distance and its sigma, `batch` per-scan layers, and
+//! target with the nearest valid distance and its sigma, `batch` per-scan layers of
+//! 16 bytes a pixel (reliability, distance, sigma, packed colour), and
 //! a storage buffer with the k best fragments of every pixel) and a frame's passes:
 //! the pre-pass, scans a batch at a time into the layers with each batch merged into
 //! the k-buffer, then the composite. Optionally timed phase by phase.
+//!
+//! A scan covers part of the screen, so each layer is cleared and drawn, and each batch
+//! merged, only inside the scans' conservative pixel rectangles (`crate::footprint`):
+//! on a software rasteriser the full-screen clears and merges were most of a frame.
 
 // `web_time`: the std clock natively, the browser's in wasm (where std's panics).
 use web_time::Instant;
 
 use texel::model::ScanId;
 
-use super::frame::Frame;
+use super::frame::{Frame, cleared, kept};
+use crate::footprint::PixelRect;
 use crate::gpu::pipelines::{KBufferPipelines, Pipelines};
-use crate::gpu::targets::{Layers, TargetMemory, Texture, pixels, texture};
-use crate::gpu::{GpuError, NEAREST_FORMAT};
+use crate::gpu::targets::{TargetMemory, Texture, pixels, texture};
+use crate::gpu::{GpuError, LAYER_DATA_FORMAT, NEAREST_FORMAT};
 
 /// Bytes of one k-buffer entry (packed colour, reliability, scan id).
 const KBUFFER_ENTRY_BYTES: u64 = 12;
-/// Dynamic-offset stride of the per-batch uniform.
-const BATCH_UNIFORM_STRIDE: u64 = 256;
+/// Bytes of one packed layer texel.
+const LAYER_BYTES: u64 = 16;
+/// Layers a batch may hold: the per-batch uniform has a scan id for each.
+pub(super) const MAX_BATCH: u32 = 64;
+/// The per-batch uniform (`merge.wgsl`'s `Batch`): the layer count, then the scan id of
+/// each layer.
+const BATCH_UNIFORM_BYTES: u64 = 16 + 4 * MAX_BATCH as u64;
+/// Dynamic-offset stride of the per-batch uniform (a multiple of the 256-byte offset
+/// alignment).
+const BATCH_UNIFORM_STRIDE: u64 = BATCH_UNIFORM_BYTES.next_multiple_of(256);
 
 /// What the k-buffer's targets are sized for.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -40,13 +54,17 @@ impl KBufferShape {
 pub(crate) struct KBufferTargets {
     shape: KBufferShape,
     nearest: Texture,
-    layers: Layers,
+    /// One attachment view per layer (the views keep the layers' texture alive).
+    layer_views: Vec<wgpu::TextureView>,
     kbuffer: wgpu::Buffer,
     batch_uniform: wgpu::Buffer,
     /// Batches the per-batch uniform has room for.
     batch_slots: u32,
     merge_bind_group: wgpu::BindGroup,
     composite_bind_group: wgpu::BindGroup,
+    /// Per layer: the rectangle outside which it holds no fragment (`None`: all of it
+    /// is clear), so the next scan drawn into it clears only that and its own.
+    dirty: Vec<Option<PixelRect>>,
 }
 
 impl KBufferTargets {
@@ -78,7 +96,26 @@ impl KBufferTargets {
             wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING,
             false,
         );
-        let layers = Layers::new(device, width, height, batch);
+        let layers = texture(
+            device,
+            "k-buffer layers",
+            width,
+            height,
+            batch,
+            LAYER_DATA_FORMAT,
+            wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING,
+            true,
+        );
+        let layer_views = (0..batch)
+            .map(|l| {
+                layers.texture.create_view(&wgpu::TextureViewDescriptor {
+                    dimension: Some(wgpu::TextureViewDimension::D2),
+                    base_array_layer: l,
+                    array_layer_count: Some(1),
+                    ..Default::default()
+                })
+            })
+            .collect();
         let kbuffer = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("k-buffer"),
             size: shape.kbuffer_bytes(),
@@ -106,22 +143,18 @@ impl KBufferTargets {
                 },
                 wgpu::BindGroupEntry {
                     binding: 2,
-                    resource: wgpu::BindingResource::TextureView(&layers.colour.view),
+                    resource: wgpu::BindingResource::TextureView(&layers.view),
                 },
                 wgpu::BindGroupEntry {
                     binding: 3,
-                    resource: wgpu::BindingResource::TextureView(&layers.data.view),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 4,
                     resource: kbuffer.as_entire_binding(),
                 },
                 wgpu::BindGroupEntry {
-                    binding: 5,
+                    binding: 4,
                     resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
                         buffer: &batch_uniform,
                         offset: 0,
-                        size: wgpu::BufferSize::new(16),
+                        size: wgpu::BufferSize::new(BATCH_UNIFORM_BYTES),
                     }),
                 },
             ],
@@ -147,12 +180,13 @@ impl KBufferTargets {
         Self {
             shape,
             nearest,
-            layers,
+            layer_views,
             kbuffer,
             batch_uniform,
             batch_slots,
             merge_bind_group,
             composite_bind_group,
+            dirty: vec![None; batch as usize],
         }
     }
 
@@ -165,7 +199,9 @@ impl KBufferTargets {
         TargetMemory {
             depth,
             nearest: pixels(self.shape.width, self.shape.height) * 8,
-            layers: self.layers.bytes(),
+            layers: pixels(self.shape.width, self.shape.height)
+                * u64::from(self.shape.batch)
+                * LAYER_BYTES,
             kbuffer: self.kbuffer.size(),
         }
     }
@@ -181,7 +217,7 @@ pub(super) fn prepare<'a>(
     frame_uniform: &wgpu::Buffer,
     shape: KBufferShape,
     batches: u32,
-) -> Result<&'a KBufferTargets, GpuError> {
+) -> Result<&'a mut KBufferTargets, GpuError> {
     let bytes = shape.kbuffer_bytes();
     let limits = device.limits();
     let limit = limits
@@ -269,16 +305,49 @@ fn submit_and_wait(frame: &Frame<'_>, encoder: &mut wgpu::CommandEncoder) {
     let _ = frame.device.poll(wgpu::PollType::wait_indefinitely());
 }
 
-/// Records the k-buffer's passes for `visible` into the frame's target.
+/// A scan drawn into a layer and the pixels it can draw there.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) struct Layered {
+    pub id: ScanId,
+    /// `None`: the whole target, cleared and merged as a whole (no footprints).
+    pub rect: Option<PixelRect>,
+}
+
+/// Orders the layered scans along a Morton curve of their rectangles' centres, so a
+/// batch's scans lie near each other on screen and its merge covers little more than
+/// they do. Changes no pixel: fragments are ranked by a total order (reliability, then
+/// scan id), whatever the batches.
+pub(super) fn order_on_screen(layered: &mut [Layered]) {
+    layered.sort_by_key(|l| {
+        let (x, y) = l.rect.map_or((0, 0), |r| r.centre());
+        (morton(x / 16, y / 16), l.id)
+    });
+}
+
+/// Interleaves the low 16 bits of `x` and `y` (x in the even bits).
+fn morton(x: u32, y: u32) -> u32 {
+    let spread = |v: u32| {
+        let mut v = v & 0xFFFF;
+        v = (v | (v << 8)) & 0x00FF_00FF;
+        v = (v | (v << 4)) & 0x0F0F_0F0F;
+        v = (v | (v << 2)) & 0x3333_3333;
+        (v | (v << 1)) & 0x5555_5555
+    };
+    spread(x) | (spread(y) << 1)
+}
+
+/// Records the k-buffer's passes for `visible` into the frame's target: every visible
+/// scan into the pre-pass, those in `layered` (in that order) into the layers.
 pub(super) fn encode(
     frame: &Frame<'_>,
     encoder: &mut wgpu::CommandEncoder,
-    t: &KBufferTargets,
+    t: &mut KBufferTargets,
     visible: &[ScanId],
+    layered: &[Layered],
     mut clock: Option<&mut PhaseClock>,
 ) {
     // `prepare` made the targets, so the device has the k-buffer's pipelines.
-    let (Some(KBufferPipelines { merge, .. }), Some(composite)) = (
+    let (Some(pipelines), Some(composite)) = (
         frame.pipelines.kbuffer.as_ref(),
         frame.outputs.composite_kbuffer.as_ref(),
     ) else {
@@ -308,7 +377,8 @@ pub(super) fn encode(
                     store: wgpu::StoreOp::Store,
                 },
             })],
-            depth_stencil_attachment: frame.depth_attachment(),
+            // Kept: the layer passes clear it only inside their rectangles.
+            depth_stencil_attachment: frame.depth_kept(wgpu::LoadOp::Clear(0.0)),
             timestamp_writes: None,
             occlusion_query_set: None,
             multiview_mask: None,
@@ -319,33 +389,37 @@ pub(super) fn encode(
     checkpoint(encoder, Phase::Prepass);
     // 2. Scans a batch at a time into the layers, each batch merged into the k-buffer.
     encoder.clear_buffer(&t.kbuffer, 0, None);
-    for (b, chunk) in visible.chunks(t.shape.batch as usize).enumerate() {
+    for (b, chunk) in layered.chunks(t.shape.batch as usize).enumerate() {
         let offset = KBufferTargets::slot_offset(b as u32);
-        frame.queue.write_buffer(
-            &t.batch_uniform,
-            u64::from(offset),
-            bytemuck::bytes_of(&[chunk.len() as u32, 0, 0, 0]),
-        );
-        for (l, &id) in chunk.iter().enumerate() {
-            frame.encode_layer(
-                encoder,
-                &t.layers.colour_layers[l],
-                &t.layers.data_layers[l],
-                id,
-            );
+        let mut uniform = [0u32; BATCH_UNIFORM_BYTES as usize / 4];
+        uniform[0] = chunk.len() as u32;
+        for (slot, scan) in uniform[4..].iter_mut().zip(chunk) {
+            // As the scan's own uniform gives it to the shaders.
+            *slot = u32::try_from(scan.id).unwrap_or(u32::MAX);
+        }
+        frame
+            .queue
+            .write_buffer(&t.batch_uniform, u64::from(offset), bytemuck::bytes_of(&uniform));
+        for (l, scan) in chunk.iter().enumerate() {
+            encode_layer(frame, encoder, t, pipelines, l, scan);
         }
         checkpoint(encoder, Phase::Layers);
         // The pass needs an attachment: the depth buffer, neither tested nor written.
         let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
             label: Some("merge"),
             color_attachments: &[],
-            depth_stencil_attachment: frame.depth_attachment(),
+            depth_stencil_attachment: frame.depth_kept(wgpu::LoadOp::Load),
             timestamp_writes: None,
             occlusion_query_set: None,
             multiview_mask: None,
         });
-        pass.set_pipeline(merge);
+        pass.set_pipeline(&pipelines.merge);
         pass.set_bind_group(0, &t.merge_bind_group, &[offset]);
+        // Outside the batch's rectangles no layer holds a fragment.
+        let rects = chunk.iter().map(|s| s.rect);
+        if let Some(Some(r)) = rects.reduce(|a, b| a.zip(b).map(|(a, b)| a.union(&b))) {
+            pass.set_scissor_rect(r.x, r.y, r.width, r.height);
+        }
         pass.draw(0..3, 0..1);
         drop(pass);
         checkpoint(encoder, Phase::Merge);
@@ -353,4 +427,81 @@ pub(super) fn encode(
     // 3. Composite into the target.
     frame.encode_composite(encoder, composite, &t.composite_bind_group);
     checkpoint(encoder, Phase::Composite);
+}
+
+/// One scan into layer `l`. With a rectangle: clears what the layer's previous scan
+/// wrote and the rectangle, then draws the scan there. Without: clears the whole
+/// layer and the depth buffer first.
+fn encode_layer(
+    frame: &Frame<'_>,
+    encoder: &mut wgpu::CommandEncoder,
+    t: &mut KBufferTargets,
+    pipelines: &KBufferPipelines,
+    l: usize,
+    scan: &Layered,
+) {
+    let view = &t.layer_views[l];
+    let Some(rect) = scan.rect else {
+        let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+            label: Some("scan layer"),
+            color_attachments: &[cleared(view)],
+            depth_stencil_attachment: frame.depth_attachment(),
+            timestamp_writes: None,
+            occlusion_query_set: None,
+            multiview_mask: None,
+        });
+        pass.set_pipeline(&pipelines.layer);
+        frame.draw_scans(&mut pass, &[scan.id]);
+        // The scan may have drawn anywhere.
+        t.dirty[l] = Some(PixelRect::full(t.shape.width, t.shape.height));
+        return;
+    };
+    let clear = t.dirty[l].map_or(rect, |d| d.union(&rect));
+    let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+        label: Some("scan layer"),
+        color_attachments: &[kept(view)],
+        depth_stencil_attachment: frame.depth_kept(wgpu::LoadOp::Load),
+        timestamp_writes: None,
+        occlusion_query_set: None,
+        multiview_mask: None,
+    });
+    pass.set_pipeline(&pipelines.clear_layer);
+    pass.set_scissor_rect(clear.x, clear.y, clear.width, clear.height);
+    pass.draw(0..3, 0..1);
+    pass.set_pipeline(&pipelines.layer);
+    pass.set_scissor_rect(rect.x, rect.y, rect.width, rect.height);
+    frame.draw_scans(&mut pass, &[scan.id]);
+    t.dirty[l] = Some(rect);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn morton_interleaves_x_and_y() {
+        assert_eq!(morton(0, 0), 0);
+        assert_eq!(morton(1, 0), 1);
+        assert_eq!(morton(0, 1), 2);
+        assert_eq!(morton(3, 3), 15);
+        assert_eq!(morton(0xFFFF, 0), 0x5555_5555);
+    }
+
+    #[test]
+    fn nearby_rectangles_share_batches() {
+        let at = |id, x, y| Layered {
+            id,
+            rect: Some(PixelRect {
+                x,
+                y,
+                width: 10,
+                height: 10,
+            }),
+        };
+        // Two clusters on screen, interleaved by id.
+        let mut l = vec![at(0, 0, 0), at(1, 600, 400), at(2, 20, 10), at(3, 610, 420)];
+        order_on_screen(&mut l);
+        let ids: Vec<ScanId> = l.iter().map(|s| s.id).collect();
+        assert_eq!(ids, vec![0, 2, 1, 3]);
+    }
 }

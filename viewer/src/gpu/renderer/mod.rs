@@ -21,7 +21,7 @@ use texel::model::{Model, ScanId};
 use self::frame::Frame;
 use self::kbuffer::{KBufferShape, PhaseClock};
 use super::pipelines::{OutputPipelines, Pipelines};
-use super::relative::gpu_from_pose_relative;
+use super::relative::{gpu_from_pose_relative, pose_relative};
 use super::scan_data::{GpuScan, ScanUniform};
 use super::targets::{DepthTarget, TargetMemory};
 use super::{GpuContext, GpuError};
@@ -192,6 +192,10 @@ pub struct Renderer {
     pub(crate) naive: Option<naive_layers::NaiveTargets>,
     /// Submit and wait after each k-buffer phase and time it (slower; for `bench`).
     pub profile_phases: bool,
+    /// Clear, draw and merge each k-buffer layer only inside its scan's pixel
+    /// rectangle (`crate::footprint`); off, over the whole target, as before there
+    /// were footprints (for `bench`: same image, more time).
+    pub layer_footprints: bool,
     /// The last frame went through the k-buffer, so its pre-pass target holds that
     /// frame's nearest scan distances.
     nearest_ready: bool,
@@ -229,6 +233,7 @@ impl Renderer {
             kbuffer: None,
             naive: None,
             profile_phases: false,
+            layer_footprints: true,
             nearest_ready: false,
             points: None,
         }
@@ -488,7 +493,7 @@ impl Renderer {
                 let mut clock = self
                     .profile_phases
                     .then(|| PhaseClock::start(&frame, &mut encoder));
-                let batch = batch.clamp(1, 64);
+                let batch = batch.clamp(1, kbuffer::MAX_BATCH);
                 let shape = KBufferShape {
                     width,
                     height,
@@ -504,7 +509,15 @@ impl Renderer {
                     shape,
                     batches,
                 )?;
-                kbuffer::encode(&frame, &mut encoder, targets, &visible, clock.as_mut());
+                let layered = layered(&self.scans, &visible, camera, self.layer_footprints);
+                kbuffer::encode(
+                    &frame,
+                    &mut encoder,
+                    targets,
+                    &visible,
+                    &layered,
+                    clock.as_mut(),
+                );
                 self.nearest_ready = true;
                 stats.phase_ms = clock.map(|c| c.phase_ms());
                 stats.target_memory = targets.memory(depth_bytes);
@@ -549,6 +562,38 @@ impl Renderer {
     pub fn max_k() -> u32 {
         MAX_K
     }
+}
+
+/// The visible scans that reach the k-buffer's layers, each with the pixels it can
+/// draw (those that draw none are left out), in the order the batches take them; with
+/// `footprints` off, all of them over the whole target, by id.
+fn layered(
+    scans: &BTreeMap<ScanId, PlacedScan>,
+    visible: &[ScanId],
+    camera: &VirtualCamera,
+    footprints: bool,
+) -> Vec<kbuffer::Layered> {
+    if !footprints {
+        return visible
+            .iter()
+            .map(|&id| kbuffer::Layered { id, rect: None })
+            .collect();
+    }
+    let view_from_world = camera.view_from_world();
+    let mut layered: Vec<kbuffer::Layered> = visible
+        .iter()
+        .filter_map(|&id| {
+            let placed = scans.get(&id)?;
+            let view_from_scan = pose_relative(&view_from_world, &placed.world_from_scan);
+            let rect = placed.gpu.footprint.screen_rect(&view_from_scan, camera)?;
+            Some(kbuffer::Layered {
+                id,
+                rect: Some(rect),
+            })
+        })
+        .collect();
+    kbuffer::order_on_screen(&mut layered);
+    layered
 }
 
 #[cfg(test)]
