@@ -3,10 +3,12 @@
 //! Chromium (`scripts/node/web-view.mjs`, WebGPU on SwiftShader, then WebGL2 on
 //! SwiftShader through ANGLE) opens the whole model's overview; the native renderer
 //! (lavapipe) draws the same view. Reported: the wasm's size (raw and gzip), page
-//! load to the full model on screen (first load and with the wasm cached), the
-//! frame time in the browser on each path against the native frame time (the
-//! browser's is the interval between animation frames, which never goes below the
-//! display's 16.7 ms), and the bytes a browser receives per scan.
+//! load to the full model on screen (first load, and with the wasm cached: the page
+//! left for `about:blank` and opened again), where the cached load's time went step
+//! by step (`data-texel-load`), the frame time in the browser on each path against
+//! the native frame time (the browser's is the interval between frames drawn one
+//! after the other while a drag moves the view, which never goes below the display's
+//! 16.7 ms), and the bytes a browser receives per scan.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -41,8 +43,10 @@ struct BrowserRun {
     path: String,
     first_ready_ms: f64,
     cached_ready_ms: f64,
-    cached_snapshot_ms: f64,
-    cached_resident_ms: f64,
+    /// The cached load's steps (`data-texel-load`, `crate::web::load` in the viewer).
+    cached_load: serde_json::Value,
+    /// When the page's own files came (resource timing).
+    cached_files: serde_json::Value,
     frame_ms: f64,
     bytes: f64,
     scans: f64,
@@ -119,17 +123,15 @@ pub fn run(args: &Args) -> Result<()> {
         js_bytes as f64 / 1e3
     );
     println!(
-        "| path | load to full model, first (ms) | load to full model, wasm cached (ms): \
-         snapshot / all resident / ready | frame (ms) | frame / native | bytes per scan |"
+        "| path | load to full model, first (ms) | load to full model, wasm cached (ms) \
+         | frame (ms) | frame / native | bytes per scan |"
     );
     println!("|---|---|---|---|---|---|");
     for r in &runs {
         println!(
-            "| {} | {:.0} | {:.0} / {:.0} / {:.0} | {:.1} | {:.2} | {:.0} |",
+            "| {} | {:.0} | {:.0} | {:.1} | {:.2} | {:.0} |",
             r.path,
             r.first_ready_ms,
-            r.cached_snapshot_ms,
-            r.cached_resident_ms,
             r.cached_ready_ms,
             r.frame_ms,
             r.frame_ms / native_ms.max(1e-3),
@@ -141,7 +143,55 @@ pub fn run(args: &Args) -> Result<()> {
          {native_ms:.1} | 1.00 | — |",
         args.native_frames
     );
+    print_breakdown(&runs);
     Ok(())
+}
+
+/// The cached load step by step: when each step was reached (ms after navigation),
+/// then the frame loop's time until ready.
+fn print_breakdown(runs: &[BrowserRun]) {
+    const STEPS: [(&str, &str); 11] = [
+        ("html", "page received"),
+        ("wasmFile", "wasm received"),
+        ("wasm", "wasm started"),
+        ("gpu", "GPU device"),
+        ("pipelines", "renderer and pipelines"),
+        ("socket", "WebSocket open"),
+        ("snapshot", "snapshot received"),
+        ("fetched", "all scans fetched"),
+        ("resident", "all scans resident"),
+        ("firstFrame", "first frame drawn"),
+        ("ready", "ready"),
+    ];
+    println!("\nThe cached load, ms after navigation:\n");
+    let names: Vec<&str> = STEPS.iter().map(|(_, name)| *name).collect();
+    println!(
+        "| path | {} | decoding (ms) | residency steps (ms) | drawing (ms) | frames drawn |",
+        names.join(" | ")
+    );
+    println!("|---|{}---|---|---|---|", "---|".repeat(STEPS.len()));
+    for r in runs {
+        let at = |key: &str| {
+            let value = match key {
+                "html" => &r.cached_files["html"]["end"],
+                "wasmFile" => &r.cached_files["wasm"]["end"],
+                _ => &r.cached_load[key],
+            };
+            value
+                .as_f64()
+                .map_or_else(|| "—".to_string(), |v| format!("{v:.0}"))
+        };
+        let steps: Vec<String> = STEPS.iter().map(|(key, _)| at(key)).collect();
+        println!(
+            "| {} | {} | {} | {} | {} | {} |",
+            r.path,
+            steps.join(" | "),
+            at("pumpMs"),
+            at("uploadMs"),
+            at("drawMs"),
+            at("frames")
+        );
+    }
 }
 
 fn session_toml(repo: &Path, web_dir: &Path, frames: usize) -> String {
@@ -193,6 +243,7 @@ fn browser_run(repo: &Path, url: &str, shot: &Path, backend: &str) -> Result<Bro
             String::from_utf8_lossy(&out.stderr)
         )
     })?;
+    eprintln!("web: {backend}, the cached load: {}", report["cached"]);
     let errors = report["errors"].as_array().cloned().unwrap_or_default();
     if !errors.is_empty() {
         bail!("the page ({backend}) reported errors: {errors:?}");
@@ -202,8 +253,8 @@ fn browser_run(repo: &Path, url: &str, shot: &Path, backend: &str) -> Result<Bro
         path: short_path(report["cached"]["path"].as_str().unwrap_or(backend)),
         first_ready_ms: number("first", "readyMs"),
         cached_ready_ms: number("cached", "readyMs"),
-        cached_snapshot_ms: number("cached", "snapshotMs"),
-        cached_resident_ms: number("cached", "residentMs"),
+        cached_load: report["cached"]["load"].clone(),
+        cached_files: report["cached"]["files"].clone(),
         frame_ms: number("steady", "frameMs"),
         bytes: number("cached", "bytes"),
         scans: number("cached", "scans"),

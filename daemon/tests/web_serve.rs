@@ -145,6 +145,25 @@ async fn the_page_and_its_files_are_served_with_their_types() {
         (200, Some("text/css; charset=utf-8"))
     );
 
+    // A browser holding the file asks with its entity tag and is sent no body; a
+    // changed file has a new tag and is sent again.
+    let tag = wasm.header("etag").unwrap().to_string();
+    let revalidate = |tag: &str| {
+        format!("GET /viewer_bg.wasm HTTP/1.1\r\nHost: x\r\nIf-None-Match: {tag}\r\n\r\n")
+    };
+    let again = exchange(addr, revalidate(&tag).as_bytes()).await;
+    assert_eq!((again.status, again.body.len()), (304, 0));
+    assert_eq!(again.header("etag"), Some(&*tag));
+    let other = exchange(addr, revalidate("\"0-0\"").as_bytes()).await;
+    assert_eq!((other.status, other.body.as_slice()), (200, WASM));
+    let mut rebuilt = WASM.to_vec();
+    rebuilt.push(0);
+    std::fs::write(dir.join("viewer_bg.wasm"), &rebuilt).unwrap();
+    let changed = exchange(addr, revalidate(&tag).as_bytes()).await;
+    assert_eq!((changed.status, &changed.body), (200, &rebuilt));
+    assert_ne!(changed.header("etag"), Some(&*tag));
+    std::fs::write(dir.join("viewer_bg.wasm"), WASM).unwrap();
+
     // HEAD: the head alone.
     let head = exchange(addr, b"HEAD /viewer_bg.wasm HTTP/1.1\r\nHost: x\r\n\r\n").await;
     assert_eq!(head.status, 200);

@@ -4,8 +4,10 @@
 //! opens a deep-linked view and waits until the page says the model is drawn; its
 //! screenshot is compared with `texel-viewer render --connect` of the same view and
 //! mode (lavapipe, the k-buffer), on WebGPU (the k-buffer too) and on WebGL2 (no
-//! storage buffers: the naive layers). Then the daemon is killed and started again on the same port: the
-//! page must reconnect by itself and draw the new daemon's model.
+//! storage buffers: the naive layers). On both paths the page must draw nothing while
+//! idle and draw while the hand drags the view. Then the daemon is killed and started
+//! again on the same port: the page must reconnect by itself and draw the new daemon's
+//! model.
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests panic on failure by design
 
 use std::io::{BufRead, BufReader, Write};
@@ -168,6 +170,7 @@ fn the_browser_draws_what_render_draws_and_reconnects_after_a_restart() {
             .is_some_and(|p| p.starts_with("WebGL2") && p.contains("naive layers")),
         "the page did not say it composites with the naive layers on WebGL2: {gl_report}"
     );
+    assert_paced(&gl_report);
     let native = image::open(&reference).unwrap().to_rgba8();
     let gl = image::open(&gl_shot).unwrap().to_rgba8();
     let (share, drawn_gl, drawn_native) = agreement(&gl, &native);
@@ -255,6 +258,7 @@ fn the_browser_draws_what_render_draws_and_reconnects_after_a_restart() {
     );
     let errors = report["errors"].as_array().cloned().unwrap_or_default();
     assert!(errors.is_empty(), "the page reported errors: {errors:?}");
+    assert_paced(&report);
     let after = &report["afterRestart"];
     assert!(
         after["connections"].as_u64().unwrap_or(0) >= 2,
@@ -269,5 +273,19 @@ fn the_browser_draws_what_render_draws_and_reconnects_after_a_restart() {
             .as_str()
             .is_some_and(|p| p.starts_with("WebGPU")),
         "the page did not say it runs on WebGPU: {report}"
+    );
+}
+
+/// The page draws only when something changed: no frame in two idle seconds after
+/// the model is on screen, frames while a drag moves the view.
+fn assert_paced(report: &serde_json::Value) {
+    assert_eq!(
+        report["idleFrames"].as_u64(),
+        Some(0),
+        "the page drew frames while nothing changed: {report}"
+    );
+    assert!(
+        report["dragFrames"].as_u64().unwrap_or(0) > 0,
+        "the page drew nothing while the view was dragged: {report}"
     );
 }

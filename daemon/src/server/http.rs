@@ -98,6 +98,8 @@ struct Request {
     ws_key: Option<String>,
     host: Option<String>,
     origin: Option<String>,
+    /// The entity tags of the copy the browser holds.
+    if_none_match: Option<String>,
 }
 
 /// `Ok(None)`: incomplete, read more; else the request and the head's length.
@@ -147,6 +149,8 @@ fn parse(buf: &[u8]) -> Result<Option<(Request, usize)>, Refusal> {
             request.host = Some(value.to_string());
         } else if name.eq_ignore_ascii_case("origin") {
             request.origin = Some(value.to_string());
+        } else if name.eq_ignore_ascii_case("if-none-match") {
+            request.if_none_match = Some(value.to_string());
         }
     }
     Ok(Some((request, used)))
@@ -268,10 +272,23 @@ pub async fn serve(
     };
     let dir = shared.options.web_dir.as_deref();
     match web_files::lookup(dir, &request.path).await {
-        Lookup::Found(file, len, content_type) => {
-            tracing::debug!(%peer, path = %request.path, len, "http: 200");
-            let head = response_head(200, content_type, len, "");
-            send_file(&mut stream, &head, file, len, head_only, shared).await;
+        Lookup::Found(file, len, content_type, tag) => {
+            let extra = format!("ETag: {tag}\r\n");
+            if request
+                .if_none_match
+                .as_deref()
+                .is_some_and(|held| web_files::matches_tag(held, &tag))
+            {
+                // The browser's copy is current: it reuses it (and the wasm it
+                // compiled from it).
+                tracing::debug!(%peer, path = %request.path, "http: 304");
+                let head = response_head(304, content_type, len, &extra);
+                send(&mut stream, &head, &[], true, shared).await;
+            } else {
+                tracing::debug!(%peer, path = %request.path, len, "http: 200");
+                let head = response_head(200, content_type, len, &extra);
+                send_file(&mut stream, &head, file, len, head_only, shared).await;
+            }
             linger_close(stream).await;
         }
         Lookup::NotBuilt => {
@@ -365,6 +382,7 @@ fn origin_allowed(request: &Request, token_required: bool) -> bool {
 fn reason_phrase(status: u16) -> &'static str {
     match status {
         200 => "OK",
+        304 => "Not Modified",
         400 => "Bad Request",
         403 => "Forbidden",
         404 => "Not Found",
@@ -377,7 +395,9 @@ fn reason_phrase(status: u16) -> &'static str {
     }
 }
 
-/// A response head; the page is not cached, so a rebuilt viewer is picked up at once.
+/// A response head. `no-cache`: the browser asks again each time (with the file's
+/// entity tag), so a rebuilt viewer is picked up at once and an unchanged one is not
+/// sent again.
 fn response_head(status: u16, content_type: &str, len: u64, extra: &str) -> String {
     format!(
         "HTTP/1.1 {status} {}\r\nContent-Type: {content_type}\r\nContent-Length: {len}\r\n\

@@ -26,9 +26,10 @@ pub fn web_page_missing(dir: Option<&Path>) -> bool {
     dir.is_none_or(|d| !d.join("index.html").is_file())
 }
 
-/// A file found, or why none is served.
+/// A file found (with its length, content type and entity tag), or why none is
+/// served.
 pub enum Lookup {
-    Found(tokio::fs::File, u64, &'static str),
+    Found(tokio::fs::File, u64, &'static str, String),
     /// `index.html` was asked for and is not there: the viewer is not built.
     NotBuilt,
     TooLarge,
@@ -70,9 +71,31 @@ async fn find(dir: &Path, relative: &Path) -> Lookup {
     };
     match file.metadata().await {
         Ok(m) if regular(&m) && m.len() > MAX_FILE => Lookup::TooLarge,
-        Ok(m) if regular(&m) => Lookup::Found(file, m.len(), content_type(relative)),
+        Ok(m) if regular(&m) => {
+            let tag = entity_tag(m.len(), m.modified().ok());
+            Lookup::Found(file, m.len(), content_type(relative), tag)
+        }
         _ => Lookup::Missing,
     }
+}
+
+/// The file's entity tag: its length and modification time. A browser that has the
+/// file asks again with it and is told its copy is current (no body), so a returning
+/// page reuses the wasm it fetched and compiled before; a rebuilt viewer has a new
+/// time and is fetched at once.
+pub fn entity_tag(len: u64, modified: Option<std::time::SystemTime>) -> String {
+    let nanos = modified
+        .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
+        .map_or(0, |d| d.as_nanos());
+    format!("\"{len:x}-{nanos:x}\"")
+}
+
+/// Whether an `If-None-Match` header's value names `tag` (or is `*`).
+pub fn matches_tag(if_none_match: &str, tag: &str) -> bool {
+    if_none_match
+        .split(',')
+        .map(str::trim)
+        .any(|t| t == "*" || t == tag || t.strip_prefix("W/") == Some(tag))
 }
 
 /// `/` → `index.html`; `/a.js` → `a.js`; `/assets/a.js` → `assets/a.js`; anything
@@ -134,6 +157,21 @@ pub fn not_built_page() -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn entity_tags_follow_length_and_time_and_match_as_listed() {
+        let t0 = std::time::UNIX_EPOCH + std::time::Duration::from_secs(1_700_000_000);
+        let t1 = t0 + std::time::Duration::from_millis(1);
+        let tag = entity_tag(10, Some(t0));
+        assert_eq!(tag, entity_tag(10, Some(t0)));
+        assert_ne!(tag, entity_tag(11, Some(t0)));
+        assert_ne!(tag, entity_tag(10, Some(t1)));
+        assert!(matches_tag(&tag, &tag));
+        assert!(matches_tag(&format!("\"x\", W/{tag}"), &tag));
+        assert!(matches_tag("*", &tag));
+        assert!(!matches_tag("\"x\"", &tag));
+        assert!(!matches_tag("", &tag));
+    }
 
     #[test]
     fn only_plain_names_are_files() {

@@ -1,16 +1,94 @@
 //! Long-lived GPU state: shader modules, bind group layouts, the sampler and every
 //! pipeline. Built once per device; pipelines that write the caller's target are
-//! built once per target format (the renderer keeps them by format).
+//! built once per target format (the renderer keeps them by format). Each pipeline is
+//! compiled on its first use ([`LazyPipeline`]): a frame needs only its mode's and
+//! strategy's, and a software rasteriser (a browser without a GPU) spends long on
+//! each compilation before it can draw anything.
+
+use std::sync::OnceLock;
 
 use super::scan_data::{VERTEX_ATTRIBUTES, Vertex};
 use super::{DEPTH_FORMAT, LAYER_COLOUR_FORMAT, LAYER_DATA_FORMAT, NEAREST_FORMAT, shaders};
 
+/// How a pipeline is built (kept until its first use).
+enum Recipe {
+    /// Scan meshes through `vs_scan` into `targets`.
+    Scan {
+        layout: wgpu::PipelineLayout,
+        module: wgpu::ShaderModule,
+        label: &'static str,
+        fragment_entry: &'static str,
+        targets: Vec<Option<wgpu::ColorTargetState>>,
+    },
+    /// `vs_fullscreen`'s one triangle into a `format` target.
+    Fullscreen {
+        layout: wgpu::PipelineLayout,
+        module: wgpu::ShaderModule,
+        label: &'static str,
+        format: wgpu::TextureFormat,
+    },
+    /// The k-buffer's merge (no colour output).
+    Merge {
+        layout: wgpu::PipelineLayout,
+        module: wgpu::ShaderModule,
+    },
+    /// The k-buffer's layer clear (`fs_clear_layer`).
+    ClearLayer {
+        layout: wgpu::PipelineLayout,
+        module: wgpu::ShaderModule,
+    },
+}
+
+/// A render pipeline compiled the first time it is used (dereferenced), so a frame
+/// compiles only the pipelines of its mode and strategy.
+pub(crate) struct LazyPipeline {
+    device: wgpu::Device,
+    recipe: Recipe,
+    built: OnceLock<wgpu::RenderPipeline>,
+}
+
+impl LazyPipeline {
+    fn new(device: &wgpu::Device, recipe: Recipe) -> Self {
+        Self {
+            device: device.clone(),
+            recipe,
+            built: OnceLock::new(),
+        }
+    }
+}
+
+impl std::ops::Deref for LazyPipeline {
+    type Target = wgpu::RenderPipeline;
+
+    fn deref(&self) -> &wgpu::RenderPipeline {
+        self.built.get_or_init(|| match &self.recipe {
+            Recipe::Scan {
+                layout,
+                module,
+                label,
+                fragment_entry,
+                targets,
+            } => scan_render_pipeline(&self.device, layout, module, label, fragment_entry, targets),
+            Recipe::Fullscreen {
+                layout,
+                module,
+                label,
+                format,
+            } => fullscreen_pipeline(&self.device, layout, module, label, "fs_composite", *format),
+            Recipe::Merge { layout, module } => merge_pipeline(&self.device, layout, module),
+            Recipe::ClearLayer { layout, module } => {
+                clear_layer_pipeline(&self.device, layout, module)
+            }
+        })
+    }
+}
+
 /// Pipelines writing into the caller's target.
 pub(crate) struct OutputPipelines {
-    pub painter: wgpu::RenderPipeline,
+    pub painter: LazyPipeline,
     /// `None` where the device has no storage buffers (`Pipelines::kbuffer`).
-    pub composite_kbuffer: Option<wgpu::RenderPipeline>,
-    pub composite_naive: wgpu::RenderPipeline,
+    pub composite_kbuffer: Option<LazyPipeline>,
+    pub composite_naive: LazyPipeline,
 }
 
 /// The k-buffer's own state: it keeps each pixel's best fragments in a storage
@@ -20,12 +98,12 @@ pub(crate) struct KBufferPipelines {
     pub composite_layout: wgpu::BindGroupLayout,
     module: wgpu::ShaderModule,
     pipeline_layout: wgpu::PipelineLayout,
-    pub merge: wgpu::RenderPipeline,
+    pub merge: LazyPipeline,
     /// One scan into one packed layer (`fs_layer_packed`).
-    pub layer: wgpu::RenderPipeline,
+    pub layer: LazyPipeline,
     /// Zeroes a layer and the depth buffer inside the scissor rectangle (the
     /// part of a layer a scan wrote, or is about to).
-    pub clear_layer: wgpu::RenderPipeline,
+    pub clear_layer: LazyPipeline,
 }
 
 pub(crate) struct Pipelines {
@@ -37,8 +115,8 @@ pub(crate) struct Pipelines {
     naive_module: wgpu::ShaderModule,
     scan_pipeline_layout: wgpu::PipelineLayout,
     naive_pipeline_layout: wgpu::PipelineLayout,
-    pub prepass: wgpu::RenderPipeline,
-    pub layer: wgpu::RenderPipeline,
+    pub prepass: LazyPipeline,
+    pub layer: LazyPipeline,
     /// `None` on a device without storage buffers in fragment shaders.
     pub kbuffer: Option<KBufferPipelines>,
 }
@@ -191,22 +269,23 @@ impl Pipelines {
         let naive_pipeline_layout = layout("composite naive", &[Some(&naive_layout)]);
         let scan_module = module(device, "scan.wgsl", shaders::SCAN);
         let naive_module = module(device, "composite_naive.wgsl", shaders::COMPOSITE_NAIVE);
-        let scan_pipeline =
-            |label: &str, entry: &str, targets: &[Option<wgpu::ColorTargetState>]| {
-                scan_render_pipeline(
-                    device,
-                    &scan_pipeline_layout,
-                    &scan_module,
+        let scan_pipeline = |label, fragment_entry, targets| {
+            LazyPipeline::new(
+                device,
+                Recipe::Scan {
+                    layout: scan_pipeline_layout.clone(),
+                    module: scan_module.clone(),
                     label,
-                    entry,
+                    fragment_entry,
                     targets,
-                )
-            };
-        let prepass = scan_pipeline("prepass", "fs_prepass", &[replace(NEAREST_FORMAT)]);
+                },
+            )
+        };
+        let prepass = scan_pipeline("prepass", "fs_prepass", vec![replace(NEAREST_FORMAT)]);
         let layer = scan_pipeline(
             "layer",
             "fs_layer",
-            &[replace(LAYER_COLOUR_FORMAT), replace(LAYER_DATA_FORMAT)],
+            vec![replace(LAYER_COLOUR_FORMAT), replace(LAYER_DATA_FORMAT)],
         );
         let kbuffer = (device.limits().max_storage_buffers_per_shader_stage > 0)
             .then(|| KBufferPipelines::new(device, &scan_pipeline_layout, &scan_module));
@@ -263,75 +342,33 @@ impl KBufferPipelines {
         let pipeline_layout = layout("composite k-buffer", &composite_layout);
         let merge_module = module(device, "merge.wgsl", shaders::MERGE);
         let module = module(device, "composite_kbuffer.wgsl", shaders::COMPOSITE_KBUFFER);
-        let merge = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
-            label: Some("merge (fragment)"),
-            layout: Some(&merge_pipeline_layout),
-            vertex: wgpu::VertexState {
-                module: &merge_module,
-                entry_point: Some("vs_fullscreen"),
-                compilation_options: Default::default(),
-                buffers: &[],
-            },
-            primitive: wgpu::PrimitiveState::default(),
-            // No colour output: the pass needs an attachment, so it takes the depth
-            // buffer without testing or writing it.
-            depth_stencil: Some(wgpu::DepthStencilState {
-                format: DEPTH_FORMAT,
-                depth_write_enabled: Some(false),
-                depth_compare: Some(wgpu::CompareFunction::Always),
-                stencil: wgpu::StencilState::default(),
-                bias: wgpu::DepthBiasState::default(),
-            }),
-            multisample: wgpu::MultisampleState::default(),
-            fragment: Some(wgpu::FragmentState {
-                module: &merge_module,
-                entry_point: Some("fs_merge"),
-                compilation_options: Default::default(),
-                targets: &[],
-            }),
-            multiview_mask: None,
-            cache: None,
-        });
-        let clear_layer = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
-            label: Some("clear layer"),
-            layout: Some(&device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-                label: Some("clear layer"),
-                bind_group_layouts: &[],
-                immediate_size: 0,
-            })),
-            vertex: wgpu::VertexState {
-                module: &merge_module,
-                entry_point: Some("vs_fullscreen"),
-                compilation_options: Default::default(),
-                buffers: &[],
-            },
-            primitive: wgpu::PrimitiveState::default(),
-            // The full-screen triangle lies at depth 0: reverse z's far plane, what a
-            // cleared depth buffer holds.
-            depth_stencil: Some(wgpu::DepthStencilState {
-                format: DEPTH_FORMAT,
-                depth_write_enabled: Some(true),
-                depth_compare: Some(wgpu::CompareFunction::Always),
-                stencil: wgpu::StencilState::default(),
-                bias: wgpu::DepthBiasState::default(),
-            }),
-            multisample: wgpu::MultisampleState::default(),
-            fragment: Some(wgpu::FragmentState {
-                module: &merge_module,
-                entry_point: Some("fs_clear_layer"),
-                compilation_options: Default::default(),
-                targets: &[replace(LAYER_DATA_FORMAT)],
-            }),
-            multiview_mask: None,
-            cache: None,
-        });
-        let layer = scan_render_pipeline(
+        let clear_layer = LazyPipeline::new(
             device,
-            scan_pipeline_layout,
-            scan_module,
-            "packed layer",
-            "fs_layer_packed",
-            &[replace(LAYER_DATA_FORMAT)],
+            Recipe::ClearLayer {
+                layout: device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+                    label: Some("clear layer"),
+                    bind_group_layouts: &[],
+                    immediate_size: 0,
+                }),
+                module: merge_module.clone(),
+            },
+        );
+        let merge = LazyPipeline::new(
+            device,
+            Recipe::Merge {
+                layout: merge_pipeline_layout,
+                module: merge_module,
+            },
+        );
+        let layer = LazyPipeline::new(
+            device,
+            Recipe::Scan {
+                layout: scan_pipeline_layout.clone(),
+                module: scan_module.clone(),
+                label: "packed layer",
+                fragment_entry: "fs_layer_packed",
+                targets: vec![replace(LAYER_DATA_FORMAT)],
+            },
         );
         Self {
             merge_layout,
@@ -346,37 +383,114 @@ impl KBufferPipelines {
 }
 
 impl OutputPipelines {
-    /// The pipelines writing into a target of `format`.
+    /// The pipelines writing into a target of `format` (each compiled on first use).
     pub fn new(device: &wgpu::Device, pipelines: &Pipelines, format: wgpu::TextureFormat) -> Self {
         Self {
-            painter: scan_render_pipeline(
+            painter: LazyPipeline::new(
                 device,
-                &pipelines.scan_pipeline_layout,
-                &pipelines.scan_module,
-                "painter",
-                "fs_painter",
-                &[replace(format)],
+                Recipe::Scan {
+                    layout: pipelines.scan_pipeline_layout.clone(),
+                    module: pipelines.scan_module.clone(),
+                    label: "painter",
+                    fragment_entry: "fs_painter",
+                    targets: vec![replace(format)],
+                },
             ),
             composite_kbuffer: pipelines.kbuffer.as_ref().map(|k| {
-                fullscreen_pipeline(
+                LazyPipeline::new(
                     device,
-                    &k.pipeline_layout,
-                    &k.module,
-                    "composite k-buffer",
-                    "fs_composite",
-                    format,
+                    Recipe::Fullscreen {
+                        layout: k.pipeline_layout.clone(),
+                        module: k.module.clone(),
+                        label: "composite k-buffer",
+                        format,
+                    },
                 )
             }),
-            composite_naive: fullscreen_pipeline(
+            composite_naive: LazyPipeline::new(
                 device,
-                &pipelines.naive_pipeline_layout,
-                &pipelines.naive_module,
-                "composite naive",
-                "fs_composite",
-                format,
+                Recipe::Fullscreen {
+                    layout: pipelines.naive_pipeline_layout.clone(),
+                    module: pipelines.naive_module.clone(),
+                    label: "composite naive",
+                    format,
+                },
             ),
         }
     }
+}
+
+/// The k-buffer's merge: a fullscreen pass with no colour output (the pass needs an
+/// attachment, so it takes the depth buffer without testing or writing it).
+fn merge_pipeline(
+    device: &wgpu::Device,
+    layout: &wgpu::PipelineLayout,
+    module: &wgpu::ShaderModule,
+) -> wgpu::RenderPipeline {
+    device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+        label: Some("merge (fragment)"),
+        layout: Some(layout),
+        vertex: wgpu::VertexState {
+            module,
+            entry_point: Some("vs_fullscreen"),
+            compilation_options: Default::default(),
+            buffers: &[],
+        },
+        primitive: wgpu::PrimitiveState::default(),
+        depth_stencil: Some(wgpu::DepthStencilState {
+            format: DEPTH_FORMAT,
+            depth_write_enabled: Some(false),
+            depth_compare: Some(wgpu::CompareFunction::Always),
+            stencil: wgpu::StencilState::default(),
+            bias: wgpu::DepthBiasState::default(),
+        }),
+        multisample: wgpu::MultisampleState::default(),
+        fragment: Some(wgpu::FragmentState {
+            module,
+            entry_point: Some("fs_merge"),
+            compilation_options: Default::default(),
+            targets: &[],
+        }),
+        multiview_mask: None,
+        cache: None,
+    })
+}
+
+/// Zeroes a packed layer and the depth buffer inside the pass's scissor rectangle.
+fn clear_layer_pipeline(
+    device: &wgpu::Device,
+    layout: &wgpu::PipelineLayout,
+    module: &wgpu::ShaderModule,
+) -> wgpu::RenderPipeline {
+    device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+        label: Some("clear layer"),
+        layout: Some(layout),
+        vertex: wgpu::VertexState {
+            module,
+            entry_point: Some("vs_fullscreen"),
+            compilation_options: Default::default(),
+            buffers: &[],
+        },
+        primitive: wgpu::PrimitiveState::default(),
+        // The full-screen triangle lies at depth 0: reverse z's far plane, what a
+        // cleared depth buffer holds.
+        depth_stencil: Some(wgpu::DepthStencilState {
+            format: DEPTH_FORMAT,
+            depth_write_enabled: Some(true),
+            depth_compare: Some(wgpu::CompareFunction::Always),
+            stencil: wgpu::StencilState::default(),
+            bias: wgpu::DepthBiasState::default(),
+        }),
+        multisample: wgpu::MultisampleState::default(),
+        fragment: Some(wgpu::FragmentState {
+            module,
+            entry_point: Some("fs_clear_layer"),
+            compilation_options: Default::default(),
+            targets: &[replace(LAYER_DATA_FORMAT)],
+        }),
+        multiview_mask: None,
+        cache: None,
+    })
 }
 
 fn scan_render_pipeline(

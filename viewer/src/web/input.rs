@@ -9,20 +9,27 @@ use wasm_bindgen::prelude::*;
 use web_sys::{HtmlCanvasElement, PointerEvent, WheelEvent};
 
 use super::gestures::Gestures;
+use super::wake::Wake;
 
 /// The listeners, kept alive as long as the page runs.
 pub struct Listeners {
     _closures: Vec<Closure<dyn FnMut(web_sys::Event)>>,
 }
 
-/// Listens on `canvas`; the gathered movement lands in `gestures`.
+/// Listens on `canvas`; the gathered movement lands in `gestures`, and every event
+/// wakes the frame loop (which draws only if the view changed).
 pub fn listen(
     canvas: &HtmlCanvasElement,
     gestures: &Rc<RefCell<Gestures>>,
+    wake: &Wake,
 ) -> Result<Listeners, JsValue> {
     let mut closures = Vec::new();
-    let mut on = |name: &str, f: Box<dyn FnMut(web_sys::Event)>| -> Result<(), JsValue> {
-        let closure = Closure::<dyn FnMut(web_sys::Event)>::wrap(f);
+    let mut on = |name: &str, mut f: Box<dyn FnMut(web_sys::Event)>| -> Result<(), JsValue> {
+        let wake = wake.clone();
+        let closure = Closure::<dyn FnMut(web_sys::Event)>::wrap(Box::new(move |e| {
+            f(e);
+            wake.wake();
+        }));
         canvas.add_event_listener_with_callback(name, closure.as_ref().unchecked_ref())?;
         closures.push(closure);
         Ok(())

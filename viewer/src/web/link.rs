@@ -15,6 +15,8 @@ use wasm_bindgen::prelude::*;
 use web_sys::{BinaryType, CloseEvent, MessageEvent, WebSocket};
 use web_time::Duration;
 
+use super::page::now_ms;
+use super::wake::Wake;
 use crate::live::connection::{Ended, forward, request_message};
 use crate::live::{ConnectionState, SourceCommand, ViewerEvent, send};
 
@@ -29,6 +31,9 @@ const SILENCE_LIMIT: Duration = Duration::from_secs(10);
 struct Inbox {
     chunks: Vec<Vec<u8>>,
     closed: Option<String>,
+    /// When the socket opened and when its last bytes came (the page's clock, ms).
+    opened_ms: Option<f64>,
+    last_chunk_ms: f64,
 }
 
 /// One open socket with its callbacks (dropping them with the socket keeps the
@@ -77,10 +82,16 @@ pub struct Link {
     pub bytes_received: u64,
     /// Connections the daemon welcomed (a reconnection counts again).
     pub welcomes: u32,
+    /// When the current socket opened, and when the bytes pumped last came (the
+    /// page's clock, ms): the load's marks.
+    pub opened_ms: Option<f64>,
+    pub last_chunk_ms: f64,
+    /// The socket's events wake the frame loop.
+    wake: Wake,
 }
 
 impl Link {
-    pub fn new(url: String, token: String) -> Self {
+    pub fn new(url: String, token: String, wake: Wake) -> Self {
         Self {
             url,
             token,
@@ -96,7 +107,16 @@ impl Link {
             last_heard_ms: 0.0,
             bytes_received: 0,
             welcomes: 0,
+            opened_ms: None,
+            last_chunk_ms: 0.0,
+            wake,
         }
+    }
+
+    /// Whether the daemon welcomed the current socket (otherwise the link is
+    /// connecting or waiting to retry, and the frame loop keeps running for it).
+    pub fn connected(&self) -> bool {
+        self.socket.is_some() && self.welcomed
     }
 
     /// Whether the daemon refused us (the page then asks for a token).
@@ -128,6 +148,10 @@ impl Link {
         let (chunks, closed) = match &self.socket {
             Some(s) => {
                 let mut inbox = s.inbox.borrow_mut();
+                self.opened_ms = inbox.opened_ms;
+                if !inbox.chunks.is_empty() {
+                    self.last_chunk_ms = inbox.last_chunk_ms;
+                }
                 (std::mem::take(&mut inbox.chunks), inbox.closed.take())
             }
             None => (Vec::new(), None),
@@ -253,7 +277,8 @@ impl Link {
         self.welcomed = false;
         self.synced = false;
         self.last_heard_ms = now_ms;
-        match open(&self.url, &self.token) {
+        self.opened_ms = None;
+        match open(&self.url, &self.token, &self.wake) {
             Ok(socket) => self.socket = Some(socket),
             Err(reason) => {
                 self.lost(now_ms, reason, tx);
@@ -291,31 +316,38 @@ impl Link {
 
 /// Opens the socket; its first message is the hello with the token (never the URL:
 /// URLs are logged and shared).
-fn open(url: &str, token: &str) -> Result<Socket, String> {
+fn open(url: &str, token: &str, wake: &Wake) -> Result<Socket, String> {
     let hello = hello(token, "texel-web").map_err(|e| e.to_string())?;
     let ws = WebSocket::new(url).map_err(|e| format!("cannot open {url}: {e:?}"))?;
     ws.set_binary_type(BinaryType::Arraybuffer);
     let inbox = Rc::new(RefCell::new(Inbox::default()));
     let on_open = {
         let ws = ws.clone();
+        let inbox = Rc::clone(&inbox);
+        let wake = wake.clone();
         Closure::<dyn FnMut()>::new(move || {
             let _ = ws.send_with_u8_array(&hello);
+            inbox.borrow_mut().opened_ms = Some(now_ms());
+            wake.wake();
         })
     };
     let on_message = {
         let inbox = Rc::clone(&inbox);
+        let wake = wake.clone();
         Closure::<dyn FnMut(MessageEvent)>::new(move |event: MessageEvent| {
             if let Ok(buffer) = event.data().dyn_into::<js_sys::ArrayBuffer>() {
-                inbox
-                    .borrow_mut()
-                    .chunks
-                    .push(js_sys::Uint8Array::new(&buffer).to_vec());
+                let mut inbox = inbox.borrow_mut();
+                inbox.chunks.push(js_sys::Uint8Array::new(&buffer).to_vec());
+                inbox.last_chunk_ms = now_ms();
             }
+            wake.wake();
         })
     };
     let on_close = {
         let inbox = Rc::clone(&inbox);
+        let wake = wake.clone();
         Closure::<dyn FnMut(CloseEvent)>::new(move |event: CloseEvent| {
+            wake.wake();
             let reason = match event.reason() {
                 r if r.is_empty() => format!("the connection closed (code {})", event.code()),
                 r => format!("the connection closed: {r}"),

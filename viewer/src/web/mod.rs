@@ -7,6 +7,7 @@
 //! `wasm-bindgen --target web`).
 
 pub mod gestures;
+pub mod load;
 
 #[cfg(target_arch = "wasm32")]
 mod input;
@@ -16,6 +17,8 @@ mod link;
 mod page;
 #[cfg(target_arch = "wasm32")]
 mod run;
+#[cfg(target_arch = "wasm32")]
+mod wake;
 
 /// The GPU bytes the page's scans may hold: well inside what a browser tab gets
 /// (a wasm heap stops at 4 GB; the scans' CPU copies are dropped once uploaded or

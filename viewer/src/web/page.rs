@@ -10,6 +10,7 @@ use wasm_bindgen::JsCast;
 use wasm_bindgen::prelude::*;
 use web_sys::{Document, Element, HtmlElement, HtmlInputElement, HtmlSelectElement};
 
+use super::wake::{Wake, wake_on};
 use crate::composite::Mode;
 use crate::display_mode::DisplayMode;
 
@@ -23,6 +24,8 @@ pub struct Page {
     token_input: HtmlInputElement,
     token_entered: Rc<RefCell<Option<String>>>,
     _on_token: Closure<dyn FnMut(web_sys::Event)>,
+    /// The controls' changes wake the frame loop.
+    _on_change: Vec<Closure<dyn FnMut()>>,
 }
 
 fn element<T: JsCast>(document: &Document, id: &str) -> Result<T, String> {
@@ -34,31 +37,40 @@ fn element<T: JsCast>(document: &Document, id: &str) -> Result<T, String> {
 }
 
 impl Page {
-    pub fn find(document: &Document) -> Result<Self, String> {
+    pub fn find(document: &Document, wake: &Wake) -> Result<Self, String> {
         let token_box: HtmlElement = element(document, "texel-token-box")?;
         let token_input: HtmlInputElement = element(document, "texel-token")?;
         let token_entered = Rc::new(RefCell::new(None));
         let on_token = {
             let entered = Rc::clone(&token_entered);
             let input = token_input.clone();
+            let wake = wake.clone();
             Closure::<dyn FnMut(web_sys::Event)>::new(move |e: web_sys::Event| {
                 e.prevent_default();
                 *entered.borrow_mut() = Some(input.value());
+                wake.wake();
             })
         };
         token_box
             .add_event_listener_with_callback("submit", on_token.as_ref().unchecked_ref())
             .map_err(|e| format!("{e:?}"))?;
+        let mode: HtmlSelectElement = element(document, "texel-mode")?;
+        let k: HtmlSelectElement = element(document, "texel-k")?;
+        let on_change = vec![
+            wake_on(&mode, "change", wake)?,
+            wake_on(&k, "change", wake)?,
+        ];
         Ok(Self {
             document: document.clone(),
             status: element(document, "texel-status")?,
             path: element(document, "texel-path")?,
-            mode: element(document, "texel-mode")?,
-            k: element(document, "texel-k")?,
+            mode,
+            k,
             token_box,
             token_input,
             token_entered,
             _on_token: on_token,
+            _on_change: on_change,
         })
     }
 

@@ -1,20 +1,29 @@
-//! The page's start and frame loop: the GPU (WebGPU where the browser offers it), the
-//! canvas surface, the link, then one `requestAnimationFrame` callback per frame that
-//! pumps the link, applies the hand's gestures, renders and reports.
+//! The page's start and frame loop: the link (opened first, so the daemon's snapshot
+//! travels while the GPU is requested), the GPU (WebGPU where the browser offers it),
+//! the canvas surface, then `requestAnimationFrame` callbacks that pump the link,
+//! apply the hand's gestures, draw when the view changed and report. Frames are
+//! requested only while something is under way or when an event wakes the loop
+//! (`wake.rs`), so an idle page draws nothing.
+
+mod report;
 
 use std::cell::RefCell;
 use std::rc::Rc;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::{Receiver, SyncSender, sync_channel};
 
 use wasm_bindgen::JsCast;
 use wasm_bindgen::prelude::*;
 use web_sys::HtmlCanvasElement;
 
+use super::WEB_GPU_BUDGET_BYTES;
 use super::gestures::Gestures;
 use super::input::{Listeners, listen};
 use super::link::Link;
+use super::load::LoadMarks;
 use super::page::{Page, fatal, now_ms, store_token, stored_token};
-use super::{WEB_GPU_BUDGET_BYTES, view_query};
+use super::wake::{Heartbeat, Wake, wake_on};
 use crate::app::{ViewerState, window_residency};
 use crate::deep_link::DeepLink;
 use crate::display_mode::DisplayMode;
@@ -33,14 +42,38 @@ const READY_AFTER_FRAMES: u32 = 1;
 const UPLOADS_PER_FRAME: usize = 32;
 /// Scans requested and not yet received.
 const FETCHES_IN_FLIGHT: usize = 16;
+/// While scans stream in, a frame showing only more of the model waits until the last
+/// frame's GPU work is done and at least this long has passed since, and at least
+/// `STREAMING_DRAW_SHARE` times that frame's GPU time: a software renderer spends
+/// 0.2 to 2 s on a full frame (on every core, for WebGPU), which the next frame with
+/// more scans replaces, and which the fetches and uploads would otherwise wait for.
+/// A moved camera, new settings or a resize are drawn at once.
+const STREAMING_DRAW_MS: f64 = 500.0;
+const STREAMING_DRAW_SHARE: f64 = 4.0;
+/// How often an idle page looks at its link's clocks (silence, the retry's backoff)
+/// and refreshes its status line; it draws nothing unless the view changed.
+const HEARTBEAT_MS: i32 = 1000;
+
+/// What a frame shows: the camera, the settings, the model's state (residency's
+/// uploads and evictions are model events too), the canvas's size, and whether every
+/// scan the view needs was there (a frame drawn once they are is the one the ready
+/// signal waits for, even if the last fetches brought no model event).
+type ViewKey = (
+    crate::camera::VirtualCamera,
+    RenderSettings,
+    u64,
+    (u32, u32),
+    bool,
+);
 
 #[wasm_bindgen(start)]
 pub fn start() {
+    let wasm_ms = now_ms();
     std::panic::set_hook(Box::new(|info| {
         fatal(&format!("the viewer stopped: {info}"))
     }));
-    wasm_bindgen_futures::spawn_local(async {
-        if let Err(e) = run().await {
+    wasm_bindgen_futures::spawn_local(async move {
+        if let Err(e) = run(wasm_ms).await {
             fatal(&e);
         }
     });
@@ -62,9 +95,22 @@ struct Web {
     _listeners: Listeners,
     deep: DeepLink,
     path: String,
-    /// Intervals between frames (ms), the last few.
+    /// Intervals between drawn frames that followed each other (ms), the last few.
     intervals_ms: Vec<f64>,
-    last_frame_ms: f64,
+    /// The animation-frame time of the last drawn frame, if the last frame drew.
+    last_drawn_ms: Option<f64>,
+    /// When the last frame was submitted, and when the GPU finished it (`f64` bits;
+    /// NaN until then): the pace while scans stream in.
+    submitted_ms: f64,
+    frame_done: Arc<AtomicU64>,
+    /// What the last drawn frame showed.
+    last_key: Option<ViewKey>,
+    /// A frame is owed: deferred while scans stream in, or the surface was lost.
+    owed: bool,
+    /// The link or the events queue still hold messages for the next frame.
+    backlog: bool,
+    _heartbeat: Heartbeat,
+    _on_resize: Closure<dyn FnMut()>,
     last_status_ms: f64,
     /// The mode and k of the last report, to see the controls change.
     last_controls: Option<(crate::composite::Mode, u32)>,
@@ -73,14 +119,21 @@ struct Web {
     ready_connection: Option<u32>,
     /// Why the last frame could not be drawn.
     draw_error: Option<String>,
-    /// Whether the snapshot's end and full residency were marked on the page.
-    marks: (bool, bool),
+    /// Where the load's time went (published in `data-texel-load`).
+    load: LoadMarks,
+    /// Frames drawn since the page started (`data-texel-frames`).
+    frames_drawn: u64,
 }
 
-async fn run() -> Result<(), String> {
+async fn run(wasm_ms: f64) -> Result<(), String> {
+    let mut load = LoadMarks {
+        wasm: Some(wasm_ms),
+        ..Default::default()
+    };
     let window = web_sys::window().ok_or("no window")?;
     let document = window.document().ok_or("no document")?;
-    let page = Page::find(&document)?;
+    let wake = Wake::default();
+    let page = Page::find(&document, &wake)?;
     let query = window.location().search().unwrap_or_default();
     let deep = DeepLink::parse(&query).map_err(|e| e.to_string())?;
     let canvas: HtmlCanvasElement = document
@@ -89,6 +142,23 @@ async fn run() -> Result<(), String> {
         .dyn_into()
         .map_err(|_| "#texel-canvas is not a canvas")?;
     fit_canvas(&canvas);
+
+    // The link first: the socket opens, and the daemon's snapshot arrives, while the
+    // browser opens the GPU (the first frame decodes what came meanwhile).
+    let location = window.location();
+    let scheme = match location.protocol().as_deref() {
+        Ok("https:") => "wss",
+        _ => "ws",
+    };
+    let host = location.host().map_err(|e| format!("{e:?}"))?;
+    let mut link = Link::new(
+        format!("{scheme}://{host}/ws"),
+        stored_token(),
+        wake.clone(),
+    );
+    let (tx, rx) = sync_channel(EVENT_QUEUE);
+    let (command_tx, commands) = sync_channel(COMMAND_QUEUE);
+    link.pump(now_ms(), PUMP_BATCH, &tx, &commands);
 
     // WebGPU where the browser offers it, WebGL2 otherwise (`?backend=webgl2` forces it).
     let mut descriptor = wgpu::InstanceDescriptor::new_without_display_handle();
@@ -102,6 +172,7 @@ async fn run() -> Result<(), String> {
     let gpu = GpuContext::request(instance, Some(&surface))
         .await
         .map_err(|e| format!("no GPU for the viewer: {e}"))?;
+    load.gpu = Some(now_ms());
     let info = gpu.adapter.get_info();
     let api = match info.backend {
         wgpu::Backend::BrowserWebGpu => "WebGPU".to_string(),
@@ -131,6 +202,7 @@ async fn run() -> Result<(), String> {
     let config = surface_config(&surface, &gpu, &canvas)?;
     surface.configure(&gpu.device, &config);
     let renderer = Renderer::new(&gpu);
+    load.pipelines = Some(now_ms());
 
     let mut settings = RenderSettings::default();
     if naive {
@@ -148,8 +220,6 @@ async fn run() -> Result<(), String> {
     }
     page.set_mode(settings.composite.mode);
     page.set_k(settings.composite.k);
-    let (tx, rx) = sync_channel(EVENT_QUEUE);
-    let (command_tx, commands) = sync_channel(COMMAND_QUEUE);
     let mut residency = window_residency(WEB_GPU_BUDGET_BYTES, Some(command_tx));
     residency.max_uploads_per_step = UPLOADS_PER_FRAME;
     // Requests answered a frame later: with long frames, more at a time (the daemon
@@ -159,15 +229,10 @@ async fn run() -> Result<(), String> {
     if let Some(pose) = deep.pose {
         viewer.place_camera(pose, 3.0);
     }
-    let location = window.location();
-    let scheme = match location.protocol().as_deref() {
-        Ok("https:") => "wss",
-        _ => "ws",
-    };
-    let host = location.host().map_err(|e| format!("{e:?}"))?;
-    let link = Link::new(format!("{scheme}://{host}/ws"), stored_token());
     let gestures = Rc::new(RefCell::new(Gestures::default()));
-    let listeners = listen(&canvas, &gestures).map_err(|e| format!("{e:?}"))?;
+    let listeners = listen(&canvas, &gestures, &wake).map_err(|e| format!("{e:?}"))?;
+    let heartbeat = Heartbeat::start(&wake, HEARTBEAT_MS)?;
+    let on_resize = wake_on(&window, "resize", &wake)?;
     let web = Rc::new(RefCell::new(Web {
         page,
         canvas,
@@ -185,43 +250,39 @@ async fn run() -> Result<(), String> {
         deep,
         path,
         intervals_ms: Vec::new(),
-        last_frame_ms: now_ms(),
+        last_drawn_ms: None,
+        submitted_ms: 0.0,
+        frame_done: Arc::new(AtomicU64::new(0.0_f64.to_bits())),
+        last_key: None,
+        owed: false,
+        backlog: false,
+        _heartbeat: heartbeat,
+        _on_resize: on_resize,
         last_status_ms: 0.0,
         last_controls: None,
         complete_frames: 0,
         ready_connection: None,
-        marks: (false, false),
         draw_error: None,
+        load,
+        frames_drawn: 0,
     }));
-    animate(web);
+    animate(web, wake);
     Ok(())
 }
 
-/// The animation-frame callback (its argument: the frame's time in ms).
-type FrameCallback = Closure<dyn FnMut(f64)>;
-
-/// Runs `frame` on every animation frame for as long as the page lives.
-fn animate(web: Rc<RefCell<Web>>) {
-    let callback: Rc<RefCell<Option<FrameCallback>>> = Rc::new(RefCell::new(None));
-    let again = Rc::clone(&callback);
-    *callback.borrow_mut() = Some(Closure::new(move |now: f64| {
-        if let Err(e) = web.borrow_mut().frame(now) {
-            fatal(&e);
-            return;
-        }
-        if let Some(cb) = again.borrow().as_ref() {
-            request_frame(cb);
+/// Runs `frame` on an animation frame whenever `wake` asks, and on the next one for
+/// as long as the frame says work is under way.
+fn animate(web: Rc<RefCell<Web>>, wake: Wake) {
+    let again = wake.clone();
+    wake.set_callback(Closure::new(move |now: f64| {
+        again.running();
+        match web.borrow_mut().frame(now) {
+            Ok(true) => again.wake(),
+            Ok(false) => {}
+            Err(e) => fatal(&e),
         }
     }));
-    if let Some(cb) = callback.borrow().as_ref() {
-        request_frame(cb);
-    }
-}
-
-fn request_frame(callback: &Closure<dyn FnMut(f64)>) {
-    if let Some(window) = web_sys::window() {
-        let _ = window.request_animation_frame(callback.as_ref().unchecked_ref());
-    }
+    wake.wake();
 }
 
 /// Sizes the canvas's drawing buffer to its displayed size in device pixels.
@@ -267,26 +328,69 @@ fn surface_config(
 }
 
 impl Web {
-    fn frame(&mut self, now: f64) -> Result<(), String> {
-        let interval = now - self.last_frame_ms;
-        self.last_frame_ms = now;
-        if interval > 0.0 {
-            if self.intervals_ms.len() >= 60 {
-                self.intervals_ms.remove(0);
-            }
-            self.intervals_ms.push(interval);
-            self.viewer.fps = 0.9 * self.viewer.fps + 100.0 / interval;
-        }
+    /// One frame; whether another is wanted at once (work under way).
+    fn frame(&mut self, now: f64) -> Result<bool, String> {
         if fit_canvas(&self.canvas) {
             self.config.width = self.canvas.width();
             self.config.height = self.canvas.height();
             self.surface.configure(&self.gpu.device, &self.config);
         }
+        // Runs the GPU's completion callbacks where the backend needs polling
+        // (WebGL2); WebGPU's come by themselves.
+        let _ = self.gpu.device.poll(wgpu::PollType::Poll);
         self.take_input();
+        let t0 = now_ms();
         self.pump_link(now);
-        self.draw()?;
-        self.report(now);
-        Ok(())
+        let t1 = now_ms();
+        let drew = self.draw()?;
+        let t2 = now_ms();
+        if !self.load.done() {
+            self.load.pump_ms += t1 - t0;
+            self.load.draw_ms += t2 - t1;
+        }
+        // The frame time: between drawn frames that follow each other (an idle
+        // page's gaps are no frame time).
+        if drew {
+            if let Some(interval) = self.last_drawn_ms.map(|last| now - last)
+                && interval > 0.0
+            {
+                if self.intervals_ms.len() >= 60 {
+                    self.intervals_ms.remove(0);
+                }
+                self.intervals_ms.push(interval);
+                self.viewer.fps = 0.9 * self.viewer.fps + 100.0 / interval;
+            }
+            self.last_drawn_ms = Some(now);
+        } else {
+            self.last_drawn_ms = None;
+        }
+        self.report(now, drew);
+        Ok(self.busy())
+    }
+
+    /// Whether the next animation frame has work: the link connecting or waiting to
+    /// retry, the snapshot or scans on their way, uploads paced over frames, messages
+    /// left for the next frame, a frame owed, the ready signal still to come.
+    fn busy(&self) -> bool {
+        let v = &self.viewer;
+        let waiting_for_token = self.link.refused();
+        (!self.link.connected() && !waiting_for_token)
+            || !v.snapshot_complete
+            || v.residency_stats.in_flight > 0
+            || v.residency_stats.pending > 0
+            || self.owed
+            || self.backlog
+    }
+
+    /// Whether a frame with more of the model may be drawn while scans stream in: the
+    /// last one is done and the time since is long against its cost.
+    fn may_draw_while_streaming(&self) -> bool {
+        let done = f64::from_bits(self.frame_done.load(Ordering::Relaxed));
+        if done.is_nan() {
+            return false;
+        }
+        let cost = (done - self.submitted_ms).max(0.0);
+        now_ms() - done >= (STREAMING_DRAW_SHARE * cost).max(STREAMING_DRAW_MS)
     }
 
     /// The controls and the hand.
@@ -312,32 +416,67 @@ impl Web {
 
     /// Decodes what arrived and applies it, a bounded amount per frame.
     fn pump_link(&mut self, now: f64) {
+        self.backlog = false;
         for _ in 0..8 {
             let forwarded = self.link.pump(now, PUMP_BATCH, &self.tx, &self.commands);
             // A batch of events per call: twice covers the messages and the
             // connection events among them, so the queue never fills.
-            self.viewer.apply_events(&self.rx, &mut self.renderer);
-            self.viewer.apply_events(&self.rx, &mut self.renderer);
+            let taken = self.viewer.apply_events(&self.rx, &mut self.renderer)
+                + self.viewer.apply_events(&self.rx, &mut self.renderer);
+            self.backlog = forwarded == PUMP_BATCH || taken == 2 * PUMP_BATCH;
             if forwarded < PUMP_BATCH {
                 break;
             }
         }
     }
 
-    fn draw(&mut self) -> Result<(), String> {
+    /// Steps the residency and draws a frame if the view changed since the last one;
+    /// whether one was drawn.
+    fn draw(&mut self) -> Result<bool, String> {
         let (width, height) = (self.config.width, self.config.height);
         let Some(camera) = self.viewer.camera(width, height) else {
-            return Ok(());
+            return Ok(false);
         };
+        let t0 = now_ms();
         self.viewer.update_residency(&mut self.renderer, &camera);
+        if !self.load.done() {
+            // (Counted in the draw's time by the caller too: taken out there.)
+            let spent = now_ms() - t0;
+            self.load.upload_ms += spent;
+            self.load.draw_ms -= spent;
+        }
+        let v = &self.viewer;
+        let streaming = !v.snapshot_complete
+            || v.residency_stats.in_flight > 0
+            || v.residency_stats.pending > 0;
+        let key: ViewKey = (
+            camera,
+            v.settings.clone(),
+            v.model.events_applied(),
+            (width, height),
+            !streaming,
+        );
+        let last = self.last_key.as_ref();
+        if last == Some(&key) && !self.owed {
+            return Ok(false);
+        }
+        let only_the_model_grew = last.is_some_and(|l| (l.0, &l.1, l.3) == (key.0, &key.1, key.3));
+        if streaming && only_the_model_grew && !self.may_draw_while_streaming() {
+            self.owed = true;
+            return Ok(false);
+        }
         let frame = match self.surface.get_current_texture() {
             wgpu::CurrentSurfaceTexture::Success(f)
             | wgpu::CurrentSurfaceTexture::Suboptimal(f) => f,
             _ => {
                 self.surface.configure(&self.gpu.device, &self.config);
-                return Ok(());
+                self.owed = true;
+                return Ok(false);
             }
         };
+        self.owed = false;
+        self.last_key = Some(key);
+        self.submitted_ms = now_ms();
         let view = frame
             .texture
             .create_view(&wgpu::TextureViewDescriptor::default());
@@ -361,94 +500,13 @@ impl Web {
         }
         self.viewer.latency.drawn(web_time::Instant::now());
         self.gpu.queue.present(frame);
-        Ok(())
-    }
-
-    /// The status line a few times a second, the deep link of the view, and the
-    /// ready signal once the model asked for is on screen.
-    fn report(&mut self, now: f64) {
-        let v = &self.viewer;
-        let settled = v.residency_stats.in_flight == 0 && v.residency_stats.pending == 0;
-        let complete = v.snapshot_complete && settled && !v.model.is_empty();
-        self.complete_frames = if complete {
-            self.complete_frames.saturating_add(1)
-        } else {
-            0
-        };
-        // Where a load's time goes: the snapshot's end, then every scan of the view
-        // resident (once per page).
-        if v.snapshot_complete && !self.marks.0 {
-            self.marks.0 = true;
-            self.page.set_data("snapshot-ms", &format!("{now:.0}"));
-        }
-        if complete && !self.marks.1 {
-            self.marks.1 = true;
-            self.page.set_data("resident-ms", &format!("{now:.0}"));
-        }
-        let wanted = self.deep.ready_scans.unwrap_or(1);
-        let connection = self.link.welcomes;
-        if self.ready_connection.is_some_and(|c| c != connection) {
-            // A new connection's snapshot: ready again once it is on screen.
-            self.ready_connection = None;
-            self.page.remove_data("ready");
-        }
-        if self.ready_connection.is_none()
-            && self.complete_frames >= READY_AFTER_FRAMES
-            && v.model.len() >= wanted
-        {
-            self.ready_connection = Some(connection);
-            self.page.set_data("ready-ms", &format!("{now:.0}"));
-            self.page.set_data("ready", &v.model.len().to_string());
-            self.page
-                .set_data("ready-connection", &connection.to_string());
-        }
-        if now - self.last_status_ms < 250.0 {
-            return;
-        }
-        self.last_status_ms = now;
-        let mut sorted = self.intervals_ms.clone();
-        sorted.sort_by(f64::total_cmp);
-        let median_ms = sorted.get(sorted.len() / 2).copied().unwrap_or(0.0);
-        let connection = v
-            .connection
-            .as_ref()
-            .map_or_else(|| "starting".to_string(), |c| c.describe());
-        let daemon = v.status.as_ref().map_or_else(String::new, |(s, _)| {
-            format!(" · daemon up {:.0} s, {} viewers", s.uptime_s, s.clients)
-        });
-        let error = self
-            .draw_error
-            .as_ref()
-            .map_or_else(String::new, |e| format!(" · cannot draw: {e}"));
-        self.page.show_status(&format!(
-            "{connection}{daemon} · {} scans, {} drawn · {median_ms:.0} ms a frame · {}{error}",
-            v.model.len(),
-            v.stats.drawn,
-            v.residency_stats.describe()
-        ));
-        self.page.set_data("scans", &v.model.len().to_string());
-        self.page.set_data("drawn", &v.stats.drawn.to_string());
-        self.page.set_data("frame-ms", &format!("{median_ms:.2}"));
-        self.page
-            .set_data("bytes", &self.link.bytes_received.to_string());
-        self.page
-            .set_data("connections", &self.link.welcomes.to_string());
-        self.page.show_path(&self.path);
-        // The address bar keeps the view, so it can be copied as a link.
-        let query = view_query(
-            v.settings.composite.mode,
-            v.settings.composite.k,
-            &v.controls.world_from_eo,
-            v.fov_deg,
-        );
-        // (Only the hand or the controls rewrite it: the link the page was opened
-        // with stays until the user changes the view.)
-        let touched = std::mem::take(&mut self.gestures.borrow_mut().touched);
-        let controls = (v.settings.composite.mode, v.settings.composite.k);
-        let controls_changed = self.last_controls.is_some_and(|c| c != controls);
-        self.last_controls = Some(controls);
-        if touched || controls_changed {
-            self.page.set_query(&query);
-        }
+        let done = Arc::clone(&self.frame_done);
+        done.store(f64::NAN.to_bits(), Ordering::Relaxed);
+        self.gpu
+            .queue
+            .on_submitted_work_done(move || done.store(now_ms().to_bits(), Ordering::Relaxed));
+        self.frames_drawn += 1;
+        self.page.set_data("frames", &self.frames_drawn.to_string());
+        Ok(true)
     }
 }
