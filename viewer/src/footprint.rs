@@ -210,8 +210,13 @@ mod tests {
         let cam = camera(scenes::look_at([4.5, 0.0, -6.0], [4.5, 0.0, 5.05]));
         let view_from_scan =
             crate::gpu::pose_relative(&cam.view_from_world(), &listed.world_from_scan);
-        let rect = Footprint::of(scan).screen_rect(&view_from_scan, &cam).unwrap();
-        assert!(rect.area() < PixelRect::full(320, 240).area() / 2, "{rect:?}");
+        let rect = Footprint::of(scan)
+            .screen_rect(&view_from_scan, &cam)
+            .unwrap();
+        assert!(
+            rect.area() < PixelRect::full(320, 240).area() / 2,
+            "{rect:?}"
+        );
         holds_every_vertex(scan, &cam, &listed.world_from_scan);
     }
 

@@ -254,7 +254,12 @@ pub(super) fn load(spec: &str) -> anyhow::Result<Subject> {
 
 /// The camera `t` seconds into the orbit.
 pub(super) fn camera_at(
-    s: &Subject, t: f64, w: u32, h: u32, orbit_s: f64) -> anyhow::Result<VirtualCamera> {
+    s: &Subject,
+    t: f64,
+    w: u32,
+    h: u32,
+    orbit_s: f64,
+) -> anyhow::Result<VirtualCamera> {
     let mut c = s.start;
     let phase = std::f64::consts::TAU * t / orbit_s.max(1e-3);
     c.orbit(

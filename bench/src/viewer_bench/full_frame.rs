@@ -77,13 +77,25 @@ pub fn run(gpu: &GpuContext, args: &BenchArgs) -> anyhow::Result<()> {
         let mut renderer = Renderer::new(gpu);
         renderer.sync_model(&s.model)?;
         let cameras = (0..POSES)
-            .map(|i| camera_at(s, args.orbit_s * i as f64 / POSES as f64, w, h, args.orbit_s))
+            .map(|i| {
+                camera_at(
+                    s,
+                    args.orbit_s * i as f64 / POSES as f64,
+                    w,
+                    h,
+                    args.orbit_s,
+                )
+            })
             .collect::<anyhow::Result<Vec<_>>>()?;
         let drawn: Vec<usize> = cameras
             .iter()
             .map(|c| renderer.cull(c, &variants[0].settings).1.drawn)
             .collect();
-        println!("{}: {} scans, drawn per pose {drawn:?}", s.name, s.model.len());
+        println!(
+            "{}: {} scans, drawn per pose {drawn:?}",
+            s.name,
+            s.model.len()
+        );
         // The baseline's images, and each variant's distance from them.
         let mut images = Vec::new();
         let mut times = vec![Vec::new(); variants.len()];
@@ -163,13 +175,12 @@ fn difference(a: &image::RgbaImage, b: &image::RgbaImage) -> (u64, u8) {
     let mut n = 0;
     let mut max = 0u8;
     for (pa, pb) in a.pixels().zip(b.pixels()) {
-        let d = pa
-            .0
-            .iter()
-            .zip(pb.0)
-            .map(|(x, y)| x.abs_diff(y))
-            .max()
-            .unwrap_or(0);
+        let d =
+            pa.0.iter()
+                .zip(pb.0)
+                .map(|(x, y)| x.abs_diff(y))
+                .max()
+                .unwrap_or(0);
         if d > 0 {
             n += 1;
             max = max.max(d);

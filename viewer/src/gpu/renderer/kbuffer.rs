@@ -397,9 +397,11 @@ pub(super) fn encode(
             // As the scan's own uniform gives it to the shaders.
             *slot = u32::try_from(scan.id).unwrap_or(u32::MAX);
         }
-        frame
-            .queue
-            .write_buffer(&t.batch_uniform, u64::from(offset), bytemuck::bytes_of(&uniform));
+        frame.queue.write_buffer(
+            &t.batch_uniform,
+            u64::from(offset),
+            bytemuck::bytes_of(&uniform),
+        );
         for (l, scan) in chunk.iter().enumerate() {
             encode_layer(frame, encoder, t, pipelines, l, scan);
         }
