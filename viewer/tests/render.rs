@@ -85,6 +85,43 @@ fn kbuffer_equals_naive_layers() {
     }
 }
 
+/// Clearing, drawing and merging each layer only inside its scan's footprint changes
+/// no pixel, also when the layers still hold the previous view's scans (the clear
+/// must cover what each layer's last scan wrote), for every batch size.
+#[test]
+fn footprints_change_no_pixel() {
+    use texel_viewer::camera::VirtualCamera;
+    use texel_viewer::gpu::Renderer;
+    use texel_viewer::scenes;
+    let sensor = scenes::sensor(32, 24, 64, 48);
+    let model = scenes::corridor(&sensor, 30);
+    let camera = |eye: [f64; 3], target: [f64; 3]| {
+        VirtualCamera::new(scenes::look_at(eye, target), 50.0, 240, 160).unwrap()
+    };
+    // Along the corridor (small rectangles), then across it from further out.
+    let views = [
+        camera([0.0, 0.0, -3.0], [6.0, 0.0, 5.05]),
+        camera([9.0, 1.0, -1.0], [3.0, 0.0, 5.05]),
+        camera([4.5, 0.0, -8.0], [4.5, 0.0, 5.05]),
+    ];
+    for batch in [1, 3, 4] {
+        let mut s = RenderSettings::with_mode(Mode::Blended);
+        s.strategy = Strategy::KBuffer { batch };
+        let mut with = Renderer::new(gpu());
+        with.sync_model(&model).unwrap();
+        let mut without = Renderer::new(gpu());
+        without.sync_model(&model).unwrap();
+        without.layer_footprints = false;
+        for (i, cam) in views.iter().enumerate() {
+            let (a, stats) = with.render_to_image(cam, &s).unwrap();
+            let (b, _) = without.render_to_image(cam, &s).unwrap();
+            assert!(stats.drawn > batch as usize, "view {i}: {} drawn", stats.drawn);
+            let differ = a.pixels().zip(b.pixels()).filter(|(p, q)| p != q).count();
+            assert_eq!(differ, 0, "batch {batch}, view {i}: {differ} pixels differ");
+        }
+    }
+}
+
 /// Model and camera translated by 5e6 m (and rotated): the same image.
 #[test]
 fn large_coordinates_render_the_same_image() {
