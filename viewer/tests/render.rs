@@ -115,7 +115,11 @@ fn footprints_change_no_pixel() {
         for (i, cam) in views.iter().enumerate() {
             let (a, stats) = with.render_to_image(cam, &s).unwrap();
             let (b, _) = without.render_to_image(cam, &s).unwrap();
-            assert!(stats.drawn > batch as usize, "view {i}: {} drawn", stats.drawn);
+            assert!(
+                stats.drawn > batch as usize,
+                "view {i}: {} drawn",
+                stats.drawn
+            );
             let differ = a.pixels().zip(b.pixels()).filter(|(p, q)| p != q).count();
             assert_eq!(differ, 0, "batch {batch}, view {i}: {differ} pixels differ");
         }
