@@ -121,11 +121,11 @@ impl Footprint {
             [f64::NEG_INFINITY, f64::NEG_INFINITY],
         );
         for b in &self.boxes {
-            let corners = (0..8u32).map(|i| {
-                let pick = |bit: u32, axis: usize| b[usize::from(i & bit != 0)][axis];
+            // On the stack: this runs for every box of every visible scan each frame.
+            let corners: [DVec3; 8] = std::array::from_fn(|i| {
+                let pick = |bit: usize, axis: usize| b[usize::from(i & bit != 0)][axis];
                 view_from_scan.transform_point3(DVec3::new(pick(1, 0), pick(2, 1), pick(4, 2)))
             });
-            let corners: Vec<DVec3> = corners.collect();
             let in_front = corners.iter().filter(|c| c.z > camera.near_m).count();
             if in_front == 0 {
                 continue;

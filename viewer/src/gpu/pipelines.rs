@@ -27,15 +27,16 @@ enum Recipe {
         label: &'static str,
         format: wgpu::TextureFormat,
     },
-    /// The k-buffer's merge (no colour output).
-    Merge {
+    /// `vs_fullscreen`'s one triangle over the depth buffer (always passing; written
+    /// when `depth_write`, at depth 0): the k-buffer's merge (no colour output) and
+    /// its layer clear.
+    OverDepth {
         layout: wgpu::PipelineLayout,
         module: wgpu::ShaderModule,
-    },
-    /// The k-buffer's layer clear (`fs_clear_layer`).
-    ClearLayer {
-        layout: wgpu::PipelineLayout,
-        module: wgpu::ShaderModule,
+        label: &'static str,
+        fragment_entry: &'static str,
+        depth_write: bool,
+        targets: Vec<Option<wgpu::ColorTargetState>>,
     },
 }
 
@@ -75,10 +76,22 @@ impl std::ops::Deref for LazyPipeline {
                 label,
                 format,
             } => fullscreen_pipeline(&self.device, layout, module, label, "fs_composite", *format),
-            Recipe::Merge { layout, module } => merge_pipeline(&self.device, layout, module),
-            Recipe::ClearLayer { layout, module } => {
-                clear_layer_pipeline(&self.device, layout, module)
-            }
+            Recipe::OverDepth {
+                layout,
+                module,
+                label,
+                fragment_entry,
+                depth_write,
+                targets,
+            } => over_depth_pipeline(
+                &self.device,
+                layout,
+                module,
+                label,
+                fragment_entry,
+                *depth_write,
+                targets,
+            ),
         })
     }
 }
@@ -344,20 +357,33 @@ impl KBufferPipelines {
         let module = module(device, "composite_kbuffer.wgsl", shaders::COMPOSITE_KBUFFER);
         let clear_layer = LazyPipeline::new(
             device,
-            Recipe::ClearLayer {
+            // Zeroes a packed layer and the depth buffer inside the pass's scissor
+            // rectangle: the full-screen triangle lies at depth 0, reverse z's far
+            // plane, what a cleared depth buffer holds.
+            Recipe::OverDepth {
                 layout: device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
                     label: Some("clear layer"),
                     bind_group_layouts: &[],
                     immediate_size: 0,
                 }),
                 module: merge_module.clone(),
+                label: "clear layer",
+                fragment_entry: "fs_clear_layer",
+                depth_write: true,
+                targets: vec![replace(LAYER_DATA_FORMAT)],
             },
         );
         let merge = LazyPipeline::new(
             device,
-            Recipe::Merge {
+            // No colour output: the pass needs an attachment, so it takes the depth
+            // buffer without writing it.
+            Recipe::OverDepth {
                 layout: merge_pipeline_layout,
                 module: merge_module,
+                label: "merge (fragment)",
+                fragment_entry: "fs_merge",
+                depth_write: false,
+                targets: Vec::new(),
             },
         );
         let layer = LazyPipeline::new(
@@ -420,15 +446,19 @@ impl OutputPipelines {
     }
 }
 
-/// The k-buffer's merge: a fullscreen pass with no colour output (the pass needs an
-/// attachment, so it takes the depth buffer without testing or writing it).
-fn merge_pipeline(
+/// `vs_fullscreen`'s triangle into `targets` over the depth buffer, which it always
+/// passes and writes (at depth 0) only when `depth_write`.
+fn over_depth_pipeline(
     device: &wgpu::Device,
     layout: &wgpu::PipelineLayout,
     module: &wgpu::ShaderModule,
+    label: &str,
+    fragment_entry: &str,
+    depth_write: bool,
+    targets: &[Option<wgpu::ColorTargetState>],
 ) -> wgpu::RenderPipeline {
     device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
-        label: Some("merge (fragment)"),
+        label: Some(label),
         layout: Some(layout),
         vertex: wgpu::VertexState {
             module,
@@ -439,7 +469,7 @@ fn merge_pipeline(
         primitive: wgpu::PrimitiveState::default(),
         depth_stencil: Some(wgpu::DepthStencilState {
             format: DEPTH_FORMAT,
-            depth_write_enabled: Some(false),
+            depth_write_enabled: Some(depth_write),
             depth_compare: Some(wgpu::CompareFunction::Always),
             stencil: wgpu::StencilState::default(),
             bias: wgpu::DepthBiasState::default(),
@@ -447,46 +477,9 @@ fn merge_pipeline(
         multisample: wgpu::MultisampleState::default(),
         fragment: Some(wgpu::FragmentState {
             module,
-            entry_point: Some("fs_merge"),
+            entry_point: Some(fragment_entry),
             compilation_options: Default::default(),
-            targets: &[],
-        }),
-        multiview_mask: None,
-        cache: None,
-    })
-}
-
-/// Zeroes a packed layer and the depth buffer inside the pass's scissor rectangle.
-fn clear_layer_pipeline(
-    device: &wgpu::Device,
-    layout: &wgpu::PipelineLayout,
-    module: &wgpu::ShaderModule,
-) -> wgpu::RenderPipeline {
-    device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
-        label: Some("clear layer"),
-        layout: Some(layout),
-        vertex: wgpu::VertexState {
-            module,
-            entry_point: Some("vs_fullscreen"),
-            compilation_options: Default::default(),
-            buffers: &[],
-        },
-        primitive: wgpu::PrimitiveState::default(),
-        // The full-screen triangle lies at depth 0: reverse z's far plane, what a
-        // cleared depth buffer holds.
-        depth_stencil: Some(wgpu::DepthStencilState {
-            format: DEPTH_FORMAT,
-            depth_write_enabled: Some(true),
-            depth_compare: Some(wgpu::CompareFunction::Always),
-            stencil: wgpu::StencilState::default(),
-            bias: wgpu::DepthBiasState::default(),
-        }),
-        multisample: wgpu::MultisampleState::default(),
-        fragment: Some(wgpu::FragmentState {
-            module,
-            entry_point: Some("fs_clear_layer"),
-            compilation_options: Default::default(),
-            targets: &[replace(LAYER_DATA_FORMAT)],
+            targets,
         }),
         multiview_mask: None,
         cache: None,
