@@ -201,3 +201,134 @@ fn a_scripted_orbit_runs_headless() {
     let shown = present(&mut adaptive, wgpu::TextureFormat::Rgba8Unorm);
     assert_eq!(shown.dimensions(), (160, 120));
 }
+
+/// The full-quality frame drawn in steps, as the window refines it between input
+/// events, is `render`'s image bit for bit: over several pre-pass steps and batches,
+/// after an interactive frame broke into it (it begins again), and a frame whose scans
+/// moved meanwhile reports itself stale instead of drawing a mix of poses.
+#[test]
+fn the_full_frame_drawn_in_steps_is_render_bit_for_bit() {
+    use texel_viewer::adaptive::Refinement;
+    use texel_viewer::camera::VirtualCamera;
+    use texel_viewer::gpu::{IMAGE_FORMAT, Progress, Renderer, Strategy};
+    use texel_viewer::scenes;
+    // The box before its wall seen from 20 places: 16 in front (the first pre-pass
+    // step, which alone finds the box's front nearest), then 4 beside the box that see
+    // only the wall behind it, which the front view must reject as occluded.
+    let sensor = scenes::sensor(32, 24, 64, 48);
+    let mut poses: Vec<Pose> = (0..16)
+        .map(|i| {
+            let x = -2.0 + 4.0 * f64::from(i) / 15.0;
+            scenes::look_at([x, -0.3, -1.0], [0.0, 0.0, 5.0])
+        })
+        .collect();
+    poses.extend((0..4).map(|i| {
+        let x = 2.2 + 0.3 * f64::from(i);
+        scenes::look_at([x, 0.1, 4.6], [-0.5, 0.0, 6.05])
+    }));
+    let model = scenes::model_of(&scenes::box_scene(), &sensor, &poses, &Pose::identity());
+    let camera = |eye: [f64; 3], target: [f64; 3]| {
+        VirtualCamera::new(scenes::look_at(eye, target), 50.0, 240, 160).unwrap()
+    };
+    let across = camera([0.3, -0.2, -0.5], [0.0, 0.0, 5.0]);
+    let along = camera([-1.0, 0.0, -1.0], [0.0, 0.0, 5.0]);
+    let full_picture = |adaptive: &AdaptiveRenderer| {
+        read_rgba_texture(
+            &gpu().device,
+            &gpu().queue,
+            adaptive.full_texture().unwrap(),
+        )
+        .unwrap()
+    };
+    for (mode, batch) in [
+        (Mode::Blended, 1),
+        (Mode::Blended, 4),
+        (Mode::Best, 3),
+        (Mode::Painter, 4),
+    ] {
+        let mut s = RenderSettings::with_mode(mode);
+        s.strategy = Strategy::KBuffer { batch };
+        let mut r = Renderer::new(gpu());
+        r.sync_model(&model).unwrap();
+        let (expected, stats) = r.render_to_image(&across, &s).unwrap();
+        assert!(stats.drawn > 16, "{} drawn: one pre-pass step", stats.drawn);
+        let mut adaptive = AdaptiveRenderer::new(&gpu().device, 66.0);
+        // A step, then the view moves (an interactive frame), then it comes back.
+        adaptive
+            .render(&mut r, &across, &s, Quality::Interactive)
+            .unwrap();
+        let first = adaptive.refine(&mut r, &across, &s).unwrap();
+        adaptive
+            .render(&mut r, &along, &s, Quality::Interactive)
+            .unwrap();
+        assert!(
+            !adaptive.refining(),
+            "an interactive frame drops the refinement"
+        );
+        let mut steps = 0;
+        let done = loop {
+            steps += 1;
+            assert!(steps < 200, "the refinement never ends");
+            if let Refinement::Done(stats) = adaptive.refine(&mut r, &across, &s).unwrap() {
+                break stats;
+            }
+            // While refining, the picture shown is still the interactive one.
+            assert_eq!(adaptive.shown().unwrap().quality, Quality::Interactive);
+        };
+        assert_eq!(done.drawn, stats.drawn);
+        assert_eq!(adaptive.shown().unwrap().quality, Quality::Full);
+        if mode == Mode::Painter {
+            assert!(matches!(first, Refinement::Done(_)), "painter: one step");
+            assert_eq!(steps, 1);
+        } else {
+            let Refinement::Pending { taken, steps: all } = first else {
+                panic!("{mode}: the first step finished the frame");
+            };
+            assert_eq!(taken, 1);
+            assert_eq!(steps, all, "{mode}, batch {batch}: steps taken");
+            // Two pre-pass steps, the batches (scans that draw no pixel are left
+            // out), the composite.
+            assert!(all >= 4, "{mode}, batch {batch}: {all} steps");
+        }
+        let picture = full_picture(&adaptive);
+        let differ = picture
+            .pixels()
+            .zip(expected.pixels())
+            .filter(|(p, q)| p != q)
+            .count();
+        assert_eq!(differ, 0, "{mode}, batch {batch}: {differ} pixels differ");
+    }
+    // A scan moved between steps: the frame is stale, nothing is drawn from it.
+    let s = RenderSettings::with_mode(Mode::Blended);
+    let mut r = Renderer::new(gpu());
+    r.sync_model(&model).unwrap();
+    let texture = window_texture(IMAGE_FORMAT, across.width, across.height);
+    let view = texture.create_view(&wgpu::TextureViewDescriptor::default());
+    let target = RenderTarget {
+        view: &view,
+        format: IMAGE_FORMAT,
+        width: across.width,
+        height: across.height,
+    };
+    let mut job = r.begin_progressive(&across, &s, IMAGE_FORMAT).unwrap();
+    assert_eq!(
+        r.step_progressive(&mut job, &target).unwrap(),
+        Progress::Pending
+    );
+    let (id, placed) = model
+        .scans()
+        .first()
+        .map(|s| (s.id, s.world_from_scan))
+        .unwrap();
+    // The same pose again changes nothing.
+    r.set_pose(id, placed);
+    assert_eq!(
+        r.step_progressive(&mut job, &target).unwrap(),
+        Progress::Pending
+    );
+    r.set_pose(id, Pose::translation(0.0, 0.1, 0.0) * placed);
+    assert_eq!(
+        r.step_progressive(&mut job, &target).unwrap(),
+        Progress::Stale
+    );
+}

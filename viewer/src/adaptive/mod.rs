@@ -9,7 +9,7 @@ mod present;
 // `web_time`: the std clock natively, the browser's in wasm (where std's panics).
 use web_time::{Duration, Instant};
 
-pub use present::{AdaptiveRenderer, Shown};
+pub use present::{AdaptiveRenderer, Refinement, Shown};
 
 use crate::composite::Mode;
 use crate::gpu::RenderSettings;

@@ -9,7 +9,10 @@ use std::collections::HashMap;
 use super::{Quality, ScaleController, interactive_settings, scaled_size};
 use crate::camera::VirtualCamera;
 use crate::composite::Mode;
-use crate::gpu::{FrameStats, GpuError, IMAGE_FORMAT, RenderSettings, RenderTarget, Renderer};
+use crate::gpu::{
+    FrameStats, GpuError, IMAGE_FORMAT, Progress, ProgressiveFrame, RenderSettings, RenderTarget,
+    Renderer,
+};
 
 /// What the last rendered picture is.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -68,6 +71,19 @@ struct PresentPipelines {
     exact: wgpu::RenderPipeline,
 }
 
+/// Where a refinement of the full-quality frame stands.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Refinement {
+    /// A step is submitted; more follow. The picture shown is still the last one.
+    Pending {
+        /// Steps submitted of this frame, and in all.
+        taken: usize,
+        steps: usize,
+    },
+    /// The last step is submitted: the full-quality picture is the one shown.
+    Done(FrameStats),
+}
+
 /// Renders the scene at the quality asked for into its own pictures and shows the
 /// last one; holds the controller that sizes the interactive frame.
 pub struct AdaptiveRenderer {
@@ -80,6 +96,8 @@ pub struct AdaptiveRenderer {
     full: Option<Offscreen>,
     small: Option<Offscreen>,
     shown: Option<Shown>,
+    /// The full-quality frame being refined step by step.
+    pending: Option<ProgressiveFrame>,
     pub controller: ScaleController,
     /// The interactive frame's mode (blended and best frames become this; k = 1).
     pub cheap: Mode,
@@ -137,6 +155,7 @@ impl AdaptiveRenderer {
             full: None,
             small: None,
             shown: None,
+            pending: None,
             controller: ScaleController::new(budget_ms),
             cheap: Mode::Painter,
             coarse: true,
@@ -168,6 +187,8 @@ impl AdaptiveRenderer {
         settings: &RenderSettings,
         quality: Quality,
     ) -> Result<FrameStats, GpuError> {
+        // Any frame drawn here overwrites the uniforms a refinement under way relies on.
+        self.pending = None;
         let (scale, size, settings) = match quality {
             Quality::Full => (1.0, (camera.width, camera.height), settings.clone()),
             Quality::Interactive => {
@@ -212,6 +233,74 @@ impl AdaptiveRenderer {
             mode: settings.composite.mode,
         });
         Ok(stats)
+    }
+
+    /// Takes the next step of the full-quality frame of `camera` with `settings`, drawn
+    /// over several submissions so that a window answers input between them (a
+    /// software rasteriser takes seconds over a full frame): begins it when none is
+    /// under way for this view, or when the one under way went stale. Submits one
+    /// step; does not wait. The finished picture is [`Self::render`]'s at
+    /// [`Quality::Full`].
+    pub fn refine(
+        &mut self,
+        renderer: &mut Renderer,
+        camera: &VirtualCamera,
+        settings: &RenderSettings,
+    ) -> Result<Refinement, GpuError> {
+        let size = (camera.width, camera.height);
+        if self.full.as_ref().is_none_or(|o| o.size() != size) {
+            self.full = Some(Offscreen::new(&self.device, size.0, size.1));
+        }
+        let Some(picture) = self.full.as_ref() else {
+            return Err(GpuError::Readback("no picture target".into()));
+        };
+        let target = RenderTarget {
+            view: &picture.view,
+            format: IMAGE_FORMAT,
+            width: size.0,
+            height: size.1,
+        };
+        // A stale frame (another frame drawn, or the scans changed) begins again once.
+        for _ in 0..2 {
+            let mut job = match self.pending.take() {
+                Some(job) if job.camera() == camera && job.settings() == settings => job,
+                _ => renderer.begin_progressive(camera, settings, IMAGE_FORMAT)?,
+            };
+            match renderer.step_progressive(&mut job, &target)? {
+                Progress::Pending => {
+                    let progress = Refinement::Pending {
+                        taken: job.steps_taken(),
+                        steps: job.steps(),
+                    };
+                    self.pending = Some(job);
+                    return Ok(progress);
+                }
+                Progress::Done(stats) => {
+                    self.shown = Some(Shown {
+                        quality: Quality::Full,
+                        scale: 1.0,
+                        width: size.0,
+                        height: size.1,
+                        mode: settings.composite.mode,
+                    });
+                    return Ok(Refinement::Done(stats));
+                }
+                Progress::Stale => {}
+            }
+        }
+        Err(GpuError::Readback(
+            "the full-quality frame went stale as soon as it began".into(),
+        ))
+    }
+
+    /// Drops the full-quality frame under way, if any (the view moved on).
+    pub fn abandon_refinement(&mut self) {
+        self.pending = None;
+    }
+
+    /// Whether a full-quality frame is under way.
+    pub fn refining(&self) -> bool {
+        self.pending.is_some()
     }
 
     /// Records the pass that shows the last picture in `target` (replacing what is

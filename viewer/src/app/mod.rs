@@ -10,6 +10,7 @@
 mod controls;
 mod events;
 mod pacing;
+mod refine;
 mod state;
 mod ui;
 
@@ -30,7 +31,8 @@ pub use state::ViewerState;
 
 pub(crate) use state::window_residency;
 
-use crate::adaptive::{Decision, Quality};
+use self::refine::RefineStep;
+use crate::adaptive::{Decision, Quality, Refinement};
 use crate::gpu::{GpuContext, RenderSettings, RenderTarget, Renderer};
 use crate::live::{SourceCommand, ViewerEvent};
 use crate::tiles::net::NetTileSource;
@@ -273,6 +275,15 @@ impl App {
         };
         self.viewer
             .apply_events(&self.options.events, &mut w.renderer);
+        let (width, height) = (w.config.width, w.config.height);
+        let refined_here = match self.refine_without_drawing(now)? {
+            RefineStep::Pending => return Ok(()),
+            RefineStep::Done { began } => Some(began),
+            RefineStep::NotHere => None,
+        };
+        let Some(w) = self.window.as_mut() else {
+            return Ok(());
+        };
         let frame = match w.surface.get_current_texture() {
             wgpu::CurrentSurfaceTexture::Success(f)
             | wgpu::CurrentSurfaceTexture::Suboptimal(f) => f,
@@ -286,8 +297,11 @@ impl App {
         let view = frame
             .texture
             .create_view(&wgpu::TextureViewDescriptor::default());
-        let (width, height) = (w.config.width, w.config.height);
-        let mut drawn = None;
+        let mut drawn = refined_here.map(|_| Quality::Full);
+        // A step of the full-quality frame was submitted (more to come).
+        let mut stepped = false;
+        // When the full-quality frame finished here began (its first step).
+        let mut full_began = refined_here.flatten();
         let mut through_adaptive = false;
         if let Some(camera) = self.viewer.camera(width, height) {
             let target = RenderTarget {
@@ -394,15 +408,45 @@ impl App {
                         self.viewer.model.events_applied(),
                     );
                     let changed = self.pacing.view_changed(&key);
-                    if let Decision::Draw(quality) = self.pacing.pacer.decide(changed, now) {
-                        self.viewer.stats = w.adaptive.render(
-                            &mut w.renderer,
-                            &camera,
-                            &self.viewer.settings,
-                            quality,
-                        )?;
-                        self.pacing.drawn(quality, key);
-                        drawn = Some(quality);
+                    match self.pacing.pacer.decide(changed, now) {
+                        Decision::Draw(Quality::Full) if self.pacing.pacer.adaptive => {
+                            // The full-quality frame a step per redraw: input is read
+                            // between steps, and a moved view drops the rest.
+                            match w.adaptive.refine(
+                                &mut w.renderer,
+                                &camera,
+                                &self.viewer.settings,
+                            )? {
+                                Refinement::Done(stats) => {
+                                    full_began = self.pacing.refine_started.take();
+                                    self.viewer.stats = stats;
+                                    self.pacing.drawn(Quality::Full, key);
+                                    drawn = Some(Quality::Full);
+                                }
+                                Refinement::Pending { taken, steps } => {
+                                    self.pacing.refine_started.get_or_insert(now);
+                                    self.viewer.refining = Some((taken, steps));
+                                    stepped = true;
+                                }
+                            }
+                        }
+                        Decision::Draw(quality) => {
+                            self.viewer.stats = w.adaptive.render(
+                                &mut w.renderer,
+                                &camera,
+                                &self.viewer.settings,
+                                quality,
+                            )?;
+                            self.pacing.drawn(quality, key);
+                            drawn = Some(quality);
+                        }
+                        Decision::Idle | Decision::WaitUntil(_) => {}
+                    }
+                    if drawn.is_some() {
+                        self.viewer.refining = None;
+                    }
+                    if drawn == Some(Quality::Interactive) {
+                        self.pacing.refine_started = None;
                     }
                     through_adaptive = true;
                 }
@@ -525,11 +569,17 @@ impl App {
         }
         w.gpu.queue.present(frame);
         self.pacing.dirty = false;
+        if stepped {
+            // One step at a time on the GPU: input that arrives meanwhile waits for
+            // this step alone, not for the rest of the frame.
+            w.gpu.wait_idle()?;
+        }
         if let Some(quality) = drawn {
             // The frame time the controller steers: everything from the start of
-            // this redraw to the picture being done (the GPU waited for).
+            // this redraw to the picture being done (the GPU waited for); for a
+            // full-quality frame drawn in steps, from its first step.
             w.gpu.wait_idle()?;
-            let ms = now.elapsed().as_secs_f64() * 1e3;
+            let ms = full_began.unwrap_or(now).elapsed().as_secs_f64() * 1e3;
             self.pacing.last_frame_ms = ms;
             // Frames are drawn only when something changed: the rate the scene
             // could be drawn at, not how often it was.

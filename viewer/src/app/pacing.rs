@@ -29,6 +29,8 @@ pub(super) struct Pacing {
     pub overlay_at: Option<Instant>,
     /// The last scene frame's time (redraw start to GPU done), ms.
     pub last_frame_ms: f64,
+    /// When the full-quality frame under way took its first step.
+    pub refine_started: Option<Instant>,
     exit_when_idle: Option<Duration>,
     /// When the window first had nothing to do, the GPU submissions then and the
     /// scene frames drawn then.
@@ -44,6 +46,7 @@ impl Pacing {
             dirty: true,
             overlay_at: None,
             last_frame_ms: 0.0,
+            refine_started: None,
             exit_when_idle,
             idle_since: None,
             frames: 0,

@@ -56,6 +56,8 @@ pub struct ViewerState {
     /// The picture on screen (its quality) and the last drawn frame's time, ms,
     /// when the scans are drawn through adaptive quality.
     pub quality: Option<(crate::adaptive::Shown, f64)>,
+    /// The full-quality frame under way: steps submitted and in all.
+    pub refining: Option<(usize, usize)>,
     camera_placed: bool,
     fov_known: bool,
 }
@@ -85,6 +87,7 @@ impl ViewerState {
             residency,
             planned: None,
             quality: None,
+            refining: None,
             camera_placed: false,
             fov_known: fov_deg.is_some(),
         }

@@ -140,7 +140,15 @@ fn quality_badge(ctx: &egui::Context, v: &ViewerState) {
         .interactable(false)
         .show(ctx, |ui| {
             egui::Frame::popup(ui.style()).show(ui, |ui| {
-                ui.colored_label(colour, format!("{} ({ms:.0} ms)", shown.describe()));
+                let refining = match v.refining {
+                    // Later steps do not draw the window: the count of all is what holds.
+                    Some((_, steps)) => format!(", refining in {steps} steps"),
+                    None => String::new(),
+                };
+                ui.colored_label(
+                    colour,
+                    format!("{} ({ms:.0} ms){refining}", shown.describe()),
+                );
             });
         });
 }

@@ -17,7 +17,9 @@ pub mod tonemap;
 pub(crate) use pipelines::surface_pipeline;
 pub use readback::{LayerReadback, read_depth_texture, read_radiance_texture, read_rgba_texture};
 pub use relative::{gpu_from_pose_relative, pose_relative};
-pub use renderer::{FrameStats, RenderSettings, RenderTarget, Renderer, Strategy};
+pub use renderer::{
+    FrameStats, Progress, ProgressiveFrame, RenderSettings, RenderTarget, Renderer, Strategy,
+};
 pub(crate) use scan_data::rgba_of_rgb;
 pub use scan_data::scan_gpu_bytes;
 pub use targets::TargetMemory;

@@ -346,89 +346,153 @@ pub(super) fn encode(
     layered: &[Layered],
     mut clock: Option<&mut PhaseClock>,
 ) {
-    // `prepare` made the targets, so the device has the k-buffer's pipelines.
-    let (Some(pipelines), Some(composite)) = (
-        frame.pipelines.kbuffer.as_ref(),
-        frame.outputs.composite_kbuffer.as_ref(),
-    ) else {
-        return;
-    };
     let mut checkpoint = |encoder: &mut wgpu::CommandEncoder, phase| {
         if let Some(clock) = clock.as_deref_mut() {
             clock.checkpoint(frame, encoder, phase);
         }
     };
     // 1. Pre-pass: the nearest valid fragment's distance and sigma per pixel.
-    {
-        let infinity = f64::from(f32::INFINITY.to_bits());
-        let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
-            label: Some("pre-pass"),
-            color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                view: &t.nearest.view,
-                depth_slice: None,
-                resolve_target: None,
-                ops: wgpu::Operations {
-                    load: wgpu::LoadOp::Clear(wgpu::Color {
-                        r: infinity,
-                        g: 0.0,
-                        b: 0.0,
-                        a: 0.0,
-                    }),
-                    store: wgpu::StoreOp::Store,
-                },
-            })],
-            // Kept: the layer passes clear it only inside their rectangles.
-            depth_stencil_attachment: frame.depth_kept(wgpu::LoadOp::Clear(0.0)),
-            timestamp_writes: None,
-            occlusion_query_set: None,
-            multiview_mask: None,
-        });
-        pass.set_pipeline(&frame.pipelines.prepass);
-        frame.draw_scans(&mut pass, visible);
-    }
+    encode_prepass(frame, encoder, t, visible, true);
     checkpoint(encoder, Phase::Prepass);
     // 2. Scans a batch at a time into the layers, each batch merged into the k-buffer.
-    encoder.clear_buffer(&t.kbuffer, 0, None);
+    clear_kbuffer(encoder, t);
     for (b, chunk) in layered.chunks(t.shape.batch as usize).enumerate() {
-        let offset = KBufferTargets::slot_offset(b as u32);
-        let mut uniform = [0u32; BATCH_UNIFORM_BYTES as usize / 4];
-        uniform[0] = chunk.len() as u32;
-        for (slot, scan) in uniform[4..].iter_mut().zip(chunk) {
-            // As the scan's own uniform gives it to the shaders.
-            *slot = u32::try_from(scan.id).unwrap_or(u32::MAX);
-        }
-        frame.queue.write_buffer(
-            &t.batch_uniform,
-            u64::from(offset),
-            bytemuck::bytes_of(&uniform),
-        );
-        for (l, scan) in chunk.iter().enumerate() {
-            encode_layer(frame, encoder, t, pipelines, l, scan);
-        }
+        encode_layers(frame, encoder, t, b, chunk);
         checkpoint(encoder, Phase::Layers);
-        // The pass needs an attachment: the depth buffer, neither tested nor written.
-        let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
-            label: Some("merge"),
-            color_attachments: &[],
-            depth_stencil_attachment: frame.depth_kept(wgpu::LoadOp::Load),
-            timestamp_writes: None,
-            occlusion_query_set: None,
-            multiview_mask: None,
-        });
-        pass.set_pipeline(&pipelines.merge);
-        pass.set_bind_group(0, &t.merge_bind_group, &[offset]);
-        // Outside the batch's rectangles no layer holds a fragment.
-        let rects = chunk.iter().map(|s| s.rect);
-        if let Some(Some(r)) = rects.reduce(|a, b| a.zip(b).map(|(a, b)| a.union(&b))) {
-            pass.set_scissor_rect(r.x, r.y, r.width, r.height);
-        }
-        pass.draw(0..3, 0..1);
-        drop(pass);
+        encode_merge(frame, encoder, t, b, chunk);
         checkpoint(encoder, Phase::Merge);
     }
     // 3. Composite into the target.
-    frame.encode_composite(encoder, composite, &t.composite_bind_group);
+    encode_composite(frame, encoder, t);
     checkpoint(encoder, Phase::Composite);
+}
+
+/// The scans a progressive frame's pre-pass step draws (a frame drawn over several
+/// submissions, `super::progressive`): on a software rasteriser about as long as one
+/// batch of layers and its merge.
+pub(super) const PREPASS_SCANS_PER_STEP: usize = 16;
+
+/// The pre-pass for `scans`: the nearest valid fragment's distance and sigma per pixel
+/// (Killpack & Budge 2016, Algorithm 2, steps 1-2). `first`: the frame's first
+/// pre-pass, which clears the nearest target and the depth buffer; later ones (a
+/// progressive frame's) add their scans to what is there, with the same result as
+/// one pass over all (the depth test keeps the first drawn of equal depths).
+pub(super) fn encode_prepass(
+    frame: &Frame<'_>,
+    encoder: &mut wgpu::CommandEncoder,
+    t: &KBufferTargets,
+    scans: &[ScanId],
+    first: bool,
+) {
+    let infinity = f64::from(f32::INFINITY.to_bits());
+    let (load, depth_load) = if first {
+        (
+            wgpu::LoadOp::Clear(wgpu::Color {
+                r: infinity,
+                g: 0.0,
+                b: 0.0,
+                a: 0.0,
+            }),
+            wgpu::LoadOp::Clear(0.0),
+        )
+    } else {
+        (wgpu::LoadOp::Load, wgpu::LoadOp::Load)
+    };
+    let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+        label: Some("pre-pass"),
+        color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+            view: &t.nearest.view,
+            depth_slice: None,
+            resolve_target: None,
+            ops: wgpu::Operations {
+                load,
+                store: wgpu::StoreOp::Store,
+            },
+        })],
+        // Kept: the layer passes clear it only inside their rectangles.
+        depth_stencil_attachment: frame.depth_kept(depth_load),
+        timestamp_writes: None,
+        occlusion_query_set: None,
+        multiview_mask: None,
+    });
+    pass.set_pipeline(&frame.pipelines.prepass);
+    frame.draw_scans(&mut pass, scans);
+}
+
+/// Empties every pixel's list of best fragments (before the first batch).
+pub(super) fn clear_kbuffer(encoder: &mut wgpu::CommandEncoder, t: &KBufferTargets) {
+    encoder.clear_buffer(&t.kbuffer, 0, None);
+}
+
+/// Batch `b`'s scans into the layers.
+pub(super) fn encode_layers(
+    frame: &Frame<'_>,
+    encoder: &mut wgpu::CommandEncoder,
+    t: &mut KBufferTargets,
+    b: usize,
+    chunk: &[Layered],
+) {
+    // `prepare` made the targets, so the device has the k-buffer's pipelines.
+    let Some(pipelines) = frame.pipelines.kbuffer.as_ref() else {
+        return;
+    };
+    let offset = KBufferTargets::slot_offset(b as u32);
+    let mut uniform = [0u32; BATCH_UNIFORM_BYTES as usize / 4];
+    uniform[0] = chunk.len() as u32;
+    for (slot, scan) in uniform[4..].iter_mut().zip(chunk) {
+        // As the scan's own uniform gives it to the shaders.
+        *slot = u32::try_from(scan.id).unwrap_or(u32::MAX);
+    }
+    frame.queue.write_buffer(
+        &t.batch_uniform,
+        u64::from(offset),
+        bytemuck::bytes_of(&uniform),
+    );
+    for (l, scan) in chunk.iter().enumerate() {
+        encode_layer(frame, encoder, t, pipelines, l, scan);
+    }
+}
+
+/// Folds batch `b`'s layers into the k-buffer (Algorithm 2, step 3, a batch at a time).
+pub(super) fn encode_merge(
+    frame: &Frame<'_>,
+    encoder: &mut wgpu::CommandEncoder,
+    t: &KBufferTargets,
+    b: usize,
+    chunk: &[Layered],
+) {
+    let Some(pipelines) = frame.pipelines.kbuffer.as_ref() else {
+        return;
+    };
+    let offset = KBufferTargets::slot_offset(b as u32);
+    // The pass needs an attachment: the depth buffer, neither tested nor written.
+    let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+        label: Some("merge"),
+        color_attachments: &[],
+        depth_stencil_attachment: frame.depth_kept(wgpu::LoadOp::Load),
+        timestamp_writes: None,
+        occlusion_query_set: None,
+        multiview_mask: None,
+    });
+    pass.set_pipeline(&pipelines.merge);
+    pass.set_bind_group(0, &t.merge_bind_group, &[offset]);
+    // Outside the batch's rectangles no layer holds a fragment.
+    let rects = chunk.iter().map(|s| s.rect);
+    if let Some(Some(r)) = rects.reduce(|a, b| a.zip(b).map(|(a, b)| a.union(&b))) {
+        pass.set_scissor_rect(r.x, r.y, r.width, r.height);
+    }
+    pass.draw(0..3, 0..1);
+}
+
+/// Shades every pixel from its k-buffer entries into the frame's target (step 4).
+pub(super) fn encode_composite(
+    frame: &Frame<'_>,
+    encoder: &mut wgpu::CommandEncoder,
+    t: &KBufferTargets,
+) {
+    if let Some(composite) = frame.outputs.composite_kbuffer.as_ref() {
+        frame.encode_composite(encoder, composite, &t.composite_bind_group);
+    }
 }
 
 /// One scan into layer `l`. With a rectangle: clears what the layer's previous scan

@@ -9,6 +9,7 @@ mod kbuffer;
 mod naive_layers;
 mod painter;
 mod points;
+mod progressive;
 
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 
@@ -20,6 +21,7 @@ use texel::model::{Model, ScanId};
 
 use self::frame::Frame;
 use self::kbuffer::{KBufferShape, PhaseClock};
+pub use self::progressive::{Progress, ProgressiveFrame};
 use super::pipelines::{OutputPipelines, Pipelines};
 use super::relative::{gpu_from_pose_relative, pose_relative};
 use super::scan_data::{GpuScan, ScanUniform};
@@ -201,6 +203,9 @@ pub struct Renderer {
     nearest_ready: bool,
     /// The `points` mode's pipelines and targets, built on its first use.
     points: Option<points::PointsState>,
+    /// Counts frames begun and changes to the scans: a progressive frame that began
+    /// in an older generation is stale.
+    generation: u64,
 }
 
 impl Renderer {
@@ -236,6 +241,7 @@ impl Renderer {
             layer_footprints: true,
             nearest_ready: false,
             points: None,
+            generation: 0,
         }
     }
 
@@ -247,9 +253,13 @@ impl Renderer {
         world_from_scan: Pose,
     ) -> Result<(), GpuError> {
         if let Some(placed) = self.scans.get_mut(&id) {
-            placed.world_from_scan = world_from_scan;
+            if placed.world_from_scan != world_from_scan {
+                placed.world_from_scan = world_from_scan;
+                self.generation += 1;
+            }
             return Ok(());
         }
+        self.generation += 1;
         let gpu = GpuScan::upload(
             &self.device,
             &self.queue,
@@ -273,7 +283,10 @@ impl Renderer {
     pub fn set_pose(&mut self, id: ScanId, world_from_scan: Pose) -> bool {
         match self.scans.get_mut(&id) {
             Some(p) => {
-                p.world_from_scan = world_from_scan;
+                if p.world_from_scan != world_from_scan {
+                    p.world_from_scan = world_from_scan;
+                    self.generation += 1;
+                }
                 true
             }
             None => false,
@@ -292,12 +305,15 @@ impl Renderer {
     /// Forgets every scan (the source reset its model; ids will be reused).
     pub fn clear_scans(&mut self) {
         self.scans.clear();
+        self.generation += 1;
     }
 
     /// Drops a scan's GPU data (its buffers and texture are freed when no frame in
     /// flight uses them any more). Returns the bytes it held, if it was uploaded.
     pub fn remove_scan(&mut self, id: ScanId) -> Option<u64> {
-        self.scans.remove(&id).map(|p| p.bytes())
+        let removed = self.scans.remove(&id)?;
+        self.generation += 1;
+        Some(removed.bytes())
     }
 
     pub fn has_scan(&self, id: ScanId) -> bool {
@@ -364,11 +380,14 @@ impl Renderer {
         (visible, stats)
     }
 
+    /// The frame uniform for a `format` target `width` pixels wide, and each visible
+    /// scan's.
     fn write_uniforms(
         &self,
         camera: &VirtualCamera,
         settings: &RenderSettings,
-        target: &RenderTarget<'_>,
+        format: wgpu::TextureFormat,
+        width: u32,
         visible: &[ScanId],
     ) {
         let c = &settings.composite;
@@ -384,7 +403,7 @@ impl Renderer {
             params: Vec4::new(
                 c.effective_threshold(),
                 gamma,
-                if target.format.is_srgb() { 1.0 } else { 0.0 },
+                if format.is_srgb() { 1.0 } else { 0.0 },
                 if settings.fill_enclosed_holes {
                     1.0
                 } else {
@@ -395,7 +414,7 @@ impl Renderer {
                 c.mode.code(),
                 c.effective_k() as u32,
                 visible.len() as u32,
-                target.width,
+                width,
             ),
         };
         self.queue
@@ -425,6 +444,7 @@ impl Renderer {
 
     /// Drops the size-dependent targets (e.g. to measure one strategy alone).
     pub fn release_targets(&mut self) {
+        self.generation += 1;
         self.depth = None;
         self.kbuffer = None;
         self.naive = None;
@@ -442,8 +462,10 @@ impl Renderer {
     ) -> Result<FrameStats, GpuError> {
         let (width, height) = (target.width, target.height);
         self.check_target(width, height)?;
+        // A progressive frame under way is stale: its uniforms are overwritten.
+        self.generation += 1;
         let (visible, mut stats) = self.cull(camera, settings);
-        self.write_uniforms(camera, settings, target, &visible);
+        self.write_uniforms(camera, settings, target.format, target.width, &visible);
         if settings.points {
             return self.render_points(camera, settings, target, &visible, stats);
         }
