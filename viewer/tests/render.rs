@@ -126,6 +126,50 @@ fn footprints_change_no_pixel() {
     }
 }
 
+/// Merging only the pixels a batch's layers marked in the stencil changes no pixel:
+/// every batch size, views near and far, and more batches than there are marks (the
+/// marks wrap around after 255 batches).
+#[test]
+fn merge_marks_change_no_pixel() {
+    use texel_viewer::camera::VirtualCamera;
+    use texel_viewer::gpu::Renderer;
+    use texel_viewer::scenes;
+    assert!(
+        texel_viewer::gpu::marks_supported(&gpu().device),
+        "lavapipe offers {:?}: the marks go untested",
+        texel_viewer::gpu::MARK_FEATURES
+    );
+    let sensor = scenes::sensor(16, 12, 32, 24);
+    let model = scenes::corridor(&sensor, 300);
+    let camera = |eye: [f64; 3], target: [f64; 3]| {
+        VirtualCamera::new(scenes::look_at(eye, target), 50.0, 240, 160).unwrap()
+    };
+    let views = [
+        (camera([0.0, 0.0, -3.0], [6.0, 0.0, 5.05]), 1),
+        (camera([9.0, 1.0, -1.0], [3.0, 0.0, 5.05]), 3),
+        // The whole corridor from far off: 300 scans, one a batch.
+        (camera([149.5, 0.0, -330.0], [149.5, 0.0, 5.05]), 1),
+    ];
+    let mut marked = Renderer::new(gpu());
+    marked.sync_model(&model).unwrap();
+    let mut unmarked = Renderer::new(gpu());
+    unmarked.sync_model(&model).unwrap();
+    unmarked.merge_marks = false;
+    for (i, (cam, batch)) in views.iter().enumerate() {
+        let mut s = RenderSettings::with_mode(Mode::Blended);
+        s.strategy = Strategy::KBuffer { batch: *batch };
+        let (a, stats) = marked.render_to_image(cam, &s).unwrap();
+        let (b, _) = unmarked.render_to_image(cam, &s).unwrap();
+        if i == 2 {
+            assert!(stats.drawn > 255, "{} drawn", stats.drawn);
+        }
+        let drawn = a.pixels().filter(|p| p.0 != a.get_pixel(0, 0).0).count();
+        assert!(drawn > 200, "view {i}: only {drawn} pixels drawn");
+        let differ = a.pixels().zip(b.pixels()).filter(|(p, q)| p != q).count();
+        assert_eq!(differ, 0, "view {i}, batch {batch}: {differ} pixels differ");
+    }
+}
+
 /// Model and camera translated by 5e6 m (and rotated): the same image.
 #[test]
 fn large_coordinates_render_the_same_image() {

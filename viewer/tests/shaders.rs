@@ -33,3 +33,22 @@ fn wgsl_modules_validate() {
         assert!(names.contains(&want), "{want} in {names:?}");
     }
 }
+
+/// The merge with its fragment tests forced before the shader (where the device can
+/// merge only marked pixels) validates with that capability, and differs from the
+/// plain merge by the attribute alone.
+#[test]
+fn the_merge_with_early_tests_validates() {
+    let plain = shaders::merge_source(false);
+    let early = shaders::merge_source(true);
+    assert_ne!(plain, early, "the entry point was not found to mark");
+    assert_eq!(early.replace("@early_depth_test(force)\n", ""), plain);
+    let module = naga::front::wgsl::parse_str(&early)
+        .unwrap_or_else(|e| panic!("merge.wgsl: {}", e.emit_to_string(&early)));
+    naga::valid::Validator::new(
+        naga::valid::ValidationFlags::all(),
+        naga::valid::Capabilities::EARLY_DEPTH_TEST,
+    )
+    .validate(&module)
+    .unwrap_or_else(|e| panic!("merge.wgsl: {}", e.emit_to_string(&early)));
+}

@@ -22,26 +22,30 @@ struct Variant {
     settings: RenderSettings,
     /// `Renderer::layer_footprints`.
     footprints: bool,
+    /// `Renderer::merge_marks`.
+    marks: bool,
 }
 
 /// The variants, the first being the baseline the others are measured against.
 fn variants() -> Vec<Variant> {
     let blended = RenderSettings::with_mode(Mode::Blended);
-    let with = |label: &str, strategy: Strategy, footprints: bool| {
+    let with = |label: &str, strategy: Strategy, footprints: bool, marks: bool| {
         let mut settings = blended.clone();
         settings.strategy = strategy;
         Variant {
             label: label.to_string(),
             settings,
             footprints,
+            marks,
         }
     };
     let batch = |batch| Strategy::KBuffer { batch };
     vec![
-        with("batch 4, whole layers", batch(4), false),
-        with("batch 4, footprints", batch(4), true),
-        with("batch 8, footprints", batch(8), true),
-        with("naive layers", Strategy::NaiveLayers, true),
+        with("batch 4, whole layers", batch(4), false, false),
+        with("batch 4, footprints", batch(4), true, false),
+        with("footprints, marks", batch(4), true, true),
+        with("batch 8, marks", batch(8), true, true),
+        with("naive layers", Strategy::NaiveLayers, true, true),
     ]
 }
 
@@ -105,6 +109,7 @@ pub fn run(gpu: &GpuContext, args: &BenchArgs) -> anyhow::Result<()> {
         for (p, camera) in cameras.iter().enumerate() {
             for (v, variant) in variants.iter().enumerate() {
                 renderer.layer_footprints = variant.footprints;
+                renderer.merge_marks = variant.marks;
                 // Warm-up, and the image compared.
                 let stats = renderer.render(camera, &variant.settings, &target)?;
                 memory[v] = memory[v].max(stats.target_memory.total());
@@ -130,6 +135,7 @@ pub fn run(gpu: &GpuContext, args: &BenchArgs) -> anyhow::Result<()> {
             for camera in &cameras {
                 for (v, variant) in variants.iter().enumerate() {
                     renderer.layer_footprints = variant.footprints;
+                    renderer.merge_marks = variant.marks;
                     let t0 = Instant::now();
                     renderer.render(camera, &variant.settings, &target)?;
                     renderer.wait_idle()?;

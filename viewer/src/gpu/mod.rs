@@ -32,6 +32,30 @@ pub const LAYER_COLOUR_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8U
 pub const LAYER_DATA_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba32Uint;
 pub const NEAREST_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rg32Uint;
 pub const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
+/// The renderer's depth buffer where the device can mark pixels in a stencil and run
+/// the merge's stencil test before its shader ([`MARK_FEATURES`]): the same depth,
+/// with the k-buffer's marks beside it.
+pub const MARKED_DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32FloatStencil8;
+/// What merging only marked pixels needs: a stencil beside the f32 depth, and the
+/// fragment tests forced before a shader that writes storage (otherwise they may run
+/// after it, and skip nothing). Requested where the adapter has them (lavapipe and
+/// most native drivers); a browser's WebGPU does not offer the second.
+pub const MARK_FEATURES: wgpu::Features =
+    wgpu::Features::DEPTH32FLOAT_STENCIL8.union(wgpu::Features::SHADER_EARLY_DEPTH_TEST);
+
+/// Whether `device` can merge only marked pixels (`MARK_FEATURES`).
+pub fn marks_supported(device: &wgpu::Device) -> bool {
+    device.features().contains(MARK_FEATURES)
+}
+
+/// The format of the renderer's depth buffer on `device`.
+pub fn scan_depth_format(device: &wgpu::Device) -> wgpu::TextureFormat {
+    if marks_supported(device) {
+        MARKED_DEPTH_FORMAT
+    } else {
+        DEPTH_FORMAT
+    }
+}
 /// The EO texture: display (sRGB-encoded) values, sampled bilinearly as they are.
 pub const EO_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Unorm;
 /// Headless renders go to this format (PNG-ready).
@@ -186,7 +210,8 @@ impl GpuContext {
         let (device, queue) = adapter
             .request_device(&wgpu::DeviceDescriptor {
                 label: Some("texel-viewer"),
-                required_features: wgpu::Features::empty(),
+                // Optional: without them the k-buffer merges whole rectangles.
+                required_features: adapter.features() & MARK_FEATURES,
                 // The k-buffer and naive layers can be large: take what the adapter offers.
                 required_limits: adapter.limits(),
                 ..Default::default()

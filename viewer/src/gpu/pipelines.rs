@@ -19,6 +19,10 @@ enum Recipe {
         label: &'static str,
         fragment_entry: &'static str,
         targets: Vec<Option<wgpu::ColorTargetState>>,
+        /// The depth buffer's format (`Pipelines::scan_depth`).
+        depth_format: wgpu::TextureFormat,
+        /// Writes the stencil reference where a fragment is kept.
+        marks: bool,
     },
     /// `vs_fullscreen`'s one triangle into a `format` target.
     Fullscreen {
@@ -37,6 +41,9 @@ enum Recipe {
         fragment_entry: &'static str,
         depth_write: bool,
         targets: Vec<Option<wgpu::ColorTargetState>>,
+        depth_format: wgpu::TextureFormat,
+        /// Draws only where the stencil equals the reference.
+        marked_only: bool,
     },
 }
 
@@ -69,7 +76,17 @@ impl std::ops::Deref for LazyPipeline {
                 label,
                 fragment_entry,
                 targets,
-            } => scan_render_pipeline(&self.device, layout, module, label, fragment_entry, targets),
+                depth_format,
+                marks,
+            } => scan_render_pipeline(
+                &self.device,
+                layout,
+                module,
+                (label, fragment_entry),
+                targets,
+                *depth_format,
+                *marks,
+            ),
             Recipe::Fullscreen {
                 layout,
                 module,
@@ -83,14 +100,16 @@ impl std::ops::Deref for LazyPipeline {
                 fragment_entry,
                 depth_write,
                 targets,
+                depth_format,
+                marked_only,
             } => over_depth_pipeline(
                 &self.device,
                 layout,
                 module,
-                label,
-                fragment_entry,
-                *depth_write,
+                (label, fragment_entry),
+                (*depth_format, *depth_write),
                 targets,
+                *marked_only,
             ),
         })
     }
@@ -112,6 +131,8 @@ pub(crate) struct KBufferPipelines {
     module: wgpu::ShaderModule,
     pipeline_layout: wgpu::PipelineLayout,
     pub merge: LazyPipeline,
+    /// The merge only where a layer of the batch marked the stencil.
+    pub merge_marked: LazyPipeline,
     /// One scan into one packed layer (`fs_layer_packed`).
     pub layer: LazyPipeline,
     /// Zeroes a layer and the depth buffer inside the scissor rectangle (the
@@ -128,6 +149,9 @@ pub(crate) struct Pipelines {
     naive_module: wgpu::ShaderModule,
     scan_pipeline_layout: wgpu::PipelineLayout,
     naive_pipeline_layout: wgpu::PipelineLayout,
+    /// The renderer's depth buffer's format (`gpu::scan_depth_format`): with a
+    /// stencil where the k-buffer can merge only marked pixels.
+    pub scan_depth: wgpu::TextureFormat,
     pub prepass: LazyPipeline,
     pub layer: LazyPipeline,
     /// `None` on a device without storage buffers in fragment shaders.
@@ -205,8 +229,13 @@ fn primitive() -> wgpu::PrimitiveState {
 
 /// Reverse z: nearer is greater; on equal depth the first drawn (lower scan id) stays.
 pub(crate) fn depth_state() -> Option<wgpu::DepthStencilState> {
+    depth_state_for(DEPTH_FORMAT)
+}
+
+/// [`depth_state`] for a depth buffer of `format`.
+fn depth_state_for(format: wgpu::TextureFormat) -> Option<wgpu::DepthStencilState> {
     Some(wgpu::DepthStencilState {
-        format: DEPTH_FORMAT,
+        format,
         depth_write_enabled: Some(true),
         depth_compare: Some(wgpu::CompareFunction::Greater),
         stencil: wgpu::StencilState::default(),
@@ -279,6 +308,8 @@ impl Pipelines {
             })
         };
         let scan_pipeline_layout = layout("scan", &[Some(&frame_layout), Some(&scan_layout)]);
+        let scan_depth = super::scan_depth_format(device);
+        let marks = super::marks_supported(device);
         let naive_pipeline_layout = layout("composite naive", &[Some(&naive_layout)]);
         let scan_module = module(device, "scan.wgsl", shaders::SCAN);
         let naive_module = module(device, "composite_naive.wgsl", shaders::COMPOSITE_NAIVE);
@@ -291,6 +322,8 @@ impl Pipelines {
                     label,
                     fragment_entry,
                     targets,
+                    depth_format: scan_depth,
+                    marks: false,
                 },
             )
         };
@@ -301,7 +334,7 @@ impl Pipelines {
             vec![replace(LAYER_COLOUR_FORMAT), replace(LAYER_DATA_FORMAT)],
         );
         let kbuffer = (device.limits().max_storage_buffers_per_shader_stage > 0)
-            .then(|| KBufferPipelines::new(device, &scan_pipeline_layout, &scan_module));
+            .then(|| KBufferPipelines::new(device, &scan_pipeline_layout, &scan_module, marks));
         Self {
             frame_layout,
             scan_layout,
@@ -311,6 +344,7 @@ impl Pipelines {
             naive_module,
             scan_pipeline_layout,
             naive_pipeline_layout,
+            scan_depth,
             prepass,
             layer,
             kbuffer,
@@ -319,11 +353,14 @@ impl Pipelines {
 }
 
 impl KBufferPipelines {
+    /// `marks`: the device can merge only marked pixels (`gpu::marks_supported`).
     fn new(
         device: &wgpu::Device,
         scan_pipeline_layout: &wgpu::PipelineLayout,
         scan_module: &wgpu::ShaderModule,
+        marks: bool,
     ) -> Self {
+        let depth_format = super::scan_depth_format(device);
         let fs = wgpu::ShaderStages::FRAGMENT;
         let mf = fs;
         let merge_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
@@ -353,7 +390,10 @@ impl KBufferPipelines {
         };
         let merge_pipeline_layout = layout("merge", &merge_layout);
         let pipeline_layout = layout("composite k-buffer", &composite_layout);
-        let merge_module = module(device, "merge.wgsl", shaders::MERGE);
+        let merge_module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("merge.wgsl"),
+            source: wgpu::ShaderSource::Wgsl(shaders::merge_source(marks).into()),
+        });
         let module = module(device, "composite_kbuffer.wgsl", shaders::COMPOSITE_KBUFFER);
         let clear_layer = LazyPipeline::new(
             device,
@@ -371,21 +411,30 @@ impl KBufferPipelines {
                 fragment_entry: "fs_clear_layer",
                 depth_write: true,
                 targets: vec![replace(LAYER_DATA_FORMAT)],
+                depth_format,
+                marked_only: false,
             },
         );
-        let merge = LazyPipeline::new(
-            device,
-            // No colour output: the pass needs an attachment, so it takes the depth
-            // buffer without writing it.
-            Recipe::OverDepth {
-                layout: merge_pipeline_layout,
-                module: merge_module,
-                label: "merge (fragment)",
-                fragment_entry: "fs_merge",
-                depth_write: false,
-                targets: Vec::new(),
-            },
-        );
+        let merge_with = |marked_only| {
+            LazyPipeline::new(
+                device,
+                // No colour output: the pass needs an attachment, so it takes the depth
+                // buffer without writing it.
+                Recipe::OverDepth {
+                    layout: merge_pipeline_layout.clone(),
+                    module: merge_module.clone(),
+                    label: "merge (fragment)",
+                    fragment_entry: "fs_merge",
+                    depth_write: false,
+                    targets: Vec::new(),
+                    depth_format,
+                    marked_only,
+                },
+            )
+        };
+        let merge = merge_with(false);
+        // Where the device cannot mark pixels, the same as `merge` (and never used).
+        let merge_marked = merge_with(marks);
         let layer = LazyPipeline::new(
             device,
             Recipe::Scan {
@@ -394,6 +443,8 @@ impl KBufferPipelines {
                 label: "packed layer",
                 fragment_entry: "fs_layer_packed",
                 targets: vec![replace(LAYER_DATA_FORMAT)],
+                depth_format,
+                marks,
             },
         );
         Self {
@@ -402,6 +453,7 @@ impl KBufferPipelines {
             module,
             pipeline_layout,
             merge,
+            merge_marked,
             layer,
             clear_layer,
         }
@@ -420,6 +472,8 @@ impl OutputPipelines {
                     label: "painter",
                     fragment_entry: "fs_painter",
                     targets: vec![replace(format)],
+                    depth_format: pipelines.scan_depth,
+                    marks: false,
                 },
             ),
             composite_kbuffer: pipelines.kbuffer.as_ref().map(|k| {
@@ -452,11 +506,27 @@ fn over_depth_pipeline(
     device: &wgpu::Device,
     layout: &wgpu::PipelineLayout,
     module: &wgpu::ShaderModule,
-    label: &str,
-    fragment_entry: &str,
-    depth_write: bool,
+    (label, fragment_entry): (&str, &str),
+    (depth_format, depth_write): (wgpu::TextureFormat, bool),
     targets: &[Option<wgpu::ColorTargetState>],
+    marked_only: bool,
 ) -> wgpu::RenderPipeline {
+    let stencil = if marked_only {
+        let face = wgpu::StencilFaceState {
+            compare: wgpu::CompareFunction::Equal,
+            fail_op: wgpu::StencilOperation::Keep,
+            depth_fail_op: wgpu::StencilOperation::Keep,
+            pass_op: wgpu::StencilOperation::Keep,
+        };
+        wgpu::StencilState {
+            front: face,
+            back: face,
+            read_mask: 0xFF,
+            write_mask: 0,
+        }
+    } else {
+        wgpu::StencilState::default()
+    };
     device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
         label: Some(label),
         layout: Some(layout),
@@ -468,10 +538,10 @@ fn over_depth_pipeline(
         },
         primitive: wgpu::PrimitiveState::default(),
         depth_stencil: Some(wgpu::DepthStencilState {
-            format: DEPTH_FORMAT,
+            format: depth_format,
             depth_write_enabled: Some(depth_write),
             depth_compare: Some(wgpu::CompareFunction::Always),
-            stencil: wgpu::StencilState::default(),
+            stencil,
             bias: wgpu::DepthBiasState::default(),
         }),
         multisample: wgpu::MultisampleState::default(),
@@ -490,10 +560,26 @@ fn scan_render_pipeline(
     device: &wgpu::Device,
     layout: &wgpu::PipelineLayout,
     module: &wgpu::ShaderModule,
-    label: &str,
-    fragment_entry: &str,
+    (label, fragment_entry): (&str, &str),
     targets: &[Option<wgpu::ColorTargetState>],
+    depth_format: wgpu::TextureFormat,
+    marks: bool,
 ) -> wgpu::RenderPipeline {
+    let mut depth_stencil = depth_state_for(depth_format);
+    if let Some(d) = depth_stencil.as_mut().filter(|_| marks) {
+        let face = wgpu::StencilFaceState {
+            compare: wgpu::CompareFunction::Always,
+            fail_op: wgpu::StencilOperation::Keep,
+            depth_fail_op: wgpu::StencilOperation::Keep,
+            pass_op: wgpu::StencilOperation::Replace,
+        };
+        d.stencil = wgpu::StencilState {
+            front: face,
+            back: face,
+            read_mask: 0xFF,
+            write_mask: 0xFF,
+        };
+    }
     device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
         label: Some(label),
         layout: Some(layout),
@@ -508,7 +594,7 @@ fn scan_render_pipeline(
             })],
         },
         primitive: primitive(),
-        depth_stencil: depth_state(),
+        depth_stencil,
         multisample: wgpu::MultisampleState::default(),
         fragment: Some(wgpu::FragmentState {
             module,

@@ -36,6 +36,22 @@ pub fn modules() -> [(&'static str, String); 10] {
     ]
 }
 
+/// The merge's entry point as `merge.wgsl` declares it, and with its fragment tests
+/// (the stencil marks) forced before the shader, which writes storage: the
+/// attribute needs a device feature (`gpu::MARK_FEATURES`), so it is added only there.
+const MERGE_ENTRY: &str = "@fragment\nfn fs_merge(";
+const MERGE_ENTRY_EARLY_TESTS: &str = "@fragment\n@early_depth_test(force)\nfn fs_merge(";
+
+/// `merge.wgsl`'s full source, with the fragment tests forced early when `early_tests`.
+pub fn merge_source(early_tests: bool) -> String {
+    let s = source(MERGE);
+    if early_tests {
+        s.replace(MERGE_ENTRY, MERGE_ENTRY_EARLY_TESTS)
+    } else {
+        s
+    }
+}
+
 /// The full source of a module: the common part, then the module's own.
 pub fn source(own: &str) -> String {
     format!("{COMMON}\n{own}")

@@ -8,7 +8,7 @@
 //! - **naive layers** (the baseline): one layer per visible scan, `4 + n·20` bytes per
 //!   pixel.
 
-use super::{DEPTH_FORMAT, LAYER_COLOUR_FORMAT, LAYER_DATA_FORMAT};
+use super::{LAYER_COLOUR_FORMAT, LAYER_DATA_FORMAT};
 
 /// Bytes per pixel of one per-scan layer (colour Rgba8 + data Rgba32Uint).
 pub const LAYER_BYTES_PER_PIXEL: u64 = 4 + 16;
@@ -141,7 +141,13 @@ pub(crate) struct DepthTarget {
 }
 
 impl DepthTarget {
-    pub fn new(device: &wgpu::Device, width: u32, height: u32) -> Self {
+    /// A `format` depth buffer (`gpu::scan_depth_format`).
+    pub fn new(
+        device: &wgpu::Device,
+        width: u32,
+        height: u32,
+        format: wgpu::TextureFormat,
+    ) -> Self {
         Self {
             depth: texture(
                 device,
@@ -149,7 +155,7 @@ impl DepthTarget {
                 width,
                 height,
                 1,
-                DEPTH_FORMAT,
+                format,
                 wgpu::TextureUsages::RENDER_ATTACHMENT,
                 false,
             ),
@@ -159,7 +165,17 @@ impl DepthTarget {
     }
 
     pub fn bytes(&self) -> u64 {
-        pixels(self.width, self.height) * 4
+        let stencil = if self.depth.texture.format().has_stencil_aspect() {
+            1
+        } else {
+            0
+        };
+        pixels(self.width, self.height) * (4 + stencil)
+    }
+
+    /// Whether it has a stencil (the k-buffer's marks).
+    pub fn has_stencil(&self) -> bool {
+        self.depth.texture.format().has_stencil_aspect()
     }
 }
 

@@ -55,6 +55,27 @@ impl<'a> Frame<'a> {
         })
     }
 
+    /// The depth buffer and its stencil kept after the pass, starting from `load` and
+    /// `stencil_load`: the k-buffer's layer passes mark the pixels their scans draw.
+    /// Without a stencil (`gpu::marks_supported`), the depth buffer alone.
+    pub fn depth_stencil_kept(
+        &self,
+        load: wgpu::LoadOp<f32>,
+        stencil_load: wgpu::LoadOp<u32>,
+    ) -> Option<wgpu::RenderPassDepthStencilAttachment<'a>> {
+        Some(wgpu::RenderPassDepthStencilAttachment {
+            view: &self.depth.depth.view,
+            depth_ops: Some(wgpu::Operations {
+                load,
+                store: wgpu::StoreOp::Store,
+            }),
+            stencil_ops: self.depth.has_stencil().then_some(wgpu::Operations {
+                load: stencil_load,
+                store: wgpu::StoreOp::Store,
+            }),
+        })
+    }
+
     /// Draws `ids` with the pass's pipeline, in the order given.
     pub fn draw_scans(&self, pass: &mut wgpu::RenderPass<'_>, ids: &[ScanId]) {
         pass.set_bind_group(0, self.frame_bind_group, &[]);

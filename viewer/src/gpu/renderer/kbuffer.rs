@@ -8,6 +8,11 @@
 //! A scan covers part of the screen, so each layer is cleared and drawn, and each batch
 //! merged, only inside the scans' conservative pixel rectangles (`crate::footprint`):
 //! on a software rasteriser the full-screen clears and merges were most of a frame.
+//! Within its rectangle, a batch is merged only at the pixels where one of its scans
+//! kept a fragment: the layer passes write the batch's mark into the stencil there,
+//! and the merge's stencil test, forced before its shader, skips the rest (the sky,
+//! the ground beyond a scan's view). Where the device lacks the features for it
+//! (`gpu::MARK_FEATURES`), the whole rectangle is merged, with the same result.
 
 // `web_time`: the std clock natively, the browser's in wasm (where std's panics).
 use web_time::Instant;
@@ -62,6 +67,8 @@ pub(crate) struct KBufferTargets {
     batch_slots: u32,
     merge_bind_group: wgpu::BindGroup,
     composite_bind_group: wgpu::BindGroup,
+    /// Merge only where a layer of the batch marked the stencil (`Renderer::merge_marks`).
+    pub marked: bool,
     /// Per layer: the rectangle outside which it holds no fragment (`None`: all of it
     /// is clear), so the next scan drawn into it clears only that and its own.
     dirty: Vec<Option<PixelRect>>,
@@ -187,6 +194,7 @@ impl KBufferTargets {
             merge_bind_group,
             composite_bind_group,
             dirty: vec![None; batch as usize],
+            marked: true,
         }
     }
 
@@ -409,8 +417,13 @@ pub(super) fn encode_prepass(
                 store: wgpu::StoreOp::Store,
             },
         })],
-        // Kept: the layer passes clear it only inside their rectangles.
-        depth_stencil_attachment: frame.depth_kept(depth_load),
+        // Kept: the layer passes clear it only inside their rectangles. The stencil
+        // starts at 0, which no batch's mark is.
+        depth_stencil_attachment: if first {
+            frame.depth_stencil_kept(depth_load, wgpu::LoadOp::Clear(0))
+        } else {
+            frame.depth_kept(depth_load)
+        },
         timestamp_writes: None,
         occlusion_query_set: None,
         multiview_mask: None,
@@ -448,9 +461,30 @@ pub(super) fn encode_layers(
         u64::from(offset),
         bytemuck::bytes_of(&uniform),
     );
-    for (l, scan) in chunk.iter().enumerate() {
-        encode_layer(frame, encoder, t, pipelines, l, scan);
+    if b > 0 && b.is_multiple_of(MARKS) && frame.depth.has_stencil() {
+        // The marks wrap around: start the stencil from 0 again.
+        drop(encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+            label: Some("stencil clear"),
+            color_attachments: &[],
+            depth_stencil_attachment:
+                frame.depth_stencil_kept(wgpu::LoadOp::Load, wgpu::LoadOp::Clear(0)),
+            timestamp_writes: None,
+            occlusion_query_set: None,
+            multiview_mask: None,
+        }));
     }
+    for (l, scan) in chunk.iter().enumerate() {
+        encode_layer(frame, encoder, t, pipelines, l, scan, mark(b));
+    }
+}
+
+/// Distinct stencil marks before they wrap around.
+const MARKS: usize = 255;
+
+/// Batch `b`'s stencil mark: the value its layer passes write where a scan keeps a
+/// fragment, so its merge runs only there (1 to 255; 0 is the cleared stencil).
+fn mark(b: usize) -> u32 {
+    (b % MARKS) as u32 + 1
 }
 
 /// Folds batch `b`'s layers into the k-buffer (Algorithm 2, step 3, a batch at a time).
@@ -474,7 +508,12 @@ pub(super) fn encode_merge(
         occlusion_query_set: None,
         multiview_mask: None,
     });
-    pass.set_pipeline(&pipelines.merge);
+    if t.marked && frame.depth.has_stencil() {
+        pass.set_pipeline(&pipelines.merge_marked);
+        pass.set_stencil_reference(mark(b));
+    } else {
+        pass.set_pipeline(&pipelines.merge);
+    }
     pass.set_bind_group(0, &t.merge_bind_group, &[offset]);
     // Outside the batch's rectangles no layer holds a fragment.
     let rects = chunk.iter().map(|s| s.rect);
@@ -505,18 +544,21 @@ fn encode_layer(
     pipelines: &KBufferPipelines,
     l: usize,
     scan: &Layered,
+    mark: u32,
 ) {
     let view = &t.layer_views[l];
     let Some(rect) = scan.rect else {
         let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
             label: Some("scan layer"),
             color_attachments: &[cleared(view)],
-            depth_stencil_attachment: frame.depth_attachment(),
+            depth_stencil_attachment: frame
+                .depth_stencil_kept(wgpu::LoadOp::Clear(0.0), wgpu::LoadOp::Load),
             timestamp_writes: None,
             occlusion_query_set: None,
             multiview_mask: None,
         });
         pass.set_pipeline(&pipelines.layer);
+        pass.set_stencil_reference(mark);
         frame.draw_scans(&mut pass, &[scan.id]);
         // The scan may have drawn anywhere.
         t.dirty[l] = Some(PixelRect::full(t.shape.width, t.shape.height));
@@ -526,7 +568,7 @@ fn encode_layer(
     let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
         label: Some("scan layer"),
         color_attachments: &[kept(view)],
-        depth_stencil_attachment: frame.depth_kept(wgpu::LoadOp::Load),
+        depth_stencil_attachment: frame.depth_stencil_kept(wgpu::LoadOp::Load, wgpu::LoadOp::Load),
         timestamp_writes: None,
         occlusion_query_set: None,
         multiview_mask: None,
@@ -535,6 +577,7 @@ fn encode_layer(
     pass.set_scissor_rect(clear.x, clear.y, clear.width, clear.height);
     pass.draw(0..3, 0..1);
     pass.set_pipeline(&pipelines.layer);
+    pass.set_stencil_reference(mark);
     pass.set_scissor_rect(rect.x, rect.y, rect.width, rect.height);
     frame.draw_scans(&mut pass, &[scan.id]);
     t.dirty[l] = Some(rect);

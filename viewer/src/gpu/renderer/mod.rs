@@ -198,6 +198,9 @@ pub struct Renderer {
     /// rectangle (`crate::footprint`); off, over the whole target, as before there
     /// were footprints (for `bench`: same image, more time).
     pub layer_footprints: bool,
+    /// Merge each batch only at the pixels where one of its scans kept a fragment (the
+    /// layer passes mark them in the stencil); off, over the batch's whole rectangle.
+    pub merge_marks: bool,
     /// The last frame went through the k-buffer, so its pre-pass target holds that
     /// frame's nearest scan distances.
     nearest_ready: bool,
@@ -239,6 +242,7 @@ impl Renderer {
             naive: None,
             profile_phases: false,
             layer_footprints: true,
+            merge_marks: true,
             nearest_ready: false,
             points: None,
             generation: 0,
@@ -471,7 +475,7 @@ impl Renderer {
         }
         let depth = match self.depth.take() {
             Some(d) if (d.width, d.height) == (width, height) => d,
-            _ => DepthTarget::new(&self.device, width, height),
+            _ => DepthTarget::new(&self.device, width, height, self.pipelines.scan_depth),
         };
         let depth = &*self.depth.insert(depth);
         let depth_bytes = depth.bytes();
@@ -531,6 +535,7 @@ impl Renderer {
                     shape,
                     batches,
                 )?;
+                targets.marked = self.merge_marks;
                 let layered = layered(&self.scans, &visible, camera, self.layer_footprints);
                 kbuffer::encode(
                     &frame,

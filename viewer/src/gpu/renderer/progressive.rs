@@ -122,7 +122,7 @@ impl Renderer {
         self.write_uniforms(camera, settings, format, width, &visible);
         let depth = match self.depth.take() {
             Some(d) if (d.width, d.height) == (width, height) => d,
-            _ => DepthTarget::new(&self.device, width, height),
+            _ => DepthTarget::new(&self.device, width, height, self.pipelines.scan_depth),
         };
         let depth_bytes = self.depth.insert(depth).bytes();
         let shape = KBufferShape {
@@ -141,6 +141,7 @@ impl Renderer {
             batches,
         )?;
         stats.target_memory = targets.memory(depth_bytes);
+        targets.marked = self.merge_marks;
         job.layered = layered(&self.scans, &visible, camera, self.layer_footprints);
         job.visible = visible;
         job.batch = batch as usize;
